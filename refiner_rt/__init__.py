@@ -1,0 +1,25 @@
+"""refiner-rt runtime: refine a coarse object rotation from an RGB crop with an ONNX refiner.
+
+Runtime dependencies are numpy, OpenCV, onnxruntime and click only; this package never imports torch.
+Conventions: quaternions ``wxyz`` (Hamilton), rotations object-to-camera, images ``H x W x 3`` uint8 BGR,
+boxes ``(x1, y1, x2, y2)`` pixels, angles in degrees.
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+__all__ = ["RefinerSession", "RefineResult", "quaternion", "__version__"]
+
+
+def __getattr__(name):
+    # Lazy: `import refiner_rt.quaternion` (used by training code) need not load onnxruntime.
+    if name in ("RefinerSession", "RefineResult"):
+        from refiner_rt import session
+
+        return getattr(session, name)
+    if name == "quaternion":
+        import importlib
+
+        return importlib.import_module("refiner_rt.quaternion")
+    raise AttributeError(f"module 'refiner_rt' has no attribute {name!r}")

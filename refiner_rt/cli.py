@@ -1,0 +1,70 @@
+"""The ``refiner-rt`` command line: a thin click group whose heavy subcommands import lazily.
+
+The runtime subcommands (``info``, ``bench``) need only numpy, OpenCV and onnxruntime; ``export``,
+``train``, ``render`` and ``eval`` live in the training package and are imported only when invoked,
+so ``refiner-rt --help`` and the runtime path never import torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import click
+
+from refiner_rt import __version__
+
+# name -> ("module:attribute", one-line help shown by `refiner-rt --help` without importing the module)
+LAZY_COMMANDS = {
+    "export": ("export.cli:export_cmd", "Export a checkpoint to ONNX (parity-checked against PyTorch)."),
+    "info": ("refiner_rt.info:info_cmd", "Print a model's metadata contract, inputs/outputs and size."),
+    "bench": ("refiner_rt.bench:bench_cmd", "CPU speed of the refiners (shallow vs VGG-M), full refine() path."),
+    "render": ("models.data.render_cli:render_cmd", "Render BOP-format training scenes of YCB objects on the CPU."),
+    "train": ("models.train_cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning)."),
+    "eval": ("models.eval_cli:eval_cmd", "Evaluate a checkpoint or ONNX model on a dataset's test split."),
+}
+
+
+class LazyGroup(click.Group):
+    """A click group that imports a subcommand's module only when that subcommand runs."""
+
+    def __init__(self, *args, lazy_commands: dict | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.lazy_commands = dict(lazy_commands or {})
+
+    def list_commands(self, ctx):
+        return sorted(set(super().list_commands(ctx)) | set(self.lazy_commands))
+
+    def get_command(self, ctx, cmd_name):
+        if cmd_name in self.lazy_commands:
+            target, _ = self.lazy_commands[cmd_name]
+            module_name, attr = target.split(":")
+            try:
+                module = importlib.import_module(module_name)
+            except ModuleNotFoundError as exc:
+                missing = exc.name or "a dependency"
+                raise click.ClickException(
+                    f"'refiner-rt {cmd_name}' needs {missing!r}, which is not installed; "
+                    f"install the training extra: pip install 'refiner-rt[train]'"
+                ) from exc
+            return getattr(module, attr)
+        return super().get_command(ctx, cmd_name)
+
+    def format_commands(self, ctx, formatter):
+        rows = [(name, self.lazy_commands[name][1]) for name in sorted(self.lazy_commands)]
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, lazy_commands=LAZY_COMMANDS)
+@click.version_option(__version__, prog_name="refiner-rt")
+def main():
+    """refiner-rt: fast 3D pose refinement from RGB crops.
+
+    Conventions: quaternions wxyz (scalar first), rotations object-to-camera,
+    images HxWx3 uint8 BGR, boxes (x1, y1, x2, y2) in pixels, angles in degrees.
+    """
+
+
+if __name__ == "__main__":
+    main()

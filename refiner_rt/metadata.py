@@ -1,0 +1,191 @@
+"""The ONNX model contract: graph input/output names and the ``metadata_props`` keys (design.md section 5).
+
+The exporter writes this contract with :func:`build_metadata`; the runtime reads it back with
+:func:`parse_metadata` and refuses any model whose contract it does not understand, naming the key.
+Names of graph inputs and outputs live here only, so the exporter and the runtime cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+__all__ = [
+    "FORMAT",
+    "INPUT_IMAGE",
+    "INPUT_QUATERNION",
+    "OUTPUT_QUATERNION",
+    "REQUIRED_KEYS",
+    "ModelContract",
+    "build_metadata",
+    "parse_metadata",
+]
+
+FORMAT = "refiner-rt/onnx/1"
+INPUT_IMAGE = "image"          # (batch, S, S, 3) uint8, channel order from the metadata
+INPUT_QUATERNION = "q_in"      # (batch, 4) float32, wxyz, object-to-camera (or ray frame, see rotation_frame)
+OUTPUT_QUATERNION = "q_out"    # (batch, 4) float32, wxyz, unit norm: correction, q_refined = q_in * q_out
+
+REQUIRED_KEYS = (
+    "refiner_rt.format",
+    "refiner_rt.version",
+    "arch",
+    "input_size",
+    "channel_order",
+    "crop_context",
+    "quaternion_order",
+    "rotation_frame",
+    "objects",
+    "train_noise",
+    "checkpoint_sha256",
+)
+
+CHANNEL_ORDERS = ("BGR", "RGB")
+ROTATION_FRAMES = ("camera", "ray")
+QUANTIZATIONS = ("none", "dynamic-int8", "static-qdq-int8")
+
+
+@dataclass(frozen=True)
+class ModelContract:
+    """The parsed, validated metadata of a refiner ONNX model.
+
+    Attributes:
+        arch: architecture name from the model registry (e.g. ``"shallow"``).
+        input_size: side ``S`` of the square ``S x S x 3`` uint8 crop the graph takes.
+        channel_order: ``"BGR"`` or ``"RGB"``: the order the graph's ``image`` input expects.
+        crop_context: crop-rule context factor (window side = ``max(w, h) * context``).
+        rotation_frame: ``"camera"`` (q_in in the camera frame, K unused) or ``"ray"`` (q_in in the
+            frame aligned with the viewing ray through the box centre; needs K at run time).
+        objects: YCB ids the weights were trained for.
+        train_noise: the coarse-pose noise used in training, e.g. ``"uniform:0:30"``.
+        quantization: ``"none"``, ``"dynamic-int8"`` or ``"static-qdq-int8"``.
+        checkpoint_sha256: SHA-256 of the checkpoint the model was exported from.
+        version: refiner-rt version that exported the model.
+        extra: every other metadata key, as written.
+    """
+
+    arch: str
+    input_size: int
+    channel_order: str
+    crop_context: float
+    rotation_frame: str
+    objects: tuple[str, ...]
+    train_noise: str
+    quantization: str
+    checkpoint_sha256: str
+    version: str
+    extra: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        """The contract as plain Python values (what ``RefinerSession.metadata`` returns)."""
+        return {
+            "refiner_rt.format": FORMAT,
+            "refiner_rt.version": self.version,
+            "arch": self.arch,
+            "input_size": self.input_size,
+            "channel_order": self.channel_order,
+            "crop_context": self.crop_context,
+            "quaternion_order": "wxyz",
+            "rotation_frame": self.rotation_frame,
+            "objects": list(self.objects),
+            "train_noise": self.train_noise,
+            "quantization": self.quantization,
+            "checkpoint_sha256": self.checkpoint_sha256,
+            **self.extra,
+        }
+
+
+def build_metadata(
+    *,
+    arch: str,
+    input_size: int,
+    channel_order: str,
+    crop_context: float,
+    rotation_frame: str,
+    objects,
+    train_noise: str,
+    checkpoint_sha256: str,
+    version: str,
+    quantization: str = "none",
+    extra: dict | None = None,
+) -> dict[str, str]:
+    """The ``metadata_props`` of a refiner model as ``{key: str}``, validated by :func:`parse_metadata`."""
+    props = {
+        "refiner_rt.format": FORMAT,
+        "refiner_rt.version": str(version),
+        "arch": str(arch),
+        "input_size": str(int(input_size)),
+        "channel_order": str(channel_order),
+        "crop_context": repr(float(crop_context)),
+        "quaternion_order": "wxyz",
+        "rotation_frame": str(rotation_frame),
+        "objects": json.dumps(list(objects)),
+        "train_noise": str(train_noise),
+        "checkpoint_sha256": str(checkpoint_sha256),
+        "quantization": str(quantization),
+    }
+    for k, v in (extra or {}).items():
+        props[str(k)] = v if isinstance(v, str) else json.dumps(v)
+    parse_metadata(props)
+    return props
+
+
+def parse_metadata(props: dict[str, str]) -> ModelContract:
+    """Validate ``metadata_props`` and return the :class:`ModelContract`.
+
+    Raises:
+        ValueError: a required key is missing, or a key holds a value this runtime does not
+            understand; the message names the key, what was expected and what was found.
+    """
+    missing = [k for k in REQUIRED_KEYS if k not in props]
+    if missing:
+        raise ValueError(
+            f"model metadata is missing required key(s) {missing}: not a refiner-rt model, or exported by "
+            f"an incompatible tool (expected keys {list(REQUIRED_KEYS)})"
+        )
+    if props["refiner_rt.format"] != FORMAT:
+        raise ValueError(
+            f"model metadata key 'refiner_rt.format' is {props['refiner_rt.format']!r}; this runtime understands {FORMAT!r}"
+        )
+    if props["quaternion_order"] != "wxyz":
+        raise ValueError(f"model metadata key 'quaternion_order' is {props['quaternion_order']!r}; expected 'wxyz'")
+    try:
+        input_size = int(props["input_size"])
+    except ValueError:
+        raise ValueError(f"model metadata key 'input_size' must be a positive integer; got {props['input_size']!r}") from None
+    if input_size <= 0:
+        raise ValueError(f"model metadata key 'input_size' must be a positive integer; got {input_size}")
+    if props["channel_order"] not in CHANNEL_ORDERS:
+        raise ValueError(f"model metadata key 'channel_order' must be one of {CHANNEL_ORDERS}; got {props['channel_order']!r}")
+    try:
+        context = float(props["crop_context"])
+    except ValueError:
+        raise ValueError(f"model metadata key 'crop_context' must be a number >= 1; got {props['crop_context']!r}") from None
+    if not context >= 1.0:
+        raise ValueError(f"model metadata key 'crop_context' must be a number >= 1; got {context}")
+    if props["rotation_frame"] not in ROTATION_FRAMES:
+        raise ValueError(f"model metadata key 'rotation_frame' must be one of {ROTATION_FRAMES}; got {props['rotation_frame']!r}")
+    try:
+        objects = json.loads(props["objects"])
+    except json.JSONDecodeError:
+        objects = None
+    if not isinstance(objects, list) or not all(isinstance(o, str) for o in objects):
+        raise ValueError(f"model metadata key 'objects' must be a JSON list of YCB id strings; got {props['objects']!r}")
+    quantization = props.get("quantization", "none")
+    if quantization not in QUANTIZATIONS:
+        raise ValueError(f"model metadata key 'quantization' must be one of {QUANTIZATIONS}; got {quantization!r}")
+    known = set(REQUIRED_KEYS) | {"quantization"}
+    extra = {k: v for k, v in props.items() if k not in known}
+    return ModelContract(
+        arch=props["arch"],
+        input_size=input_size,
+        channel_order=props["channel_order"],
+        crop_context=context,
+        rotation_frame=props["rotation_frame"],
+        objects=tuple(objects),
+        train_noise=props["train_noise"],
+        quantization=quantization,
+        checkpoint_sha256=props["checkpoint_sha256"],
+        version=props["refiner_rt.version"],
+        extra=extra,
+    )

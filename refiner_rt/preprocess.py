@@ -1,0 +1,192 @@
+"""The crop rule: the single source of truth for turning (image, box) into a network input.
+
+Training (``models/``) and the runtime (:class:`refiner_rt.RefinerSession`) both call these
+functions, so a crop seen at run time is produced exactly as the crops the network was trained on.
+
+Rule (design.md section 2): a square window centred on the box centre with side
+``max(w, h) * context``, resampled to ``size x size`` in one affine warp (bilinear), parts outside
+the image filled with zeros.
+
+Conventions:
+    * images are ``H x W x 3`` ``uint8`` (any channel order: the pixels are only moved, never mixed
+      across channels; the runtime passes BGR);
+    * boxes are ``(x1, y1, x2, y2)`` in pixels, float, continuous coordinates: pixel ``i`` covers
+      ``[i, i + 1)``, so a box ``(0, 0, W, H)`` is the whole image.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "DEFAULT_CONTEXT",
+    "crop_window",
+    "crop_matrix",
+    "crop_to_square",
+    "crop_batch",
+    "resize_crop",
+    "validate_image",
+    "validate_boxes",
+]
+
+DEFAULT_CONTEXT = 1.2
+
+
+def validate_image(image, name: str = "image") -> np.ndarray:
+    """Check an ``H x W x 3`` ``uint8`` image and return it (C-contiguous, no copy when already so).
+
+    Raises:
+        TypeError: not a numpy array.
+        ValueError: wrong dtype, number of dimensions or channels, or an empty image.
+    """
+    if not isinstance(image, np.ndarray):
+        raise TypeError(f"{name} must be a numpy array of shape (H, W, 3), dtype uint8, BGR; got {type(image).__name__}")
+    if image.dtype != np.uint8:
+        raise ValueError(f"{name} must have dtype uint8 (H x W x 3, BGR); got dtype {image.dtype}")
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"{name} must have shape (H, W, 3) with 3 colour channels (BGR); got shape {image.shape}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"{name} must not be empty; got shape {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str = "boxes") -> np.ndarray:
+    """Check ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels and return them as float64.
+
+    Args:
+        boxes: array-like ``(N, 4)`` (or a single ``(4,)`` box, returned as ``(1, 4)``).
+        image_shape: ``(H, W, ...)``; when given, each box must overlap the image.
+        name: argument name used in error messages.
+
+    Raises:
+        ValueError: wrong shape, non-finite values, empty boxes (``x2 <= x1`` or ``y2 <= y1``), or
+            boxes entirely outside the image.
+    """
+    arr = np.asarray(boxes)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must be numeric (N, 4) boxes (x1, y1, x2, y2) in pixels; got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if arr.ndim == 1 and arr.shape[0] == 4:
+        arr = arr[None]
+    if arr.ndim != 2 or arr.shape[1] != 4:
+        raise ValueError(f"{name} must have shape (N, 4) as (x1, y1, x2, y2) in pixels; got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        i = int(np.argwhere(~np.isfinite(arr).all(axis=1))[0, 0])
+        raise ValueError(f"{name}[{i}] must be finite; got {arr[i].tolist()}")
+    empty = (arr[:, 2] <= arr[:, 0]) | (arr[:, 3] <= arr[:, 1])
+    if np.any(empty):
+        i = int(np.argmax(empty))
+        raise ValueError(
+            f"{name}[{i}] is empty: expected x2 > x1 and y2 > y1 (xyxy pixels); got {arr[i].tolist()}"
+        )
+    if image_shape is not None:
+        h, w = int(image_shape[0]), int(image_shape[1])
+        outside = (arr[:, 2] <= 0) | (arr[:, 3] <= 0) | (arr[:, 0] >= w) | (arr[:, 1] >= h)
+        if np.any(outside):
+            i = int(np.argmax(outside))
+            raise ValueError(
+                f"{name}[{i}] lies entirely outside the {w}x{h} image: expected a box overlapping "
+                f"[0, {w}) x [0, {h}); got {arr[i].tolist()}"
+            )
+    return arr
+
+
+def crop_window(box_xyxy, context: float = DEFAULT_CONTEXT) -> tuple[float, float, float]:
+    """Square crop window of one box: ``(cx, cy, side)`` in continuous pixel coordinates.
+
+    Args:
+        box_xyxy: ``(x1, y1, x2, y2)`` in pixels.
+        context: side = ``max(w, h) * context``.
+    """
+    x1, y1, x2, y2 = (float(v) for v in box_xyxy)
+    return 0.5 * (x1 + x2), 0.5 * (y1 + y2), max(x2 - x1, y2 - y1) * float(context)
+
+
+def crop_matrix(box_xyxy, size: int, context: float = DEFAULT_CONTEXT) -> np.ndarray:
+    """2x3 affine matrix mapping output pixel indices to source pixel indices (OpenCV convention).
+
+    Pixel index ``u`` of the ``size x size`` output has its centre at continuous ``u + 0.5``; it
+    samples the source at continuous ``x0 + (u + 0.5) * side / size``, i.e. source index
+    ``x0 + (u + 0.5) * scale - 0.5``. Use with ``cv2.WARP_INVERSE_MAP``.
+
+    Args:
+        box_xyxy: ``(x1, y1, x2, y2)`` in pixels.
+        size: output side ``S`` in pixels.
+        context: window side = ``max(w, h) * context``.
+
+    Returns:
+        ``(2, 3)`` float64 matrix ``M`` with ``src = M @ (u, v, 1)``.
+    """
+    cx, cy, side = crop_window(box_xyxy, context)
+    scale = side / size
+    x0, y0 = cx - 0.5 * side, cy - 0.5 * side
+    return np.array(
+        [[scale, 0.0, x0 + 0.5 * scale - 0.5], [0.0, scale, y0 + 0.5 * scale - 0.5]], dtype=np.float64
+    )
+
+
+def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None) -> np.ndarray:
+    """Cut one box out of an image by the crop rule.
+
+    Args:
+        image: ``H x W x 3`` ``uint8`` (channel order preserved).
+        box_xyxy: ``(x1, y1, x2, y2)`` in pixels, continuous coordinates.
+        size: output side ``S``.
+        context: window side = ``max(w, h) * context``.
+        out: optional preallocated ``S x S x 3`` ``uint8`` C-contiguous array to write into.
+
+    Returns:
+        ``S x S x 3`` ``uint8`` crop, zeros where the window leaves the image.
+    """
+    m = crop_matrix(box_xyxy, size, context)
+    return cv2.warpAffine(
+        image,
+        m,
+        (size, size),
+        dst=out,
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(0, 0, 0),
+    )
+
+
+def crop_batch(image: np.ndarray, boxes_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None) -> np.ndarray:
+    """Cut ``N`` boxes out of one image: one ``cv2.warpAffine`` per box into a ``(N, S, S, 3)`` batch.
+
+    Args:
+        image: ``H x W x 3`` ``uint8``.
+        boxes_xyxy: ``(N, 4)`` float boxes ``(x1, y1, x2, y2)`` in pixels (already validated).
+        size: output side ``S``.
+        context: window side = ``max(w, h) * context``.
+        out: optional preallocated C-contiguous ``(>= N, S, S, 3)`` ``uint8`` buffer; the first ``N``
+            entries are written and returned as a view.
+
+    Returns:
+        ``(N, S, S, 3)`` ``uint8``.
+    """
+    n = len(boxes_xyxy)
+    if out is None:
+        out = np.empty((n, size, size, 3), dtype=np.uint8)
+    batch = out[:n]
+    for i in range(n):
+        crop_to_square(image, boxes_xyxy[i], size, context, out=batch[i])
+    return batch
+
+
+def resize_crop(crop: np.ndarray, size: int, out=None) -> np.ndarray:
+    """Resample an already cut-out crop to ``S x S`` with the crop rule's warp.
+
+    The crop is treated as the crop window itself (``context = 1``, box = the whole crop); a
+    non-square crop keeps its aspect ratio and is padded with zeros on the short side.
+
+    Args:
+        crop: ``h x w x 3`` ``uint8``.
+        size: output side ``S``.
+        out: optional preallocated ``S x S x 3`` ``uint8`` array.
+
+    Returns:
+        ``S x S x 3`` ``uint8``.
+    """
+    h, w = crop.shape[:2]
+    return crop_to_square(crop, (0.0, 0.0, float(w), float(h)), size, context=1.0, out=out)
