@@ -1,0 +1,156 @@
+"""RefinerSession against closed-form test models (tests/onnx_fixtures.py) and SciPy's Rotation."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import onnx_fixtures as fx
+from refiner_rt import RefinerSession
+from refiner_rt import quaternion as rq
+from refiner_rt.preprocess import crop_to_square, resize_crop
+from refiner_rt.session import ray_quaternions
+
+RNG = np.random.default_rng(0)
+IMG = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+BOXES = np.array([[5.0, 6.0, 25.0, 30.0], [30.5, 10.0, 60.0, 40.0], [-4.0, 20.0, 10.0, 47.0]])
+
+
+def scipy_q(q_wxyz):
+    return Rotation.from_quat(rq.to_xyzw(q_wxyz))
+
+
+def test_composition_is_q_in_times_q_out_checked_with_scipy():
+    q_out = rq.from_axis_angle([0.2, -0.4, 0.9], 17.0)
+    sess = RefinerSession(fx.constant_model(q_out))
+    q_in = rq.from_xyzw(Rotation.random(3, random_state=1).as_quat())
+    res = sess.refine(IMG, BOXES, q_in)
+    ref = (scipy_q(q_in) * scipy_q(q_out)).as_matrix()
+    np.testing.assert_allclose(rq.to_matrix(res.q_refined), ref, atol=1e-6)
+    assert res.q_refined.dtype == np.float64 and res.q_refined.shape == (3, 4)
+    assert np.all(res.q_refined[:, 0] >= 0)
+    np.testing.assert_allclose(np.linalg.norm(res.q_refined, axis=1), 1.0, atol=1e-12)
+
+
+def test_iterations_apply_the_correction_k_times():
+    q_out = rq.from_axis_angle([0, 0, 1], 10.0)
+    sess = RefinerSession(fx.constant_model(q_out))
+    res = sess.refine(IMG, BOXES[:1], rq.identity((1,)), iterations=3)
+    np.testing.assert_allclose(rq.geodesic_angle(res.q_refined, rq.from_axis_angle([0, 0, 1], 30.0)), 0, atol=1e-4)
+
+
+def test_crops_follow_the_crop_rule_and_channel_order():
+    sess = RefinerSession(fx.channel_mean_model(size=8))
+    res = sess.refine(IMG, BOXES, rq.identity((3,)))
+    for i, box in enumerate(BOXES):
+        crop = crop_to_square(IMG, box, 8, 1.2).astype(np.float64)
+        m = crop.mean(axis=(0, 1)) / 255.0
+        ref = np.concatenate([[1.0], m]) / np.linalg.norm(np.concatenate([[1.0], m]))
+        np.testing.assert_allclose(res.q_out[i], ref, atol=1e-5)
+    # An RGB model gets the channels reversed by the runtime.
+    rgb = RefinerSession(fx.channel_mean_model(size=8, props=fx.contract(channel_order="RGB")))
+    res_rgb = rgb.refine(IMG, BOXES, rq.identity((3,)))
+    np.testing.assert_allclose(res_rgb.q_out[:, 1:], res.q_out[:, [3, 2, 1]], atol=1e-6)
+
+
+def test_refine_crops_matches_refine_on_cut_out_windows():
+    sess = RefinerSession(fx.channel_mean_model(size=8))
+    crop16 = crop_to_square(IMG, BOXES[0], 16, 1.2)
+    res = sess.refine_crops([crop16, crop_to_square(IMG, BOXES[0], 8, 1.2)], rq.identity((2,)))
+    ref = sess.refine_crops(resize_crop(crop16, 8)[None], rq.identity((1,)))
+    np.testing.assert_allclose(res.q_out[0], ref.q_out[0], atol=1e-6)
+    assert res.q_refined.shape == (2, 4)
+
+
+def test_ray_frame_model_gets_q_in_relative_to_the_viewing_ray():
+    K = np.array([[500.0, 0, 31.5], [0, 500.0, 23.5], [0, 0, 1]])
+    sess = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
+    q_in = rq.from_xyzw(Rotation.random(3, random_state=2).as_quat())
+    res = sess.refine(IMG, BOXES, q_in, K=K)
+    q_ray = ray_quaternions(K, BOXES)
+    # the echo model returns what it was given: q_ray^-1 * q_in
+    np.testing.assert_allclose(rq.geodesic_angle(res.q_out, rq.multiply(rq.inverse(q_ray), q_in)), 0, atol=1e-4)
+    # and the refined rotation is still q_in * q_out
+    np.testing.assert_allclose(rq.geodesic_angle(res.q_refined, rq.multiply(q_in, res.q_out)), 0, atol=1e-6)
+    with pytest.raises(ValueError, match="K is required"):
+        sess.refine(IMG, BOXES, q_in)
+
+
+def test_ray_quaternion_points_the_optical_axis_along_the_ray():
+    K = np.array([[600.0, 0, 320], [0, 610.0, 240], [0, 0, 1]])
+    boxes = np.array([[0.0, 0, 40, 40], [300.5, 220.5, 340.5, 260.5], [600, 400, 640, 480]])
+    q = ray_quaternions(K, boxes)
+    centres = np.stack([(boxes[:, 0] + boxes[:, 2]) / 2 - 0.5, (boxes[:, 1] + boxes[:, 3]) / 2 - 0.5, np.ones(3)], 1)
+    d = centres @ np.linalg.inv(K).T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    np.testing.assert_allclose(rq.to_matrix(q) @ [0, 0, 1], d, atol=1e-12)
+    np.testing.assert_allclose(rq.geodesic_angle(q[1], rq.identity()), 0.0, atol=1e-9)  # central box: no rotation
+
+
+def test_non_unit_q_in_is_normalised():
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    res = sess.refine(IMG, BOXES[:1], [[2.0, 0, 0, 0]])
+    np.testing.assert_allclose(res.q_refined, [[1, 0, 0, 0]])
+
+
+def test_empty_batch_returns_empty_result():
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    res = sess.refine(IMG, np.zeros((0, 4)), np.zeros((0, 4)))
+    assert res.q_refined.shape == (0, 4) and len(res) == 0
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(image_bgr=IMG.astype(np.float32)), "image_bgr must have dtype uint8"),
+        (dict(image_bgr=IMG[..., :2]), r"image_bgr must have shape \(H, W, 3\)"),
+        (dict(boxes_xyxy=np.zeros((3, 5))), r"boxes_xyxy must have shape \(N, 4\)"),
+        (dict(boxes_xyxy=[[5, 5, 5, 9]] * 3), r"boxes_xyxy\[0\] is empty"),
+        (dict(boxes_xyxy=[[100, 100, 120, 120]] * 3), "outside the 64x48 image"),
+        (dict(q_in_wxyz=np.ones((2, 4))), "q_in_wxyz has 2 rotations but boxes_xyxy has 3"),
+        (dict(q_in_wxyz=np.zeros((3, 4))), "zero quaternion"),
+        (dict(q_in_wxyz=np.full((3, 4), np.nan)), "finite"),
+        (dict(q_in_wxyz=np.ones((3, 3))), r"shape \(\.\.\., 4\)"),
+        (dict(iterations=0), "iterations must be an integer >= 1"),
+        (dict(K=np.eye(2)), r"K must be a \(3, 3\)"),
+    ],
+)
+def test_bad_inputs_raise_clear_errors(kwargs, match):
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    args = dict(image_bgr=IMG, boxes_xyxy=BOXES, q_in_wxyz=rq.identity((3,)))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        sess.refine(**args)
+
+
+def test_model_without_contract_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="missing required key"):
+        RefinerSession(fx.constant_model([1, 0, 0, 0], props={}))
+    p = fx.contract()
+    p["rotation_frame"] = "world"
+    with pytest.raises(ValueError, match="'rotation_frame'"):
+        RefinerSession(fx.constant_model([1, 0, 0, 0], props=p))
+    with pytest.raises(ValueError, match="input_size=16 expects"):
+        RefinerSession(fx.constant_model([1, 0, 0, 0], size=8, props=fx.contract(input_size=16)))
+    with pytest.raises(FileNotFoundError):
+        RefinerSession(tmp_path / "missing.onnx")
+    with pytest.raises(ValueError, match="provider 'NoSuchProvider'"):
+        RefinerSession(fx.constant_model([1, 0, 0, 0]), providers=["NoSuchProvider"])
+    with pytest.raises(ValueError, match="threads"):
+        RefinerSession(fx.constant_model([1, 0, 0, 0]), threads=-1)
+
+
+def test_loads_from_path_and_reports_metadata(tmp_path):
+    path = tmp_path / "m.onnx"
+    path.write_bytes(fx.constant_model([1, 0, 0, 0]))
+    sess = RefinerSession(path, threads=1)
+    assert sess.metadata["arch"] == "test" and sess.metadata["quaternion_order"] == "wxyz"
+    assert sess.input_size == 8 and "CPUExecutionProvider" in sess.providers
+    assert "m.onnx" in repr(sess)
+
+
+def test_importing_runtime_does_not_import_torch():
+    code = "import sys, refiner_rt; from refiner_rt import RefinerSession, quaternion, cli, bench, info; assert 'torch' not in sys.modules, 'torch imported'"
+    subprocess.run([sys.executable, "-c", code], check=True)
