@@ -166,7 +166,8 @@ def write_bop_scene(split_dir: Path, scene_id: int, frames, K, size=(640, 480), 
         for inst, d in enumerate(instances):
             gt = {"cam_R_m2c": np.asarray(d["R"]).flatten().tolist(), "cam_t_m2c": np.asarray(d["t_mm"]).flatten().tolist(),
                   "obj_id": int(d["obj_id"])}
-            info = {"bbox_obj": [float(v) for v in d["bbox_obj"]], "bbox_visib": [float(v) for v in d["bbox_visib"]],
+            # bop_toolkit's calc_gt_info writes boxes as ints
+            info = {"bbox_obj": [int(v) for v in d["bbox_obj"]], "bbox_visib": [int(v) for v in d["bbox_visib"]],
                     "px_count_all": 1000, "px_count_valid": 1000, "px_count_visib": int(1000 * d["visib_fract"]),
                     "visib_fract": float(d["visib_fract"])}
             for name in d.get("drop", ()):
@@ -176,7 +177,8 @@ def write_bop_scene(split_dir: Path, scene_id: int, frames, K, size=(640, 480), 
             infos.append(info)
             x, y, w, h = d["bbox_visib"]
             bx, by, bw, bh = d["bbox_obj"]
-            truths.append(Truth(image, YCBV_CLASSES[d["obj_id"] - 1], np.asarray(d["R"]), np.asarray(d["t_mm"]) / 1000.0,
+            name = YCBV_CLASSES[d["obj_id"] - 1] if 1 <= d["obj_id"] <= len(YCBV_CLASSES) else str(d["obj_id"])
+            truths.append(Truth(image, name, np.asarray(d["R"]), np.asarray(d["t_mm"]) / 1000.0,
                                 np.array([x, y, x + w, y + h], dtype=float), np.asarray(K), f"{scene_id:06d}", im_id, inst,
                                 float(d["visib_fract"]), np.array([bx, by, bx + bw, by + bh], dtype=float)))
         scene_gt[im_id] = gts
