@@ -16,6 +16,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -102,9 +103,12 @@ def load_checkpoint(path) -> tuple[Refiner, dict]:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError... for non-checkpoints
+        # Keep torch's reason (e.g. "Unsupported global: ...") but not its advice to retry with weights_only=False.
+        found = re.search(r"Unsupported global: GLOBAL [\w.]+", str(exc))
+        reason = found.group(0) if found else ""
         raise ValueError(
-            f"{path}: not a refiner-rt checkpoint (cannot be read by torch.load(weights_only=True): "
-            f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+            f"{path}: not a refiner-rt checkpoint: torch.load(weights_only=True) cannot read it "
+            f"({type(exc).__name__}{': ' + reason if reason else ''}); a checkpoint holds only tensors and plain values"
         ) from None
     if not isinstance(ckpt, dict):
         raise ValueError(f"{path}: a checkpoint must be a dict with keys {list(_KEYS)}; got {type(ckpt).__name__}")

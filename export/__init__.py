@@ -1,0 +1,38 @@
+"""Checkpoint -> ONNX export with the refiner-rt metadata contract and an enforced parity check.
+
+    from export import export_checkpoint, export_model
+    report = export_checkpoint("ckpt.pt", "refiner.onnx")   # raises ParityError instead of writing a bad model
+    print(report.summary())
+
+See :mod:`export.onnx_export` for the graph contract and the exporter decisions (dynamo exporter, ONNX LRN,
+uint8 input in OpenCV), :mod:`export.parity` for the checks.
+"""
+
+from __future__ import annotations
+
+from export.onnx_export import (
+    DEFAULT_OPSET,
+    MIN_OPSET,
+    ExportReport,
+    ParityError,
+    build_model_metadata,
+    export_checkpoint,
+    export_model,
+    to_onnx_proto,
+)
+from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, ParityResult, check_parity
+
+__all__ = [
+    "DEFAULT_OPSET",
+    "DEFAULT_TOL",
+    "MIN_OPSET",
+    "MIN_PARITY_INPUTS",
+    "ExportReport",
+    "ParityError",
+    "ParityResult",
+    "build_model_metadata",
+    "check_parity",
+    "export_checkpoint",
+    "export_model",
+    "to_onnx_proto",
+]
