@@ -15,6 +15,7 @@ from __future__ import annotations
 from models import losses
 from models import shallow as _shallow  # noqa: F401  (registers "shallow")
 from models import vggm as _vggm  # noqa: F401  (registers "vggm")
+from models import fusion as _fusion  # noqa: F401  (registers "fusion", the project's improved refiner)
 from models.blocks import Refiner
 from models.checkpoint import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 from models.registry import build_refiner, get_refiner_class, list_refiners, register_refiner

@@ -62,7 +62,8 @@ def ray_quaternions(K, boxes_xyxy) -> np.ndarray:
     the object's rotation relative to that ray: ``q_ray_frame = q_ray^-1 * q_camera``.
 
     Args:
-        K: ``(3, 3)`` camera intrinsics (pixels), ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``.
+        K: ``(3, 3)`` camera intrinsics (pixels), ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, or
+            ``(N, 3, 3)``, one per box.
         boxes_xyxy: ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels.
 
     Returns:
@@ -75,7 +76,7 @@ def ray_quaternions(K, boxes_xyxy) -> np.ndarray:
     u = 0.5 * (boxes[:, 0] + boxes[:, 2]) - 0.5
     v = 0.5 * (boxes[:, 1] + boxes[:, 3]) - 0.5
     pts = np.stack([u, v, np.ones_like(u)], axis=-1)
-    d = pts @ np.linalg.inv(K).T
+    d = np.einsum("...ij,...j->...i", np.linalg.inv(K), pts)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     # Half-way quaternion: q = normalize(1 + z.d, z x d) rotates z onto d (d never opposite z here).
     z = np.array([0.0, 0.0, 1.0])

@@ -1,0 +1,179 @@
+"""``refiner-rt eval MODEL --data DIR``: the paper's metric on a dataset's test split.
+
+MODEL is a checkpoint (``.pt``, run in PyTorch) or an exported model (``.onnx``, run through
+``refiner_rt.RefinerSession``, the deployed path). When per-object fine-tuned siblings exist
+(``<stem>.<ycb id>.pt`` / ``.onnx``, as ``refiner-rt train`` and ``refiner-rt export`` write them),
+each object is evaluated with its own network, as in the paper; ``--base-only`` turns that off.
+The split (mode, seed, sizes, objects) defaults to the one recorded in a checkpoint, so the test
+set is the one held out in training.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import click
+
+log = logging.getLogger(__name__)
+
+
+def _siblings(model: Path) -> dict[str, Path]:
+    """Per-object fine-tuned models next to ``model``: ``{ycb_id: path}``."""
+    from models.data.objects import YCBV_CLASSES
+
+    out = {}
+    for obj in YCBV_CLASSES:
+        p = model.with_name(f"{model.stem}.{obj}{model.suffix}")
+        if p.is_file():
+            out[obj] = p
+    return out
+
+
+def _load(model: Path, threads: int):
+    """``(predictor, contract dict)`` for a checkpoint or an ONNX file."""
+    from models.evaluate import onnx_predictor, torch_predictor
+
+    if model.suffix == ".onnx":
+        pred = onnx_predictor(model, threads=threads)
+        meta = pred.session.metadata
+        return pred, {
+            "input_size": meta["input_size"],
+            "crop_context": meta["crop_context"],
+            "rotation_frame": meta["rotation_frame"],
+            "objects": meta["objects"],
+            "data": json.loads(meta["data"]) if "data" in meta else None,
+            "runtime": "onnxruntime",
+            "arch": meta["arch"],
+        }
+    import models
+    from models.train import set_threads
+
+    set_threads(threads)
+    net, info = models.load_checkpoint(model)
+    return torch_predictor(net), {
+        "input_size": net.input_size,
+        "crop_context": net.config["crop_context"],
+        "rotation_frame": info.get("rotation_frame", "camera"),
+        "objects": info.get("objects", []),
+        "data": info.get("data"),
+        "runtime": "torch",
+        "arch": net.arch,
+    }
+
+
+def run_eval(
+    model: Path,
+    data: Path,
+    *,
+    noise: str = "uniform:0:30",
+    resample: int = 1,
+    iterations: int = 1,
+    seed: int = 2024,
+    base_only: bool = False,
+    split_mode: str | None = None,
+    split_seed: int | None = None,
+    test_per_object: int | None = None,
+    objects: list[str] | None = None,
+    threads: int = 0,
+    cache_root: Path | None = None,
+    workers: int = 1,
+    progress: bool = True,
+) -> dict:
+    """Evaluate ``model`` on the test split of ``data``; returns the JSON-ready result (see the module doc)."""
+    from models.evaluate import evaluate_errors
+    from models.pipeline import DataSpec, cropset_for, load_splits
+
+    t0 = time.perf_counter()
+    predictor, c = _load(model, threads)
+    per_object = {} if base_only else _siblings(model)
+    recorded = c["data"] or {}
+    spec = DataSpec.from_dict({**recorded, "data": str(data)}) if recorded else DataSpec(data=str(data))
+    if split_mode:
+        spec.split_mode = split_mode
+    if split_seed is not None:
+        spec.split_seed = split_seed
+    if test_per_object:
+        spec.sizes = (*spec.sizes[:3], test_per_object)
+    if objects:
+        spec.objects = objects
+    splits = load_splits(spec)
+    test = cropset_for(splits, "test", spec, int(c["input_size"]), float(c["crop_context"]),
+                       cache_root=cache_root, workers=workers, progress=progress)
+    if per_object:
+        preds = {obj: _load(p, threads)[0] for obj, p in per_object.items() if obj in test.objects}
+        for obj in test.objects:
+            preds.setdefault(obj, predictor)
+        predictor_used = preds
+    else:
+        predictor_used = predictor
+    errors = evaluate_errors(predictor_used, test, noise, seed=seed, resample=resample, iterations=iterations,
+                             rotation_frame=c["rotation_frame"])
+    summary = errors.summary()
+    return {
+        **summary,
+        "model": str(model),
+        "arch": c["arch"],
+        "runtime": c["runtime"],
+        "per_object_models": {k: str(v) for k, v in per_object.items() if k in test.objects},
+        "rotation_frame": c["rotation_frame"],
+        "data": spec.as_dict(),
+        "split_mode": spec.split_mode,
+        "noise": noise,
+        "resample": resample,
+        "iterations": iterations,
+        "seed": seed,
+        "eval_s": time.perf_counter() - t0,
+    }
+
+
+@click.command("eval")
+@click.argument("model", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--data", required=True, type=click.Path(exists=True, file_okay=False, path_type=Path), help="Dataset folder (BOP split or YCB-Video root).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the result as JSON.")
+@click.option("--markdown", "md_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the table as Markdown.")
+@click.option("--noise", default="uniform:0:30", show_default=True, help="Coarse-pose noise of the test inputs (uniform:LOW:HIGH or normal:MEAN:STD, degrees).")
+@click.option("--resample", default=1, show_default=True, type=click.IntRange(1), help="Coarse poses per test image (the paper's over-fitting test).")
+@click.option("--iterations", default=1, show_default=True, type=click.IntRange(1), help="Refinement iterations (beyond the paper).")
+@click.option("--seed", default=2024, show_default=True, type=int, help="Seed of the test coarse poses.")
+@click.option("--base-only", is_flag=True, help="Ignore per-object fine-tuned siblings of MODEL.")
+@click.option("--split-mode", type=click.Choice(["frames", "scenes"]), help="Override the split recorded in the checkpoint.")
+@click.option("--split-seed", type=int, help="Override the split seed.")
+@click.option("--test-per-object", type=click.IntRange(1), help="Override the test size per object.")
+@click.option("--objects", help="Comma-separated YCB ids (default: the model's).")
+@click.option("--threads", default=0, show_default=True, type=click.IntRange(0), help="Threads (0: all cores).")
+@click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed, base_only, split_mode, split_seed,
+             test_per_object, objects, threads, cache_root, workers, quiet):
+    """Evaluate MODEL (.pt checkpoint or .onnx) on the test split: per-object mean/std geodesic error (degrees)."""
+    from models.metrics import format_markdown, format_table
+    from models.noise import NoiseSpec
+
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    try:
+        noise = str(NoiseSpec.parse(noise))
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--noise") from None
+    obj_list = [o.strip() for o in objects.split(",")] if objects else None
+    try:
+        result = run_eval(model, data, noise=noise, resample=resample, iterations=iterations, seed=seed, base_only=base_only,
+                          split_mode=split_mode, split_seed=split_seed, test_per_object=test_per_object, objects=obj_list,
+                          threads=threads, cache_root=cache_root, workers=workers, progress=not quiet)
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    result["command"] = "refiner-rt " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    title = (f"{model.name} ({result['arch']}, {result['runtime']}), split {result['split_mode']}, noise {noise}, "
+             f"resample {resample}, iterations {iterations}; errors in degrees")
+    click.echo(format_table(result, title))
+    if json_path:
+        json_path.write_text(json.dumps(result, indent=2))
+        click.echo(f"Wrote {json_path}")
+    if md_path:
+        md_path.write_text(f"{title}\n\n{format_markdown(result)}\n")
+        click.echo(f"Wrote {md_path}")

@@ -1,0 +1,164 @@
+"""From a dataset folder to CropSets: format detection, loading, the per-object split and the crop caches.
+
+Shared by ``refiner-rt train`` and ``refiner-rt eval`` so that both see the same split of the same
+data (same seed, sizes and mode) and the same crops (the crop cache, built by the shared crop rule).
+
+Conventions: rotations object-to-camera, quaternions ``wxyz``, crops BGR uint8, boxes xyxy pixels.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from models.cropset import CropSet
+from refiner_rt.session import ray_quaternions
+
+__all__ = ["DataSpec", "detect_format", "load_samples", "load_splits", "cropset_for", "PARTS"]
+
+log = logging.getLogger(__name__)
+
+PARTS = ("train_base", "train_finetune", "val", "test")
+
+
+@dataclass
+class DataSpec:
+    """Which data and which split: everything needed to rebuild the same CropSets elsewhere.
+
+    Attributes:
+        data: dataset folder (a BOP split folder holding scene folders, or a YCB-Video root).
+        fmt: ``"bop"``, ``"ycbv"`` or ``"auto"`` (detected from the layout).
+        objects: YCB ids to use, or None for the paper's nine objects.
+        split_mode: ``"frames"`` (paper) or ``"scenes"`` (whole scenes held out).
+        split_seed: seed of the split.
+        sizes: per-object ``(train_base, train_finetune, val, test)``; the paper's ``(3000, 2000, 3000, 3000)``.
+        min_visib: minimum visible fraction of an instance.
+        min_box_size: minimum longer box side in pixels.
+        image_set: YCB-Video image set name or file (YCB-Video only).
+    """
+
+    data: str
+    fmt: str = "auto"
+    objects: list[str] | None = None
+    split_mode: str = "frames"
+    split_seed: int = 0
+    sizes: tuple[int, int, int, int] = (3000, 2000, 3000, 3000)
+    min_visib: float = 0.3
+    min_box_size: float = 16.0
+    image_set: str | None = None
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["sizes"] = list(self.sizes)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DataSpec":
+        d = dict(d)
+        d["sizes"] = tuple(d.get("sizes", (3000, 2000, 3000, 3000)))
+        return cls(**d)
+
+
+def detect_format(data: Path) -> str:
+    """``"ycbv"`` for a YCB-Video root (``data/`` + ``image_sets/``), ``"bop"`` for a folder of BOP scenes.
+
+    Raises:
+        FileNotFoundError: the folder does not exist.
+        ValueError: neither layout is recognised (the message says what was looked for).
+    """
+    data = Path(data)
+    if not data.is_dir():
+        raise FileNotFoundError(f"dataset folder not found: {data}")
+    if (data / "data").is_dir() and (data / "image_sets").is_dir():
+        return "ycbv"
+    if any((p / "scene_gt.json").is_file() for p in data.iterdir() if p.is_dir()):
+        return "bop"
+    raise ValueError(
+        f"{data}: not a dataset: expected a YCB-Video root (data/ and image_sets/) or a BOP split "
+        "folder with scene folders holding scene_gt.json"
+    )
+
+
+def load_samples(spec: DataSpec) -> list:
+    """The samples of ``spec.data`` (filtered by objects, visibility and box size)."""
+    from models.data import PAPER_OBJECTS, filter_samples, load_bop, load_ycbv
+
+    fmt = detect_format(Path(spec.data)) if spec.fmt == "auto" else spec.fmt
+    objects = list(spec.objects) if spec.objects else list(PAPER_OBJECTS)
+    if fmt == "bop":
+        samples = load_bop(spec.data, objects=objects, min_visib=spec.min_visib, min_box_size=spec.min_box_size)
+    elif fmt == "ycbv":
+        samples = load_ycbv(spec.data, image_set=spec.image_set, objects=objects)
+        samples = filter_samples(samples, min_visib=spec.min_visib, min_box_size=spec.min_box_size)
+    else:
+        raise ValueError(f"format must be 'bop', 'ycbv' or 'auto'; got {spec.fmt!r}")
+    if not samples:
+        raise ValueError(f"{spec.data}: no samples of {objects} with visib_fract >= {spec.min_visib}")
+    return samples
+
+
+def load_splits(spec: DataSpec):
+    """Load and split ``spec.data``; returns :class:`models.data.Splits`."""
+    from models.data import SplitSizes, make_splits
+
+    samples = load_samples(spec)
+    base, fine, val, test = spec.sizes
+    sizes = SplitSizes(train_base=base, train_finetune=fine, val=val, test=test)
+    return make_splits(samples, mode=spec.split_mode, sizes=sizes, seed=spec.split_seed)
+
+
+def _cache_dir(spec: DataSpec, part: str, size: int, context: float, cache_root: Path | None) -> Path:
+    key = json.dumps({**spec.as_dict(), "part": part, "size": size, "context": context}, sort_keys=True)
+    tag = hashlib.sha1(key.encode()).hexdigest()[:10]
+    root = Path(cache_root) if cache_root else Path(spec.data) / ".crops"
+    return root / f"{spec.split_mode}_{part}_{size}_{tag}"
+
+
+def cropset_for(
+    splits,
+    part: str,
+    spec: DataSpec,
+    size: int,
+    context: float,
+    *,
+    cache_root: Path | None = None,
+    workers: int = 1,
+    progress: bool = True,
+    obj_id: str | None = None,
+) -> CropSet:
+    """The CropSet of one split part (optionally one object), through the crop cache.
+
+    Args:
+        splits: the :class:`models.data.Splits` of ``spec``.
+        part: one of :data:`PARTS`.
+        spec: the data spec (names the cache folder).
+        size: crop side ``S`` (the model's ``input_size``).
+        context: crop-rule context (the model's ``crop_context``).
+        cache_root: where caches live (default ``<data>/.crops``).
+        workers: processes that build the cache.
+        progress: progress bar while building.
+        obj_id: only this object's samples.
+    """
+    from models.data import CropCache
+
+    if part not in PARTS:
+        raise ValueError(f"part must be one of {PARTS}; got {part!r}")
+    samples = getattr(splits, part)
+    if not samples:
+        raise ValueError(f"split part {part!r} is empty (mode {spec.split_mode!r}, sizes {spec.sizes})")
+    cache = CropCache.build_or_load(
+        samples, size, _cache_dir(spec, part, size, context, cache_root), context=context, workers=workers, progress=progress
+    )
+    cs = CropSet(
+        crops=cache.crops,
+        q_gt=cache.q_gt,
+        obj_ids=cache.obj_ids,
+        q_ray=ray_quaternions(cache.K, cache.boxes_xyxy),
+        scene_ids=np.asarray(cache.scene_ids),
+    )
+    return cs if obj_id is None else cs.for_object(obj_id)

@@ -1,0 +1,335 @@
+"""The training loop: the paper's recipe (MSE to the label, then the geodesic loss; Adam) on CropSets.
+
+Paper (Jain & Dellaert, section "Training"): coarse inputs ``q_in = q_gt * q_noise`` with a fresh
+``q_noise`` every epoch, label ``q_noise^-1``; MSE for the first 5 epochs then the geodesic angle
+``2 * atan2(|v|, |w|)`` of ``q_out * q_label^-1`` for 10 more; Adam. Beyond the paper: a learning-rate
+schedule (constant, or cosine decay with linear warm-up), optional crop augmentation (colour
+jitter, a box jitter that imitates a detector), the viewing-ray rotation frame, best-epoch
+selection on validation, resumable state and data-parallel training under ``torchrun``.
+
+Conventions: quaternions ``wxyz``, object-to-camera; crops ``(N, S, S, 3)`` uint8 BGR; angles in degrees.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from models.cropset import CropSet
+from models.losses import geodesic_loss
+from models.noise import NoiseSpec, perturb
+from refiner_rt import quaternion as rq
+
+__all__ = ["TrainConfig", "TrainResult", "train_refiner", "predict", "set_threads"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    """Hyper-parameters of one training stage (base training or one object's fine-tuning).
+
+    Attributes:
+        epochs_mse: epochs with the MSE loss to the label (paper: 5).
+        epochs_geodesic: epochs with the geodesic loss after those (paper: 10).
+        batch_size: samples per optimisation step.
+        lr: Adam learning rate (peak rate for the cosine schedule).
+        lr_schedule: ``"constant"`` (paper) or ``"cosine"`` (linear warm-up, cosine decay to ``lr * lr_min_ratio``).
+        warmup_epochs: warm-up length for ``"cosine"`` (fractional epochs allowed).
+        lr_min_ratio: final learning rate as a fraction of ``lr`` for ``"cosine"``.
+        weight_decay: Adam weight decay (L2).
+        noise: coarse-pose noise, e.g. ``"uniform:0:30"`` (degrees).
+        rotation_frame: ``"camera"`` (paper) or ``"ray"`` (rotation relative to the viewing ray).
+        augment: colour jitter + box jitter on the crops (off in the paper presets).
+        box_jitter: with ``augment``, maximum shift of the crop centre and change of its side, as a
+            fraction of the side.
+        seed: seed of the noise, shuffling and augmentation.
+        val_seed: seed of the fixed validation noise (the same inputs every epoch).
+        max_steps_per_epoch: cap on optimisation steps per epoch (0 = one full pass).
+    """
+
+    epochs_mse: int = 5
+    epochs_geodesic: int = 10
+    batch_size: int = 64
+    lr: float = 1e-4
+    lr_schedule: str = "constant"
+    warmup_epochs: float = 1.0
+    lr_min_ratio: float = 0.01
+    weight_decay: float = 0.0
+    noise: str = "uniform:0:30"
+    rotation_frame: str = "camera"
+    augment: bool = False
+    box_jitter: float = 0.05
+    seed: int = 0
+    val_seed: int = 12345
+    max_steps_per_epoch: int = 0
+
+    def __post_init__(self):
+        NoiseSpec.parse(self.noise)
+        if self.epochs_mse < 0 or self.epochs_geodesic < 0 or self.epochs_mse + self.epochs_geodesic == 0:
+            raise ValueError(
+                f"epochs must be >= 0 with at least one in total; got epochs_mse={self.epochs_mse}, epochs_geodesic={self.epochs_geodesic}"
+            )
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1; got {self.batch_size}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be > 0; got {self.lr}")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'cosine'; got {self.lr_schedule!r}")
+        if self.rotation_frame not in ("camera", "ray"):
+            raise ValueError(f"rotation_frame must be 'camera' or 'ray'; got {self.rotation_frame!r}")
+
+    @property
+    def epochs(self) -> int:
+        return self.epochs_mse + self.epochs_geodesic
+
+
+@dataclass
+class TrainResult:
+    """Outcome of :func:`train_refiner`.
+
+    Attributes:
+        model: the model with the best validation epoch's weights loaded.
+        best_epoch: 1-based epoch with the lowest validation mean error (the last epoch without validation data).
+        best_val_deg: that epoch's validation mean geodesic error (degrees), NaN without validation data.
+        history: one dict per epoch: ``epoch``, ``loss_kind``, ``train_loss``, ``val_mean_deg``,
+            ``val_median_deg``, ``lr``, ``samples_per_s``, ``seconds``.
+    """
+
+    model: torch.nn.Module
+    best_epoch: int
+    best_val_deg: float
+    history: list[dict] = field(default_factory=list)
+
+
+def set_threads(threads: int | None) -> int:
+    """Set torch's intra-op threads (``None``/0 = every available core) and return the count."""
+    if not threads:
+        try:
+            threads = len(os.sched_getaffinity(0))
+        except AttributeError:
+            threads = os.cpu_count() or 1
+    torch.set_num_threads(int(threads))
+    return int(threads)
+
+
+def _distributed() -> tuple[int, int]:
+    """(rank, world_size) when running under torchrun with an initialised process group, else (0, 1)."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+def _lr_at(cfg: TrainConfig, progress_epochs: float) -> float:
+    if cfg.lr_schedule == "constant":
+        return cfg.lr
+    if progress_epochs < cfg.warmup_epochs:
+        return cfg.lr * max(progress_epochs / max(cfg.warmup_epochs, 1e-9), 0.01)
+    span = max(cfg.epochs - cfg.warmup_epochs, 1e-9)
+    t = min((progress_epochs - cfg.warmup_epochs) / span, 1.0)
+    return cfg.lr * (cfg.lr_min_ratio + (1 - cfg.lr_min_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def _augment(images: torch.Tensor, cfg: TrainConfig, gen: torch.Generator) -> torch.Tensor:
+    """Colour jitter and a detector-like box jitter on a uint8 NHWC batch; returns uint8 NHWC."""
+    n = images.shape[0]
+    x = images.permute(0, 3, 1, 2).float()
+    # Box jitter: shift the crop centre and scale its side by up to box_jitter (one affine resample).
+    j = cfg.box_jitter
+    scale = 1 + (torch.rand(n, generator=gen) * 2 - 1) * j
+    shift = (torch.rand(n, 2, generator=gen) * 2 - 1) * j * 2  # affine_grid units: the side is 2
+    theta = torch.zeros(n, 2, 3)
+    theta[:, 0, 0] = scale
+    theta[:, 1, 1] = scale
+    theta[:, :, 2] = shift
+    grid = F.affine_grid(theta, list(x.shape), align_corners=False)
+    x = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    # Colour: brightness, contrast and per-channel gain.
+    brightness = (torch.rand(n, 1, 1, 1, generator=gen) * 2 - 1) * 25
+    contrast = 1 + (torch.rand(n, 1, 1, 1, generator=gen) * 2 - 1) * 0.2
+    gain = 1 + (torch.rand(n, 3, 1, 1, generator=gen) * 2 - 1) * 0.1
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = ((x - mean) * contrast + mean) * gain + brightness
+    return x.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).contiguous()
+
+
+@torch.no_grad()
+def predict(model: torch.nn.Module, crops: np.ndarray, q_in: np.ndarray, batch_size: int = 256) -> np.ndarray:
+    """Run a PyTorch refiner on crops: ``(N, S, S, 3)`` uint8 BGR and ``(N, 4)`` wxyz in, ``(N, 4)`` float64 q_out."""
+    model.eval()
+    out = []
+    for i in range(0, len(crops), batch_size):
+        img = torch.from_numpy(np.array(crops[i : i + batch_size]))  # a writable copy (crops may be a read-only memmap)
+        q = torch.from_numpy(q_in[i : i + batch_size].astype(np.float32))
+        out.append(model(img, q).double().numpy())
+    return np.concatenate(out) if out else np.zeros((0, 4))
+
+
+def validation_errors(model, val: CropSet, cfg: TrainConfig) -> np.ndarray:
+    """Geodesic errors (degrees) of ``q_in * q_out`` on ``val`` with fixed-seed noise (same inputs every epoch)."""
+    q_gt = val.q_gt_in(cfg.rotation_frame)
+    q_in, _ = perturb(q_gt, NoiseSpec.parse(cfg.noise), np.random.default_rng(cfg.val_seed))
+    q_out = predict(model, val.crops, q_in)
+    return rq.geodesic_angle(rq.multiply(q_in, q_out), q_gt)
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return None
+    try:
+        from tqdm import tqdm
+    except ModuleNotFoundError:
+        return None
+    return tqdm(total=total, desc=desc, unit="sample", unit_scale=True, dynamic_ncols=True, leave=False)
+
+
+def train_refiner(
+    model: torch.nn.Module,
+    train: CropSet,
+    val: CropSet | None,
+    cfg: TrainConfig,
+    *,
+    state_path: Path | None = None,
+    log_path: Path | None = None,
+    progress: bool = True,
+    desc: str = "train",
+) -> TrainResult:
+    """Train ``model`` on ``train`` with the paper's recipe and keep the best validation epoch.
+
+    Args:
+        model: a refiner from ``models.build_refiner`` (forward(image uint8 NHWC, q_in wxyz) -> q_out).
+        train: training crops; a fresh coarse pose is drawn for every sample in every epoch.
+        val: validation crops (fixed noise), or None (then the last epoch is kept).
+        cfg: the stage's hyper-parameters.
+        state_path: if given, the full training state (weights, optimiser, epoch, history, RNG) is
+            written there after every epoch, and training resumes from it when it exists.
+        log_path: if given, the epoch history is written there as JSON Lines after every epoch.
+        progress: show a progress bar with loss, samples/s and ETA (rank 0 only).
+        desc: label of the progress bar and log lines.
+
+    Returns:
+        :class:`TrainResult`. Under ``torchrun`` every rank trains on its shard of each batch
+        (gradients averaged by DDP) and all ranks return identical weights.
+    """
+    if len(train) == 0:
+        raise ValueError("the training CropSet is empty")
+    if train.input_size != model.input_size:
+        raise ValueError(f"crops are {train.input_size} px but the model takes {model.input_size} px")
+    rank, world = _distributed()
+    noise = NoiseSpec.parse(cfg.noise)
+    q_gt_all = train.q_gt_in(cfg.rotation_frame)
+    net = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    history: list[dict] = []
+    best = (math.inf, 0, copy.deepcopy(model.state_dict()))
+    start_epoch = 0
+    rng = np.random.default_rng(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed + 1)
+
+    if state_path is not None and Path(state_path).exists():
+        state = torch.load(state_path, map_location="cpu", weights_only=True)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        history = state["history"]
+        best = (state["best_val"], state["best_epoch"], state["best_state"])
+        start_epoch = state["epoch"]
+        rng.bit_generator.state = state["rng"]
+        gen.set_state(state["gen"])
+        log.info("%s: resumed from %s at epoch %d", desc, state_path, start_epoch)
+
+    n = len(train)
+    steps_per_epoch = math.ceil(n / cfg.batch_size)
+    if cfg.max_steps_per_epoch:
+        steps_per_epoch = min(steps_per_epoch, cfg.max_steps_per_epoch)
+    for epoch in range(start_epoch, cfg.epochs):
+        loss_kind = "mse" if epoch < cfg.epochs_mse else "geodesic"
+        model.train()
+        perm = rng.permutation(n)
+        q_in_all, label_all = perturb(q_gt_all, noise, rng)
+        t0 = time.perf_counter()
+        total_loss, seen = 0.0, 0
+        bar = _progress(steps_per_epoch * cfg.batch_size, f"{desc} {epoch + 1}/{cfg.epochs} ({loss_kind})", progress and rank == 0)
+        for step in range(steps_per_epoch):
+            idx = np.sort(perm[step * cfg.batch_size : (step + 1) * cfg.batch_size])
+            if world > 1:
+                idx = idx[rank::world]
+            lr = _lr_at(cfg, epoch + step / steps_per_epoch)
+            for g in opt.param_groups:
+                g["lr"] = lr
+            images = torch.from_numpy(np.ascontiguousarray(train.crops[idx]))
+            if cfg.augment:
+                images = _augment(images, cfg, gen)
+            q_in = torch.from_numpy(q_in_all[idx].astype(np.float32))
+            label = torch.from_numpy(label_all[idx].astype(np.float32))
+            q_out = net(images, q_in)
+            loss = F.mse_loss(q_out, label) if loss_kind == "mse" else geodesic_loss(q_out, label)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total_loss += loss.item() * len(idx)
+            seen += len(idx)
+            if bar is not None:
+                bar.update(len(idx) * world)
+                bar.set_postfix(loss=f"{total_loss / seen:.4f}", lr=f"{lr:.1e}")
+        if bar is not None:
+            bar.close()
+        seconds = time.perf_counter() - t0
+        row = {
+            "stage": desc,
+            "epoch": epoch + 1,
+            "loss_kind": loss_kind,
+            "train_loss": total_loss / max(seen, 1),
+            "lr": lr,
+            "samples_per_s": seen * world / seconds,
+            "seconds": seconds,
+            "val_mean_deg": float("nan"),
+            "val_median_deg": float("nan"),
+        }
+        if val is not None and len(val):
+            err = validation_errors(model, val, cfg)
+            row["val_mean_deg"], row["val_median_deg"] = float(err.mean()), float(np.median(err))
+            if row["val_mean_deg"] < best[0]:
+                best = (row["val_mean_deg"], epoch + 1, copy.deepcopy(model.state_dict()))
+        else:
+            best = (float("nan"), epoch + 1, copy.deepcopy(model.state_dict()))
+        history.append(row)
+        if rank == 0:
+            log.info(
+                "%s epoch %d/%d %s loss %.4f val %.2f deg (median %.2f) %.0f samples/s",
+                desc, epoch + 1, cfg.epochs, loss_kind, row["train_loss"], row["val_mean_deg"], row["val_median_deg"], row["samples_per_s"],
+            )
+            if log_path is not None:
+                with open(log_path, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+            if state_path is not None:
+                tmp = Path(str(state_path) + ".tmp")
+                torch.save(
+                    {
+                        "model": model.state_dict(),
+                        "optimizer": opt.state_dict(),
+                        "history": history,
+                        "best_val": best[0],
+                        "best_epoch": best[1],
+                        "best_state": best[2],
+                        "epoch": epoch + 1,
+                        "rng": rng.bit_generator.state,
+                        "gen": gen.get_state(),
+                        "config": asdict(cfg),
+                    },
+                    tmp,
+                )
+                os.replace(tmp, state_path)
+    model.load_state_dict(best[2])
+    return TrainResult(model=model, best_epoch=best[1], best_val_deg=best[0], history=history)

@@ -1,0 +1,254 @@
+"""``refiner-rt train``: base training on all objects, then per-object fine-tuning, as in the paper.
+
+Outputs, next to ``--out CKPT`` (e.g. ``runs/shallow.pt``):
+    * ``CKPT``: the base network (all objects);
+    * ``<stem>.<ycb id>.pt``: one fine-tuned network per object (unless ``--per-object 0``);
+    * ``<stem>.log.jsonl`` / ``<stem>.log.csv``: every epoch of every stage (loss, validation error,
+      learning rate, samples/s);
+    * ``<stem>.png``: loss and validation-error curves;
+    * ``<stem>.state/``: resumable training state (used by ``--resume``).
+
+Runs data-parallel under ``torchrun --nproc_per_node N`` (PyTorch DDP; gloo on CPU, nccl on GPUs).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import click
+
+log = logging.getLogger(__name__)
+
+PAPER_SIZES = (3000, 2000, 3000, 3000)
+
+
+def _noise(ctx, param, value):
+    from models.noise import NoiseSpec
+
+    try:
+        return str(NoiseSpec.parse(value))
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def _objects(ctx, param, value):
+    if not value:
+        return None
+    from models.data.objects import YCBV_CLASSES
+
+    ids = [v.strip() for v in value.split(",") if v.strip()]
+    unknown = [i for i in ids if i not in YCBV_CLASSES]
+    if unknown:
+        raise click.BadParameter(f"unknown YCB id(s) {unknown}; expected ids like 003_cracker_box (one of {list(YCBV_CLASSES)})")
+    return ids
+
+
+def _json_config(ctx, param, value):
+    if not value:
+        return {}
+    try:
+        cfg = json.loads(value)
+    except json.JSONDecodeError as exc:
+        raise click.BadParameter(f"expected a JSON object, e.g. '{{\"head_widths\": [512, 64]}}'; {exc}") from None
+    if not isinstance(cfg, dict):
+        raise click.BadParameter(f"expected a JSON object; got {type(cfg).__name__}")
+    return cfg
+
+
+def _init_distributed() -> tuple[int, int]:
+    """Initialise torch.distributed when launched by torchrun; returns (rank, world_size)."""
+    import torch
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    if not torch.distributed.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        torch.distributed.init_process_group(backend=backend)
+    return torch.distributed.get_rank(), world
+
+
+def write_logs(history: list[dict], stem: Path) -> None:
+    """The epoch history as CSV and a PNG of loss and validation error per stage."""
+    if not history:
+        return
+    fields = list(history[0])
+    with open(f"{stem}.log.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        w.writerows(history)
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ModuleNotFoundError:
+        log.warning("matplotlib not installed: no training plot written")
+        return
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    stages = list(dict.fromkeys(r["stage"] for r in history))
+    for stage in stages:
+        rows = [r for r in history if r["stage"] == stage]
+        ep = [r["epoch"] for r in rows]
+        alpha = 1.0 if stage == "base" else 0.5
+        ax1.plot(ep, [r["train_loss"] for r in rows], label=stage, alpha=alpha)
+        ax2.plot(ep, [r["val_mean_deg"] for r in rows], label=stage, alpha=alpha)
+    ax1.set(xlabel="epoch", ylabel="training loss (MSE, then geodesic rad)", yscale="log", title="loss")
+    ax2.set(xlabel="epoch", ylabel="validation mean error (deg)", title="validation error")
+    ax2.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(f"{stem}.png", dpi=110)
+    plt.close(fig)
+
+
+@click.command("train")
+@click.option("--data", required=True, type=click.Path(exists=True, file_okay=False, path_type=Path), help="Dataset: a BOP split folder (scene folders) or a YCB-Video root.")
+@click.option("--format", "fmt", type=click.Choice(["auto", "bop", "ycbv"]), default="auto", show_default=True, help="Dataset layout.")
+@click.option("--arch", default="shallow", show_default=True, help="Registered architecture: shallow (paper), vggm (paper), fusion (ours).")
+@click.option("--config", "arch_config", callback=_json_config, help="JSON object of architecture config overrides, e.g. '{\"head_widths\": [512, 64]}'.")
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Base checkpoint path (CKPT.pt); per-object ones go beside it.")
+@click.option("--objects", callback=_objects, help="Comma-separated YCB ids (default: the paper's nine).")
+@click.option("--base-per-object", default=PAPER_SIZES[0], show_default=True, type=click.IntRange(1), help="Base-training images per object.")
+@click.option("--per-object", default=PAPER_SIZES[1], show_default=True, type=click.IntRange(0), help="Fine-tuning images per object (0: no fine-tuning).")
+@click.option("--val-per-object", default=PAPER_SIZES[2], show_default=True, type=click.IntRange(1), help="Validation images per object.")
+@click.option("--test-per-object", default=PAPER_SIZES[3], show_default=True, type=click.IntRange(1), help="Test images per object (held out; used by eval).")
+@click.option("--split-mode", type=click.Choice(["frames", "scenes"]), default="frames", show_default=True, help="frames: paper's random frame split; scenes: whole scenes held out.")
+@click.option("--split-seed", default=0, show_default=True, type=int)
+@click.option("--min-visib", default=0.3, show_default=True, type=click.FloatRange(0, 1), help="Minimum visible fraction of an instance.")
+@click.option("--epochs-mse", default=5, show_default=True, type=click.IntRange(0), help="Epochs with the MSE loss (paper: 5).")
+@click.option("--epochs-geodesic", default=10, show_default=True, type=click.IntRange(0), help="Epochs with the geodesic loss after those (paper: 10).")
+@click.option("--ft-epochs-mse", type=click.IntRange(0), help="Fine-tuning MSE epochs (default: --epochs-mse).")
+@click.option("--ft-epochs-geodesic", type=click.IntRange(0), help="Fine-tuning geodesic epochs (default: --epochs-geodesic).")
+@click.option("--noise", default="uniform:0:30", show_default=True, callback=_noise, help="Coarse-pose noise: uniform:LOW:HIGH or normal:MEAN:STD (degrees).")
+@click.option("--lr", default=1e-4, show_default=True, type=click.FloatRange(0, min_open=True), help="Adam learning rate (base training).")
+@click.option("--ft-lr", type=click.FloatRange(0, min_open=True), help="Fine-tuning learning rate (default: --lr / 3).")
+@click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
+@click.option("--batch-size", default=64, show_default=True, type=click.IntRange(1))
+@click.option("--augment/--no-augment", default=False, show_default=True, help="Colour and detector-like box jitter (off in the paper's recipe).")
+@click.option("--rotation-frame", type=click.Choice(["camera", "ray"]), default="camera", show_default=True, help="camera: paper; ray: rotation relative to the viewing ray (needs K at run time).")
+@click.option("--max-steps-per-epoch", default=0, show_default=True, type=click.IntRange(0), help="Cap optimisation steps per epoch (0: full pass).")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of initialisation, noise and shuffling.")
+@click.option("--threads", default=0, show_default=True, type=click.IntRange(0), help="Torch threads (0: all cores, shared between torchrun ranks).")
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
+@click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run from OUT's .state folder.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def train_cmd(**opts):
+    """Train a refiner: base network on all objects, then per-object fine-tuning (the paper's recipe).
+
+    Coarse poses q_in = q_gt * q_noise are drawn afresh every epoch; the label is q_noise^-1;
+    MSE for the first epochs, then the geodesic loss; Adam. The best validation epoch is kept.
+    """
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    run_training(**opts)
+
+
+def run_training(**o) -> dict:
+    """The body of ``refiner-rt train`` (callable from Python with the same option names)."""
+    import copy
+
+    import torch
+
+    import models
+    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.train import TrainConfig, set_threads, train_refiner
+
+    rank, world = _init_distributed()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    set_threads(o["threads"] or max(1, cores // world))
+    out: Path = o["out"]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stem = out.with_suffix("")
+    state_dir = Path(f"{stem}.state")
+    if rank == 0:
+        state_dir.mkdir(exist_ok=True)
+    if not o["resume"] and rank == 0:
+        for p in list(state_dir.glob("*.pt")) + [Path(f"{stem}.log.jsonl")]:
+            p.unlink(missing_ok=True)
+
+    spec = DataSpec(
+        data=str(o["data"]),
+        fmt=o["fmt"],
+        objects=o["objects"],
+        split_mode=o["split_mode"],
+        split_seed=o["split_seed"],
+        sizes=(o["base_per_object"], max(o["per_object"], 0), o["val_per_object"], o["test_per_object"]),
+        min_visib=o["min_visib"],
+    )
+    t_start = time.perf_counter()
+    splits = load_splits(spec)
+    torch.manual_seed(o["seed"])
+    try:
+        model = models.build_refiner(o["arch"], **o["arch_config"])
+    except (KeyError, ValueError) as exc:
+        raise click.BadParameter(str(exc), param_hint="--arch/--config") from None
+    size, context = model.input_size, model.config["crop_context"]
+    progress = not o["quiet"]
+    parts = {p: cropset_for(splits, p, spec, size, context, cache_root=o["cache_root"], workers=o["workers"], progress=progress and rank == 0)
+             for p in ("train_base", "val") + (("train_finetune",) if o["per_object"] else ())}
+    base_cfg = TrainConfig(
+        epochs_mse=o["epochs_mse"],
+        epochs_geodesic=o["epochs_geodesic"],
+        batch_size=o["batch_size"],
+        lr=o["lr"],
+        lr_schedule=o["lr_schedule"],
+        noise=o["noise"],
+        rotation_frame=o["rotation_frame"],
+        augment=o["augment"],
+        seed=o["seed"],
+        max_steps_per_epoch=o["max_steps_per_epoch"],
+    )
+    log_path = Path(f"{stem}.log.jsonl") if rank == 0 else None
+    click.echo(
+        f"Training {o['arch']} ({model.num_parameters():,} parameters) on {len(parts['train_base'])} crops of "
+        f"{len(parts['train_base'].objects)} objects, split {spec.split_mode}, {world} process(es)",
+        err=True,
+    )
+    res = train_refiner(model, parts["train_base"], parts["val"], base_cfg, state_path=state_dir / "base.pt",
+                        log_path=log_path, progress=progress, desc="base")
+    info_common = {
+        "train_noise": o["noise"],
+        "rotation_frame": o["rotation_frame"],
+        "data": spec.as_dict(),
+        "split": splits.summary(),
+        "world_size": world,
+    }
+    outputs = {"base": str(out)}
+    if rank == 0:
+        models.save_checkpoint(
+            res.model, out, objects=parts["train_base"].objects, stage="base", train_config=vars(base_cfg),
+            best_epoch=res.best_epoch, val_mean_deg=res.best_val_deg, **info_common,
+        )
+        click.echo(f"base: best epoch {res.best_epoch}, validation mean error {res.best_val_deg:.2f} deg -> {out}", err=True)
+    history = list(res.history)
+    if o["per_object"]:
+        ft_cfg = copy.deepcopy(base_cfg)
+        ft_cfg.epochs_mse = o["ft_epochs_mse"] if o["ft_epochs_mse"] is not None else o["epochs_mse"]
+        ft_cfg.epochs_geodesic = o["ft_epochs_geodesic"] if o["ft_epochs_geodesic"] is not None else o["epochs_geodesic"]
+        ft_cfg.lr = o["ft_lr"] or o["lr"] / 3
+        ft_cfg.__post_init__()
+        base_state = copy.deepcopy(res.model.state_dict())
+        for obj in parts["train_finetune"].objects:
+            model.load_state_dict(base_state)
+            ft = train_refiner(model, parts["train_finetune"].for_object(obj), parts["val"].for_object(obj), ft_cfg,
+                               state_path=state_dir / f"{obj}.pt", log_path=log_path, progress=progress, desc=obj)
+            history += ft.history
+            path = Path(f"{stem}.{obj}.pt")
+            if rank == 0:
+                models.save_checkpoint(
+                    ft.model, path, objects=[obj], stage="finetune", base_checkpoint=out.name, train_config=vars(ft_cfg),
+                    best_epoch=ft.best_epoch, val_mean_deg=ft.best_val_deg, **info_common,
+                )
+                click.echo(f"{obj}: best epoch {ft.best_epoch}, validation mean error {ft.best_val_deg:.2f} deg -> {path}", err=True)
+            outputs[obj] = str(path)
+    if rank == 0:
+        write_logs(history, stem)
+        click.echo(f"Done in {time.perf_counter() - t_start:.0f} s. Logs: {stem}.log.csv, plot: {stem}.png", err=True)
+    if world > 1:
+        torch.distributed.destroy_process_group()
+    return outputs
