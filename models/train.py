@@ -130,6 +130,17 @@ def _distributed() -> tuple[int, int]:
     return 0, 1
 
 
+def _average_buffers(model: torch.nn.Module, world: int) -> None:
+    """Average floating buffers (batch-norm running statistics) over DDP ranks, so every rank holds the same model.
+
+    DDP keeps parameters identical; each rank's BN statistics, though, follow its own shard of the data.
+    """
+    for buf in model.buffers():
+        if buf.is_floating_point():
+            torch.distributed.all_reduce(buf, op=torch.distributed.ReduceOp.SUM)
+            buf.div_(world)
+
+
 def _lr_at(cfg: TrainConfig, progress_epochs: float) -> float:
     if cfg.lr_schedule == "constant":
         return cfg.lr
@@ -285,6 +296,8 @@ def train_refiner(
                 bar.set_postfix(loss=f"{total_loss / seen:.4f}", lr=f"{lr:.1e}")
         if bar is not None:
             bar.close()
+        if world > 1:
+            _average_buffers(model, world)
         seconds = time.perf_counter() - t0
         row = {
             "stage": desc,

@@ -1,0 +1,148 @@
+"""Training loop, noise specs, CropSet and metrics: behaviour on small synthetic data."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import models
+from models.cropset import CropSet
+from models.metrics import format_markdown, format_table, summarize_errors
+from models.noise import NoiseSpec, perturb
+from models.train import TrainConfig, train_refiner
+from refiner_rt import quaternion as rq
+
+TESTS = Path(__file__).parent
+
+
+def tiny_model():
+    return models.build_refiner("fusion", input_size=16, conv_channels=[4], fuse_width=16, pose_widths=[16], head_widths=[8])
+
+
+def tiny_data(n=48, seed=0):
+    rng = np.random.default_rng(seed)
+    q = rq.sample_rotation_noise(n, "uniform", 0, 90, rng)
+    crops = np.zeros((n, 16, 16, 3), np.uint8)
+    crops[:, :8] = (q[:, None, None, 1:] * 120 + 128).astype(np.uint8)  # the image shows the rotation
+    return CropSet(crops, q, np.array(["003_cracker_box", "011_banana"] * (n // 2)))
+
+
+def test_noise_spec_parse_and_perturb_labels():
+    spec = NoiseSpec.parse("uniform:0:30")
+    assert str(spec) == "uniform:0:30" and str(NoiseSpec.parse("normal:10:5")) == "normal:10:5"
+    for bad in ("uniform:0", "gauss:1:2", "uniform:a:b", "uniform:30:0"):
+        with pytest.raises(ValueError):
+            NoiseSpec.parse(bad)
+    q_gt = rq.sample_rotation_noise(500, "uniform", 0, 180, np.random.default_rng(0))
+    q_in, label = perturb(q_gt, spec, np.random.default_rng(1))
+    # q_in * label = q_gt, and the input error is the noise angle
+    np.testing.assert_allclose(rq.geodesic_angle(rq.multiply(q_in, label), q_gt), 0, atol=1e-6)
+    err = rq.geodesic_angle(q_in, q_gt)
+    assert err.max() <= 30 + 1e-9 and abs(err.mean() - 15) < 1.5
+
+
+def test_cropset_validation_and_frames():
+    data = tiny_data()
+    assert data.objects == ["003_cracker_box", "011_banana"] and data.input_size == 16
+    assert len(data.for_object("011_banana")) == 24
+    with pytest.raises(ValueError, match="no crops of object"):
+        data.for_object("035_power_drill")
+    with pytest.raises(ValueError, match="uint8"):
+        CropSet(np.zeros((2, 4, 4, 3), np.float32), np.zeros((2, 4)), ["a", "b"])
+    with pytest.raises(ValueError, match="q_gt must be"):
+        CropSet(np.zeros((2, 4, 4, 3), np.uint8), np.zeros((3, 4)), ["a", "b"])
+    with pytest.raises(ValueError, match="needs the intrinsics"):
+        data.q_gt_in("ray")
+    q_ray = rq.sample_rotation_noise(len(data), "uniform", 0, 20, np.random.default_rng(3))
+    with_ray = CropSet(data.crops, data.q_gt, data.obj_ids, q_ray=q_ray)
+    np.testing.assert_allclose(rq.geodesic_angle(rq.multiply(q_ray, with_ray.q_gt_in("ray")), data.q_gt), 0, atol=1e-6)
+
+
+def test_metrics_summary_matches_direct_computation():
+    ids = np.array(["a"] * 3 + ["b"] * 2)
+    out = np.array([1.0, 2.0, 6.0, 4.0, 12.0])
+    inp = np.array([10.0, 10.0, 10.0, 20.0, 20.0])
+    s = summarize_errors(ids, out, inp)
+    assert s["objects"]["a"]["mean_deg"] == pytest.approx(3.0)
+    assert s["objects"]["a"]["std_deg"] == pytest.approx(np.std([1, 2, 6]))
+    assert s["objects"]["b"]["under_5_deg"] == pytest.approx(0.5)
+    assert s["objects"]["b"]["under_10_deg"] == pytest.approx(0.5)
+    assert s["average"]["mean_deg"] == pytest.approx((3.0 + 8.0) / 2)  # mean over objects, as the paper
+    assert s["pooled"]["mean_deg"] == pytest.approx(out.mean())
+    assert s["average"]["input_mean_deg"] == pytest.approx(15.0)
+    assert "average" in format_table(s) and "| a |" in format_markdown(s)
+    with pytest.raises(ValueError, match="equal lengths"):
+        summarize_errors(ids, out[:2], inp)
+
+
+def test_training_reduces_loss_and_keeps_best_epoch(tmp_path):
+    torch.manual_seed(0)
+    data = tiny_data(96)
+    cfg = TrainConfig(epochs_mse=2, epochs_geodesic=6, batch_size=16, lr=3e-3, lr_schedule="cosine", warmup_epochs=0.5)
+    res = train_refiner(tiny_model(), data, data.subset(np.arange(32)), cfg, progress=False, log_path=tmp_path / "log.jsonl")
+    assert len(res.history) == 8
+    vals = [r["val_mean_deg"] for r in res.history]
+    assert res.best_val_deg == pytest.approx(min(vals)) and res.history[res.best_epoch - 1]["val_mean_deg"] == min(vals)
+    assert min(vals) < vals[0]
+    assert [r["loss_kind"] for r in res.history] == ["mse"] * 2 + ["geodesic"] * 6
+    assert len((tmp_path / "log.jsonl").read_text().splitlines()) == 8
+
+
+def test_resume_continues_where_it_stopped(tmp_path):
+    data = tiny_data()
+    state = tmp_path / "state.pt"
+    torch.manual_seed(0)
+    full = train_refiner(tiny_model(), data, data, TrainConfig(epochs_mse=1, epochs_geodesic=3, batch_size=16, lr=1e-3), progress=False)
+    torch.manual_seed(0)
+    train_refiner(tiny_model(), data, data, TrainConfig(epochs_mse=1, epochs_geodesic=1, batch_size=16, lr=1e-3),
+                  state_path=state, progress=False)
+    # "interrupted" after 2 of 4 epochs: resume with the full schedule
+    torch.manual_seed(123)  # a different init must not matter: the state holds the weights
+    resumed = train_refiner(tiny_model(), data, data, TrainConfig(epochs_mse=1, epochs_geodesic=3, batch_size=16, lr=1e-3),
+                            state_path=state, progress=False)
+    assert [r["epoch"] for r in resumed.history] == [1, 2, 3, 4]
+    for a, b in zip(full.history, resumed.history):
+        assert a["train_loss"] == pytest.approx(b["train_loss"], rel=1e-5)
+    for k, v in full.model.state_dict().items():
+        torch.testing.assert_close(v, resumed.model.state_dict()[k])
+
+
+def test_train_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="noise"):
+        TrainConfig(noise="uniform")
+    with pytest.raises(ValueError, match="lr_schedule"):
+        TrainConfig(lr_schedule="step")
+    with pytest.raises(ValueError, match="epochs"):
+        TrainConfig(epochs_mse=0, epochs_geodesic=0)
+    with pytest.raises(ValueError, match="crops are 16 px"):
+        train_refiner(models.build_refiner("fusion", input_size=32, conv_channels=[4], fuse_width=16, pose_widths=[16]),
+                      tiny_data(), None, TrainConfig(), progress=False)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_two_processes_keep_identical_weights(tmp_path):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(TESTS.parent), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+           "--master_port", str(_free_port()), str(TESTS / "ddp_worker.py"), str(tmp_path)]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    a = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    b = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    init = tiny_model().state_dict()
+    changed = False
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+        changed |= not torch.equal(a[k], init[k]) if k in init and a[k].is_floating_point() else False
+    assert changed, "training did not change the weights"
