@@ -4,14 +4,16 @@
     report = export_checkpoint("ckpt.pt", "refiner.onnx")   # raises ParityError instead of writing a bad model
     print(report.summary())
 
-See :mod:`export.onnx_export` for the graph contract and the exporter decisions (dynamo exporter, ONNX LRN,
-uint8 input in OpenCV), :mod:`export.parity` for the checks.
+See :mod:`export.onnx_export` for the graph contract and the exporter decisions (dynamo exporter, how VGG-M's
+LRN is written, uint8 input in OpenCV), :mod:`export.parity` for the checks.
 """
 
 from __future__ import annotations
 
 from export.onnx_export import (
+    DEFAULT_LRN_LOWERING,
     DEFAULT_OPSET,
+    LRN_LOWERINGS,
     MIN_OPSET,
     ExportReport,
     ParityError,
@@ -23,11 +25,13 @@ from export.onnx_export import (
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, ParityResult, check_parity
 
 __all__ = [
+    "DEFAULT_LRN_LOWERING",
     "DEFAULT_OPSET",
     "DEFAULT_TOL",
     "MIN_OPSET",
     "MIN_PARITY_INPUTS",
     "ExportReport",
+    "LRN_LOWERINGS",
     "ParityError",
     "ParityResult",
     "build_model_metadata",

@@ -1,4 +1,4 @@
-"""``refiner-rt export CKPT [-o OUT.onnx] [--opset N]``: checkpoint -> parity-checked ONNX model.
+"""``refiner-rt export CKPT [-o OUT.onnx] [--opset N] [--lrn decomposed|LRN]``: checkpoint -> parity-checked ONNX model.
 
 Registered lazily by :mod:`refiner_rt.cli` (``export.cli:export_cmd``), so torch is imported only when it runs.
 """
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from export.onnx_export import DEFAULT_OPSET, MIN_OPSET, ParityError, export_model
+from export.onnx_export import DEFAULT_LRN_LOWERING, DEFAULT_OPSET, LRN_LOWERINGS, MIN_OPSET, ParityError, export_model
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS
 from models.checkpoint import file_sha256, load_checkpoint
 
@@ -36,7 +36,15 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
     show_default=True,
     help=f"ONNX opset of the exported graph (>= {MIN_OPSET}).",
 )
-def export_cmd(checkpoint: Path, output: Path | None, opset: int) -> None:
+@click.option(
+    "--lrn",
+    type=click.Choice(sorted(LRN_LOWERINGS)),
+    default=DEFAULT_LRN_LOWERING,
+    show_default=True,
+    help="How VGG-M's local response norms are written: 'decomposed' is fastest in onnxruntime, "
+    "'LRN' (one ONNX operator) in OpenCV cv2.dnn. No effect on the shallow model.",
+)
+def export_cmd(checkpoint: Path, output: Path | None, opset: int, lrn: str) -> None:
     """Export CHECKPOINT (a refiner-rt .pt file) to a self-contained ONNX model.
 
     The graph takes image (batch, S, S, 3) uint8 NHWC in the model's channel order (BGR by default) and
@@ -65,6 +73,7 @@ def export_cmd(checkpoint: Path, output: Path | None, opset: int) -> None:
             checkpoint_sha256=file_sha256(checkpoint),
             n_parity=MIN_PARITY_INPUTS,
             tol=DEFAULT_TOL,
+            lrn=lrn,
         )
     except ParityError as exc:
         raise click.ClickException(str(exc)) from exc

@@ -127,13 +127,14 @@ class LocalResponseNorm(nn.Module):
 
     Same maths as ``nn.LocalResponseNorm`` and ONNX ``LRN``:
     ``y = x / (k + alpha / size * sum_{c' in window(c)} x_{c'}^2) ** beta``. ``nn.LocalResponseNorm`` exports
-    as a decomposed subgraph (with ``If`` nodes on some exporter paths) that OpenCV's ``cv2.dnn`` rejects;
-    while ``torch.export`` traces, this module calls the custom op ``refiner_rt::local_response_norm``
-    instead, which :mod:`export.onnx_export` translates to ``LRN``. In eager mode (training) it is
+    as whatever subgraph the exporter decomposes it into (with ``If`` nodes, which OpenCV's ``cv2.dnn``
+    rejects, on some exporter paths); while ``torch.export`` traces, this module calls the custom op
+    ``refiner_rt::local_response_norm`` instead, which :mod:`export.onnx_export` writes either as the ONNX
+    ``LRN`` operator or as a decomposition chosen for speed. In eager mode (training) it is
     ``F.local_response_norm`` with its autograd.
 
     Args:
-        size: number of neighbouring channels summed over.
+        size: number of neighbouring channels summed over (odd).
         alpha: scale (divided by ``size``, as in Caffe, PyTorch and ONNX).
         beta: exponent.
         k: additive bias.
@@ -144,6 +145,9 @@ class LocalResponseNorm(nn.Module):
 
     def __init__(self, size: int, alpha: float, beta: float, k: float):
         super().__init__()
+        if not isinstance(size, int) or size <= 0 or size % 2 == 0:
+            # PyTorch and ONNX LRN centre an even window differently; odd windows agree exactly.
+            raise ValueError(f"LocalResponseNorm size must be a positive odd int; got {size!r}")
         self.size, self.alpha, self.beta, self.k = int(size), float(alpha), float(beta), float(k)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -22,7 +22,7 @@ INFO = {"objects": ["003_cracker_box", "035_power_drill"], "train_noise": "unifo
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """Both archs (small configs) exported once: {arch: (model, report, checkpoint path or None)}."""
+    """Both archs (small configs) exported once, VGG-M with both LRN lowerings: {key: (model, report, ckpt or None)}."""
     out = {}
     torch.manual_seed(0)
     # shallow: through a checkpoint, with the default output path.
@@ -38,16 +38,18 @@ def exported(tmp_path_factory):
     report = export.export_model(model, d / "vggm.onnx", info={"rotation_frame": "ray"}, metadata_extra={"note": "test"})
     assert model.training, "export must restore the model's training mode"
     out["vggm"] = (model.eval(), report, None)
+    d = tmp_path_factory.mktemp("vggm_lrn")
+    out["vggm-LRN"] = (model, export.export_model(model, d / "vggm_lrn.onnx", lrn="LRN"), None)
     return out
 
 
-ARCHS = ["shallow", "vggm"]
+ARCHS = ["shallow", "vggm", "vggm-LRN"]
 
 
 @pytest.mark.parametrize("arch", ARCHS)
 def test_report_and_enforced_parity(exported, arch):
     model, report, _ = exported[arch]
-    assert report.path.is_file() and report.arch == arch
+    assert report.path.is_file() and report.arch == arch.split("-")[0]
     assert report.max_abs_dq <= 1e-4 and report.tol == 1e-4
     assert report.n_parity >= 64 and report.opset == export.DEFAULT_OPSET
     assert report.size_bytes == report.path.stat().st_size
@@ -76,10 +78,10 @@ def test_graph_contract_dynamic_batch_self_contained(exported, arch):
     assert io(proto.graph.output) == [(OUTPUT_QUATERNION, onnx.TensorProto.FLOAT, ["batch", 4])]
     assert all(t.data_location != onnx.TensorProto.EXTERNAL for t in proto.graph.initializer)
     assert sorted(p.name for p in report.path.parent.iterdir() if p.suffix != ".pt") == [report.path.name]
-    ops = {n.op_type for n in proto.graph.node}
+    ops = [n.op_type for n in proto.graph.node]
     assert "If" not in ops
-    if arch == "vggm":
-        assert sum(n.op_type == "LRN" for n in proto.graph.node) == 2
+    assert ops.count("LRN") == {"shallow": 0, "vggm": 0, "vggm-LRN": 2}[arch]
+    assert ops.count("Sqrt") == {"shallow": 0, "vggm": 4, "vggm-LRN": 0}[arch]
     # Any batch size runs.
     images, q = parity.random_inputs(s, 7, seed=3)
     sess = ort.InferenceSession(str(report.path), providers=["CPUExecutionProvider"])
@@ -130,6 +132,7 @@ def test_exporter_refuses_on_parity_failure(monkeypatch, tmp_path):
     ("kwargs", "match"),
     [
         ({"opset": 17}, r"opset must be an int >= 18"),
+        ({"lrn": "fast"}, r"lrn must be one of \['LRN', 'decomposed'\]"),
         ({"n_parity": 10}, r"n_parity must be at least 64"),
         ({"tol": 0.0}, r"tol must be > 0"),
         ({"metadata_extra": {"arch": "x"}}, r"must not redefine contract key\(s\) \['arch'\]"),
@@ -167,7 +170,7 @@ def test_parity_helpers():
 def test_cli_export_help():
     result = CliRunner().invoke(cli_main, ["export", "--help"])
     assert result.exit_code == 0, result.output
-    for text in ("CHECKPOINT", "--output", "--opset", "uint8", "wxyz", "1e-4"):
+    for text in ("CHECKPOINT", "--output", "--opset", "--lrn", "uint8", "wxyz", "1e-4"):
         assert text in result.output
     assert "--int8" not in result.output
 
@@ -211,3 +214,28 @@ def test_cli_export_parity_failure_exits_nonzero(monkeypatch, tmp_path):
     result = CliRunner().invoke(cli_main, ["export", str(ckpt)])
     assert result.exit_code == 1 and "refusing to write" in result.output and "0.01" in result.output
     assert not ckpt.with_suffix(".onnx").exists()
+
+
+@pytest.mark.parametrize("beta", [0.75, 0.5, 0.6])
+def test_lrn_lowerings_match_torch(tmp_path, beta):
+    """Both LRN lowerings (and the decomposition's sqrt / pow branches) equal F.local_response_norm."""
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.lrn = models.blocks.LocalResponseNorm(5, 1e-2, beta, 2.0)
+
+        def forward(self, x):
+            return self.lrn(x)
+
+    x = torch.rand(2, 11, 6, 6) * 20
+    expected = torch.nn.functional.local_response_norm(x, 5, 1e-2, beta, 2.0).numpy()
+    for name, lowering in export.LRN_LOWERINGS.items():
+        program = torch.onnx.export(
+            Net(), (x,), dynamo=True, verbose=False, input_names=["x"],
+            custom_translation_table={torch.ops.refiner_rt.local_response_norm.default: lowering},
+        )
+        path = tmp_path / f"{name}.onnx"
+        program.save(str(path))
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        np.testing.assert_allclose(sess.run(None, {"x": x.numpy()})[0], expected, rtol=1e-5, atol=1e-6, err_msg=name)
