@@ -101,9 +101,10 @@ _worker_size = 0
 _worker_context = 0.0
 
 
-def _init_worker(crops_path: str, size: int, context: float) -> None:
+def _init_worker(crops_path: str, size: int, context: float, single_thread: bool = True) -> None:
     global _worker_crops, _worker_size, _worker_context
-    cv2.setNumThreads(1)
+    if single_thread:  # worker processes only: never change the caller's OpenCV threading
+        cv2.setNumThreads(1)
     _worker_crops = np.load(crops_path, mmap_mode="r+")
     _worker_size, _worker_context = size, context
 
@@ -243,6 +244,9 @@ class CropCache:
                 size, context), e.g. ``<data>/.crops/train_base_64``.
             context: crop window side = ``max(w, h) * context`` (the model's ``crop_context``).
             workers: processes that decode and crop (``1``: in this process; ``None``: one per CPU).
+                Workers are started with ``spawn`` (safe whatever threads the caller runs), so a
+                script that asks for ``workers > 1`` must call this under
+                ``if __name__ == "__main__":``; each worker's start-up costs about a second.
             progress: show a tqdm progress bar while building.
 
         Returns:
@@ -334,7 +338,7 @@ class CropCache:
         bar = tqdm(total=n, unit="crop", desc=f"crop cache {cache_dir.name}", disable=not progress, smoothing=0.1)
         try:
             if workers == 1:
-                _init_worker(str(tmp_crops), size, context)
+                _init_worker(str(tmp_crops), size, context, single_thread=False)
                 for chunk in chunks:
                     bar.update(_crop_images(chunk))
             else:
