@@ -50,6 +50,7 @@ import logging
 import os
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -169,8 +170,7 @@ DEFAULT_LRN_LOWERING = "decomposed"
 
 
 def _custom_translations(lrn: str) -> dict:
-    import models.blocks  # noqa: F401  (registers the custom op)
-
+    # The op is registered by importing models.blocks (imported above for Refiner).
     return {torch.ops.refiner_rt.local_response_norm.default: LRN_LOWERINGS[lrn]}
 
 
@@ -207,18 +207,23 @@ def to_onnx_proto(model: Refiner, opset: int = DEFAULT_OPSET, *, lrn: str = DEFA
     was_training = model.training
     model.eval()
     try:
-        program = torch.onnx.export(
-            model,
-            (torch.from_numpy(images), torch.from_numpy(q_in)),
-            dynamo=True,
-            opset_version=opset,
-            input_names=[INPUT_IMAGE, INPUT_QUATERNION],
-            output_names=[OUTPUT_QUATERNION],
-            dynamic_shapes=({0: batch}, {0: batch}),
-            custom_translation_table=_custom_translations(lrn),
-            optimize=True,
-            verbose=False,
-        )
+        with warnings.catch_warnings():
+            # Two warnings from torch's own internals, not actionable here: the shared batch Dim *is* named
+            # "batch" in the graph, and LeafSpec is used inside torch.export.
+            warnings.filterwarnings("ignore", message=r"# The axis name: batch will not be used", category=UserWarning)
+            warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)", category=FutureWarning)
+            program = torch.onnx.export(
+                model,
+                (torch.from_numpy(images), torch.from_numpy(q_in)),
+                dynamo=True,
+                opset_version=opset,
+                input_names=[INPUT_IMAGE, INPUT_QUATERNION],
+                output_names=[OUTPUT_QUATERNION],
+                dynamic_shapes=({0: batch}, {0: batch}),
+                custom_translation_table=_custom_translations(lrn),
+                optimize=True,
+                verbose=False,
+            )
     finally:
         model.train(was_training)
     proto = program.model_proto

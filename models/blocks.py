@@ -16,7 +16,6 @@ Conventions (design.md section 2):
 from __future__ import annotations
 
 import copy
-import logging
 from collections.abc import Sequence
 
 import torch
@@ -39,8 +38,6 @@ __all__ = [
     "validate_float_triple",
     "validate_int_list",
 ]
-
-logger = logging.getLogger(__name__)
 
 # ImageNet statistics, in RGB order and [0, 1] units (torchvision's values). The model reorders them to its
 # channel_order, so a config never holds statistics in one order and pixels in another.

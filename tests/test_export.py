@@ -1,6 +1,5 @@
 """export: ONNX graph contract, metadata, parity (enforced), OpenCV cv2.dnn agreement, and `refiner-rt export`."""
 
-import cv2
 import numpy as np
 import onnx
 import onnxruntime as ort
