@@ -68,7 +68,7 @@ def read_json(path: Path) -> dict:
     if not isinstance(content, dict):
         raise ValueError(f"{path}: expected a JSON object keyed by image id; got {type(content).__name__}")
     for key in content:
-        if not key.lstrip("-").isdigit():
+        if not key.isdigit():
             raise ValueError(f"{path}: keys must be integer image ids; got key {key!r}")
     return content
 
@@ -91,11 +91,13 @@ def list_scenes(split_dir: str | os.PathLike) -> list[Path]:
 
 
 def _numbers(value, n: int, where: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=object).ravel() if isinstance(value, list) else None
-    if arr is None or arr.size != n or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in arr):
-        got = value if not isinstance(value, list) or len(value) <= 12 else f"a list of {len(value)}"
-        raise ValueError(f"{where} must be a list of {n} numbers; got {got!r}")
-    out = np.array(arr, dtype=np.float64)
+    """A JSON list of ``n`` finite numbers as float64, or a ValueError naming ``where``."""
+    ok = isinstance(value, list) and len(value) == n
+    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    if not ok:
+        got = f"a list of {len(value)}" if isinstance(value, list) and len(value) > 12 else repr(value)
+        raise ValueError(f"{where} must be a list of {n} numbers; got {got}")
+    out = np.array(value, dtype=np.float64)
     if not np.all(np.isfinite(out)):
         raise ValueError(f"{where} must be finite; got {out.tolist()}")
     return out
@@ -115,6 +117,71 @@ def _image_path(scene: Path, listing: set[str], im_id: int) -> Path:
         if name in listing:
             return scene / "rgb" / name
     raise FileNotFoundError(f"{scene / 'rgb' / f'{im_id:06d}'}.png|.jpg: missing image for im_id {im_id}")
+
+
+def _read_scene(scene: Path, id_map, wanted, box, min_visib, min_box_size, records, matrices, where_R) -> int:
+    """Append the kept instances of one scene folder to ``records``, their ``cam_R_m2c`` to
+    ``matrices`` and its file/field label to ``where_R``; return the number of invisible instances."""
+    box_field = BOX_FIELDS[box]
+    gt_path, info_path, cam_path = (scene / n for n in ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"))
+    scene_gt, scene_info, scene_cam = read_json(gt_path), read_json(info_path), read_json(cam_path)
+    listing = set(os.listdir(scene / "rgb")) if (scene / "rgb").is_dir() else set()
+    size = None  # (width, height), read from the first image used: a scene is one camera
+    n_invisible = 0
+    for key in sorted(scene_gt, key=int):
+        im_id = int(key)
+        gts = scene_gt[key]
+        if not isinstance(gts, list):
+            raise ValueError(f"{gt_path}: image {key}: expected a list of instances; got {type(gts).__name__}")
+        if key not in scene_info:
+            raise ValueError(f"{info_path}: missing image {key} (listed in {gt_path.name})")
+        infos = scene_info[key]
+        if not isinstance(infos, list) or len(infos) != len(gts):
+            got = len(infos) if isinstance(infos, list) else type(infos).__name__
+            raise ValueError(
+                f"{info_path}: image {key}: expected {len(gts)} entries, one per instance in {gt_path.name}; got {got}"
+            )
+        K = None
+        for inst, (gt, info) in enumerate(zip(gts, infos)):
+            where_gt = f"{gt_path}: image {key}, instance {inst}"
+            where_info = f"{info_path}: image {key}, instance {inst}"
+            obj = _field(gt, "obj_id", where_gt)
+            if isinstance(obj, bool) or not isinstance(obj, int) or obj not in id_map:
+                raise ValueError(f"{where_gt}: field 'obj_id' must be one of {sorted(id_map)}; got {obj!r}")
+            name = id_map[obj]
+            if wanted is not None and name not in wanted:
+                continue
+            R = _numbers(_field(gt, "cam_R_m2c", where_gt), 9, f"{where_gt}: field 'cam_R_m2c'").reshape(3, 3)
+            t = _numbers(_field(gt, "cam_t_m2c", where_gt), 3, f"{where_gt}: field 'cam_t_m2c'") / 1000.0
+            visib = _numbers([_field(info, "visib_fract", where_info)], 1, f"{where_info}: field 'visib_fract'")[0]
+            if not 0.0 <= visib <= 1.0:
+                raise ValueError(f"{where_info}: field 'visib_fract' must be in [0, 1]; got {visib}")
+            xywh_visib = _numbers(_field(info, "bbox_visib", where_info), 4, f"{where_info}: field 'bbox_visib'")
+            if visib <= 0.0 or xywh_visib[2] <= 0 or xywh_visib[3] <= 0:
+                n_invisible += 1
+                continue
+            if visib < min_visib:
+                continue
+            xywh = xywh_visib if box == "visib" else _numbers(
+                _field(info, box_field, where_info), 4, f"{where_info}: field {box_field!r}"
+            )
+            if K is None:
+                cam = scene_cam.get(key)
+                if cam is None:
+                    raise ValueError(f"{cam_path}: missing image {key} (listed in {gt_path.name})")
+                where_K = f"{cam_path}: image {key}: field 'cam_K'"
+                K = check_intrinsics(_numbers(_field(cam, "cam_K", f"{cam_path}: image {key}"), 9, where_K), where_K)
+            image = _image_path(scene, listing, im_id)
+            if size is None:
+                size = read_image_size(image)
+            xyxy = np.array([xywh[0], xywh[1], xywh[0] + xywh[2], xywh[1] + xywh[3]])
+            xyxy = check_box(xyxy, size, f"{where_info}: field {box_field!r} (as x1, y1, x2, y2)", inside=box == "visib")
+            if max(xyxy[2] - xyxy[0], xyxy[3] - xyxy[1]) < min_box_size:
+                continue
+            records.append((scene.name, im_id, inst, name, t, xyxy, K, visib, image, size))
+            matrices.append(R)
+            where_R.append(f"{where_gt}: field 'cam_R_m2c'")
+    return n_invisible
 
 
 def load_bop(
@@ -163,75 +230,13 @@ def load_bop(
     check_filter_values(min_visib, min_box_size)
     id_map = dict(BOP_YCBV_OBJ_IDS if obj_id_map is None else obj_id_map)
     wanted = validate_object_ids(objects, known=id_map.values())
-    box_field = BOX_FIELDS[box]
     split_dir = Path(split_dir).absolute()
 
-    records = []  # (scene name, im_id, instance, ycb id, R, t, box, K, visib, image path, image size)
-    matrices = []  # cam_R_m2c of each record, checked together at the end
-    where_R = []  # file and field of each matrix, for error messages
+    records, matrices, where_R = [], [], []  # one entry per kept instance; matrices checked together below
     n_invisible = 0
-    n_scenes = 0
-    for scene in list_scenes(split_dir):
-        n_scenes += 1
-        gt_path, info_path, cam_path = (scene / n for n in ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"))
-        scene_gt, scene_info, scene_cam = read_json(gt_path), read_json(info_path), read_json(cam_path)
-        listing = set(os.listdir(scene / "rgb")) if (scene / "rgb").is_dir() else set()
-        size = None
-        for key in sorted(scene_gt, key=int):
-            im_id = int(key)
-            gts = scene_gt[key]
-            if not isinstance(gts, list):
-                raise ValueError(f"{gt_path}: image {key}: expected a list of instances; got {type(gts).__name__}")
-            if key not in scene_info:
-                raise ValueError(f"{info_path}: missing image {key} (listed in {gt_path.name})")
-            infos = scene_info[key]
-            if not isinstance(infos, list) or len(infos) != len(gts):
-                got = len(infos) if isinstance(infos, list) else type(infos).__name__
-                raise ValueError(
-                    f"{info_path}: image {key}: expected {len(gts)} entries, one per instance in {gt_path.name}; got {got}"
-                )
-            K = None
-            for inst, (gt, info) in enumerate(zip(gts, infos)):
-                where_gt = f"{gt_path}: image {key}, instance {inst}"
-                where_info = f"{info_path}: image {key}, instance {inst}"
-                obj = _field(gt, "obj_id", where_gt)
-                if isinstance(obj, bool) or not isinstance(obj, int) or obj not in id_map:
-                    raise ValueError(f"{where_gt}: field 'obj_id' must be one of {sorted(id_map)}; got {obj!r}")
-                name = id_map[obj]
-                if wanted is not None and name not in wanted:
-                    continue
-                R = _numbers(_field(gt, "cam_R_m2c", where_gt), 9, f"{where_gt}: field 'cam_R_m2c'").reshape(3, 3)
-                t = _numbers(_field(gt, "cam_t_m2c", where_gt), 3, f"{where_gt}: field 'cam_t_m2c'") / 1000.0
-                visib = _numbers([_field(info, "visib_fract", where_info)], 1, f"{where_info}: field 'visib_fract'")[0]
-                if not 0.0 <= visib <= 1.0:
-                    raise ValueError(f"{where_info}: field 'visib_fract' must be in [0, 1]; got {visib}")
-                xywh_visib = _numbers(_field(info, "bbox_visib", where_info), 4, f"{where_info}: field 'bbox_visib'")
-                if visib <= 0.0 or xywh_visib[2] <= 0 or xywh_visib[3] <= 0:
-                    n_invisible += 1
-                    continue
-                if visib < min_visib:
-                    continue
-                xywh = xywh_visib if box == "visib" else _numbers(
-                    _field(info, box_field, where_info), 4, f"{where_info}: field {box_field!r}"
-                )
-                if K is None:
-                    cam = scene_cam.get(key)
-                    if cam is None:
-                        raise ValueError(f"{cam_path}: missing image {key} (listed in {gt_path.name})")
-                    K = check_intrinsics(
-                        _numbers(_field(cam, "cam_K", f"{cam_path}: image {key}"), 9, f"{cam_path}: image {key}: field 'cam_K'"),
-                        f"{cam_path}: image {key}: field 'cam_K'",
-                    )
-                image = _image_path(scene, listing, im_id)
-                if size is None:  # one decode per scene: a scene is one camera
-                    size = read_image_size(image)
-                xyxy = np.array([xywh[0], xywh[1], xywh[0] + xywh[2], xywh[1] + xywh[3]])
-                xyxy = check_box(xyxy, size, f"{where_info}: field {box_field!r} (as x1, y1, x2, y2)", inside=box == "visib")
-                if max(xyxy[2] - xyxy[0], xyxy[3] - xyxy[1]) < min_box_size:
-                    continue
-                records.append((scene.name, im_id, inst, name, t, xyxy, K, visib, image, size))
-                matrices.append(R)
-                where_R.append(f"{where_gt}: field 'cam_R_m2c'")
+    scenes = list_scenes(split_dir)
+    for scene in scenes:
+        n_invisible += _read_scene(scene, id_map, wanted, box, min_visib, min_box_size, records, matrices, where_R)
 
     if not records:
         log.warning(
@@ -254,12 +259,12 @@ def load_bop(
             visib_fract=visib,
             dataset=str(split_dir),
             instance=inst,
-            box_source=f"bop:{box_field}",
+            box_source=f"bop:{BOX_FIELDS[box]}",
         )
         for i, (scene_name, im_id, inst, name, t, xyxy, K, visib, image, size) in enumerate(records)
     ]
     log.info(
         "load_bop(%s): %d samples from %d scenes (%d invisible instances skipped)",
-        split_dir, len(samples), n_scenes, n_invisible,
+        split_dir, len(samples), len(scenes), n_invisible,
     )
     return samples

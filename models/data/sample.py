@@ -20,7 +20,7 @@ rotation is a broken file and raises instead of being repaired.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -95,7 +95,7 @@ class Sample:
     visib_fract: float | None = None
     dataset: str = ""
     instance: int = 0
-    box_source: str = field(default="")
+    box_source: str = ""
 
     def __post_init__(self):
         for name, shape in (("R", (3, 3)), ("t", (3,)), ("box_xyxy", (4,)), ("K", (3, 3))):
