@@ -231,7 +231,7 @@ def test_lrn_lowerings_match_torch(tmp_path, beta):
     expected = torch.nn.functional.local_response_norm(x, 5, 1e-2, beta, 2.0).numpy()
     for name, lowering in export.LRN_LOWERINGS.items():
         program = torch.onnx.export(
-            Net(), (x,), dynamo=True, verbose=False, input_names=["x"],
+            Net().eval(), (x,), dynamo=True, verbose=False, input_names=["x"],
             custom_translation_table={torch.ops.refiner_rt.local_response_norm.default: lowering},
         )
         path = tmp_path / f"{name}.onnx"
