@@ -86,15 +86,17 @@ def detect_format(data: Path) -> str:
 
 def load_samples(spec: DataSpec) -> list:
     """The samples of ``spec.data`` (filtered by objects, visibility and box size)."""
-    from models.data import PAPER_OBJECTS, filter_samples, load_bop, load_ycbv
+    from models.data import PAPER_OBJECTS, load_bop, load_ycbv
 
     fmt = detect_format(Path(spec.data)) if spec.fmt == "auto" else spec.fmt
     objects = list(spec.objects) if spec.objects else list(PAPER_OBJECTS)
     if fmt == "bop":
         samples = load_bop(spec.data, objects=objects, min_visib=spec.min_visib, min_box_size=spec.min_box_size)
     elif fmt == "ycbv":
-        samples = load_ycbv(spec.data, image_set=spec.image_set, objects=objects)
-        samples = filter_samples(samples, min_visib=spec.min_visib, min_box_size=spec.min_box_size)
+        # YCB-Video's native files record no visible fraction: only the box-size filter applies.
+        samples = load_ycbv(spec.data, image_set=spec.image_set, objects=objects, min_box_size=spec.min_box_size)
+        if spec.min_visib > 0:
+            log.info("YCB-Video records no visible fraction: min_visib=%g not applied", spec.min_visib)
     else:
         raise ValueError(f"format must be 'bop', 'ycbv' or 'auto'; got {spec.fmt!r}")
     if not samples:
