@@ -10,7 +10,15 @@ from pathlib import Path
 
 import click
 
-from export.onnx_export import DEFAULT_LRN_LOWERING, DEFAULT_OPSET, LRN_LOWERINGS, MIN_OPSET, ParityError, export_model
+from export.onnx_export import (
+    DEFAULT_LRN_LOWERING,
+    DEFAULT_OPSET,
+    LRN_LOWERINGS,
+    MIN_OPSET,
+    ParityError,
+    checkpoint_metadata_extra,
+    export_model,
+)
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS
 from models.checkpoint import file_sha256, load_checkpoint
 
@@ -44,7 +52,14 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
     help="How VGG-M's local response norms are written: 'decomposed' is fastest in onnxruntime, "
     "'LRN' (one ONNX operator) in OpenCV cv2.dnn. No effect on the shallow model.",
 )
-def export_cmd(checkpoint: Path, output: Path | None, opset: int, lrn: str) -> None:
+@click.option(
+    "--per-object/--no-per-object",
+    default=True,
+    show_default=True,
+    help="Also export the per-object fine-tuned siblings CKPT_STEM.<ycb id>.pt (as `refiner-rt train` writes them) "
+    "to OUT_STEM.<ycb id>.onnx.",
+)
+def export_cmd(checkpoint: Path, output: Path | None, opset: int, lrn: str, per_object: bool) -> None:
     """Export CHECKPOINT (a refiner-rt .pt file) to a self-contained ONNX model.
 
     The graph takes image (batch, S, S, 3) uint8 NHWC in the model's channel order (BGR by default) and
@@ -59,6 +74,17 @@ def export_cmd(checkpoint: Path, output: Path | None, opset: int, lrn: str) -> N
     output = output if output is not None else checkpoint.with_suffix(".onnx")
     if not output.parent.is_dir():
         raise click.BadParameter(f"directory {output.parent} does not exist", param_hint="'-o' / '--output'")
+    _export_one(checkpoint, output, opset, lrn)
+    if per_object:
+        from models.data.objects import YCBV_CLASSES
+
+        for obj in YCBV_CLASSES:
+            sibling = checkpoint.with_name(f"{checkpoint.stem}.{obj}{checkpoint.suffix}")
+            if sibling.is_file():
+                _export_one(sibling, output.with_name(f"{output.stem}.{obj}{output.suffix}"), opset, lrn)
+
+
+def _export_one(checkpoint: Path, output: Path, opset: int, lrn: str) -> None:
     try:
         model, info = load_checkpoint(checkpoint)
     except ValueError as exc:
@@ -70,6 +96,7 @@ def export_cmd(checkpoint: Path, output: Path | None, opset: int, lrn: str) -> N
             output,
             opset=opset,
             info=info,
+            metadata_extra=checkpoint_metadata_extra(info),
             checkpoint_sha256=file_sha256(checkpoint),
             n_parity=MIN_PARITY_INPUTS,
             tol=DEFAULT_TOL,

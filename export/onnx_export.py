@@ -377,6 +377,12 @@ def export_model(
     return report
 
 
+def checkpoint_metadata_extra(info: dict) -> dict | None:
+    """Extra metadata carried over from a checkpoint's info: the training data spec (``data``: dataset, split
+    mode, seed and sizes), so ``refiner-rt eval`` can rebuild the held-out test split of an exported model."""
+    return {"data": info["data"]} if isinstance(info.get("data"), dict) else None
+
+
 def export_checkpoint(
     ckpt_path,
     out_path=None,
@@ -412,6 +418,7 @@ def export_checkpoint(
         out,
         opset=opset,
         info=info,
+        metadata_extra=checkpoint_metadata_extra(info),
         checkpoint_sha256=file_sha256(ckpt_path),
         n_parity=n_parity,
         tol=tol,

@@ -12,22 +12,28 @@ uint8 NHWC in the model's channel order (BGR by default).
 
 from __future__ import annotations
 
-from models import losses
-from models import shallow as _shallow  # noqa: F401  (registers "shallow")
-from models import vggm as _vggm  # noqa: F401  (registers "vggm")
-from models import fusion as _fusion  # noqa: F401  (registers "fusion", the project's improved refiner)
-from models.blocks import Refiner
-from models.checkpoint import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
-from models.registry import build_refiner, get_refiner_class, list_refiners, register_refiner
+import importlib
 
-__all__ = [
-    "CHECKPOINT_FORMAT",
-    "Refiner",
-    "build_refiner",
-    "get_refiner_class",
-    "list_refiners",
-    "load_checkpoint",
-    "losses",
-    "register_refiner",
-    "save_checkpoint",
-]
+# Lazy: `models.data` (loaders, splits, crop cache) must import without torch, and the crop-cache worker
+# processes should not pay torch's start-up; the networks load on first use of a name below (the registry
+# imports the built-in architectures on its first lookup).
+_EXPORTS = {
+    "CHECKPOINT_FORMAT": "models.checkpoint",
+    "load_checkpoint": "models.checkpoint",
+    "save_checkpoint": "models.checkpoint",
+    "Refiner": "models.blocks",
+    "build_refiner": "models.registry",
+    "get_refiner_class": "models.registry",
+    "list_refiners": "models.registry",
+    "register_refiner": "models.registry",
+    "losses": None,
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'models' has no attribute {name!r}")
+    if _EXPORTS[name] is None:
+        return importlib.import_module(f"models.{name}")
+    return getattr(importlib.import_module(_EXPORTS[name]), name)

@@ -50,6 +50,7 @@ def get_refiner_class(arch: str) -> type[Refiner]:
     Raises:
         ValueError: unknown ``arch``; the message lists the registered names.
     """
+    _register_builtin()
     try:
         return _REGISTRY[arch]
     except (KeyError, TypeError):
@@ -58,7 +59,16 @@ def get_refiner_class(arch: str) -> type[Refiner]:
 
 def list_refiners() -> list[str]:
     """Registered architecture names, sorted."""
+    _register_builtin()
     return sorted(_REGISTRY)
+
+
+def _register_builtin() -> None:
+    # Importing an architecture's module registers it; done on first lookup so that `models` imports lazily.
+    import importlib
+
+    for module in ("models.shallow", "models.vggm", "models.fusion"):
+        importlib.import_module(module)
 
 
 def build_refiner(arch: str, **config) -> Refiner:

@@ -1,0 +1,83 @@
+"""End to end on a tiny learnable dataset: train -> export -> evaluate through the runtime.
+
+Checks that training lowers the error on its own data, that the checkpoint and the exported ONNX
+model give the same evaluation, and that the per-object fine-tuned models are found and used.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cube_dataset import make_cube_dataset
+from refiner_rt.cli import main
+
+ARCH = "fusion"
+SMALL = json.dumps({"input_size": 32, "conv_channels": [8, 8], "fuse_width": 128, "pose_widths": [32, 128], "head_widths": [64, 32]})
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("e2e")
+    data = root / "cubes"
+    make_cube_dataset(data, scenes=4, frames=30)
+    out = root / "run" / "cube.pt"
+    args = ["train", "--data", str(data), "--arch", ARCH, "--config", SMALL, "--out", str(out),
+            "--base-per-object", "80", "--per-object", "20", "--val-per-object", "10", "--test-per-object", "10",
+            "--epochs-mse", "2", "--epochs-geodesic", "40", "--ft-epochs-mse", "0", "--ft-epochs-geodesic", "2",
+            "--lr", "1e-3", "--batch-size", "32", "--threads", "1", "--quiet", "--cache", str(root / "cache")]
+    res = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    return root, data, out
+
+
+def test_training_lowers_the_error_on_training_data(trained):
+    import models
+    from models.evaluate import evaluate_errors, torch_predictor
+    from models.pipeline import DataSpec, cropset_for, load_splits
+
+    root, data, out = trained
+    model, info = models.load_checkpoint(out)
+    spec = DataSpec.from_dict(info["data"])
+    train = cropset_for(load_splits(spec), "train_base", spec, 32, 1.2, cache_root=root / "cache", progress=False)
+    s = evaluate_errors(torch_predictor(model), train, "uniform:0:30", seed=1).summary()["average"]
+    assert s["mean_deg"] < 0.8 * s["input_mean_deg"], s
+    fresh = models.build_refiner(ARCH, **json.loads(SMALL))
+    s0 = evaluate_errors(torch_predictor(fresh), train, "uniform:0:30", seed=1).summary()["average"]
+    assert s["mean_deg"] < s0["mean_deg"]
+    rows = [json.loads(line) for line in open(out.with_suffix(".log.jsonl"))]
+    base = [r for r in rows if r["stage"] == "base"]
+    assert len(base) == 42 and base[-1]["train_loss"] < base[2]["train_loss"]
+    assert out.with_suffix(".png").is_file() and out.with_suffix(".log.csv").is_file()
+
+
+def test_checkpoint_and_onnx_evaluations_agree(trained):
+    root, data, out = trained
+    runner = CliRunner()
+    res = runner.invoke(main, ["export", str(out)], catch_exceptions=False)  # also exports the per-object siblings
+    assert res.exit_code == 0, res.output
+    for obj in ("003_cracker_box", "006_mustard_bottle"):
+        assert out.with_name(f"cube.{obj}.onnx").is_file()
+    results = {}
+    for model in (out, out.with_suffix(".onnx")):
+        path = root / f"{model.suffix[1:]}.json"
+        res = runner.invoke(main, ["eval", str(model), "--data", str(data), "--json", str(path), "--quiet",
+                                   "--cache", str(root / "cache"), "--threads", "1"], catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+        assert "average" in res.output
+        results[model.suffix] = json.loads(path.read_text())
+    pt, ox = results[".pt"], results[".onnx"]
+    assert pt["runtime"] == "torch" and ox["runtime"] == "onnxruntime"
+    assert set(pt["per_object_models"]) == {"003_cracker_box", "006_mustard_bottle"}
+    assert set(ox["per_object_models"]) == set(pt["per_object_models"])
+    for obj, s in pt["objects"].items():
+        assert s["n"] == 10
+        assert ox["objects"][obj]["mean_deg"] == pytest.approx(s["mean_deg"], abs=1e-3)
+        assert ox["objects"][obj]["input_mean_deg"] == pytest.approx(s["input_mean_deg"], abs=1e-9)
+    for key in ("mean_deg", "std_deg", "input_mean_deg"):
+        assert key in pt["average"]
+    # --base-only ignores the fine-tuned siblings
+    res = runner.invoke(main, ["eval", str(out), "--data", str(data), "--base-only", "--quiet", "--json", str(root / "b.json"),
+                               "--cache", str(root / "cache"), "--threads", "1"], catch_exceptions=False)
+    assert res.exit_code == 0 and json.loads((root / "b.json").read_text())["per_object_models"] == {}
