@@ -1,4 +1,7 @@
-"""``refiner-rt export CKPT [-o OUT.onnx] [--opset N] [--lrn decomposed|LRN]``: checkpoint -> parity-checked ONNX model.
+"""``refiner-rt export CKPT [-o OUT.onnx] [--opset N] [--lrn decomposed|LRN] [--int8 [--int8-scheme S] [--calib DATA]]``.
+
+Checkpoint -> parity-checked fp32 ONNX model, and with ``--int8`` its INT8 sibling ``OUT.int8.onnx``
+(:mod:`export.quantize`: scheme, agreement bound, why dynamic is the default).
 
 Registered lazily by :mod:`refiner_rt.cli` (``export.cli:export_cmd``), so torch is imported only when it runs.
 """
@@ -20,6 +23,16 @@ from export.onnx_export import (
     export_model,
 )
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS
+from export.quantize import (
+    DEFAULT_SCHEME,
+    MAX_MAX_DEG,
+    MAX_MEAN_DEG,
+    SCHEMES,
+    QuantizationError,
+    dataset_calibration,
+    int8_path_for,
+    quantize_model,
+)
 from models.checkpoint import file_sha256, load_checkpoint
 
 __all__ = ["export_cmd"]
@@ -59,7 +72,37 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
     help="Also export the per-object fine-tuned siblings CKPT_STEM.<ycb id>.pt (as `refiner-rt train` writes them) "
     "to OUT_STEM.<ycb id>.onnx.",
 )
-def export_cmd(checkpoint: Path, output: Path | None, opset: int, lrn: str, per_object: bool) -> None:
+@click.option(
+    "--int8",
+    is_flag=True,
+    help="Also write an INT8 model OUT_STEM.int8.onnx (per-object siblings: OUT_STEM.int8.<ycb id>.onnx), quantised "
+    "from the parity-checked fp32 model; the scheme is recorded in its metadata ('quantization').",
+)
+@click.option(
+    "--int8-scheme",
+    type=click.Choice(SCHEMES),
+    default=None,
+    help=f"INT8 scheme: dynamic-int8 (MatMul/Gemm, activations quantised per call; measured fastest and closest "
+    f"to fp32) or static-qdq-int8 (calibrated activation ranges).  [default: {DEFAULT_SCHEME}, or static-qdq-int8 "
+    "with --calib]",
+)
+@click.option(
+    "--calib",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    default=None,
+    help="Dataset (BOP split folder or YCB-Video root) whose training-split crops calibrate static-qdq-int8 and, "
+    "held out, check it; implies --int8-scheme static-qdq-int8. Without it that scheme calibrates on random crops.",
+)
+def export_cmd(
+    checkpoint: Path,
+    output: Path | None,
+    opset: int,
+    lrn: str,
+    per_object: bool,
+    int8: bool,
+    int8_scheme: str | None,
+    calib: Path | None,
+) -> None:
     """Export CHECKPOINT (a refiner-rt .pt file) to a self-contained ONNX model.
 
     The graph takes image (batch, S, S, 3) uint8 NHWC in the model's channel order (BGR by default) and
@@ -68,20 +111,62 @@ def export_cmd(checkpoint: Path, output: Path | None, opset: int, lrn: str, per_
 
     Export is a test: the ONNX checker, then onnxruntime against PyTorch on
     64 fixed-seed random inputs; the model is written only if max |dq| <= 1e-4.
+
+    With --int8 the INT8 model's q_out is compared with fp32 on the same inputs
+    (geodesic difference, degrees); it is written only if the mean is <= 2 and
+    the max <= 15 degrees (on held-out dataset crops when calibrated with --calib).
     """
     for name in _NOISY_LOGGERS:
         logging.getLogger(name).setLevel(logging.ERROR)
+    if (int8_scheme or calib) and not int8:
+        raise click.BadParameter("--int8-scheme and --calib configure the INT8 model: add --int8", param_hint="'--int8'")
+    if calib is not None and int8_scheme == "dynamic-int8":
+        raise click.BadParameter(
+            "dynamic-int8 quantises activations per call and takes no calibration data; "
+            "use --int8-scheme static-qdq-int8 with --calib, or drop --calib",
+            param_hint="'--calib'",
+        )
+    scheme = int8_scheme or ("static-qdq-int8" if calib is not None else DEFAULT_SCHEME)
     output = output if output is not None else checkpoint.with_suffix(".onnx")
     if not output.parent.is_dir():
         raise click.BadParameter(f"directory {output.parent} does not exist", param_hint="'-o' / '--output'")
-    _export_one(checkpoint, output, opset, lrn)
+    # (checkpoint, fp32 output, INT8 output): per-object siblings are named so that `refiner-rt eval` finds them
+    # next to either base model (OUT.<id>.onnx beside OUT.onnx, OUT.int8.<id>.onnx beside OUT.int8.onnx).
+    int8_output = int8_path_for(output)
+    jobs = [(checkpoint, output, int8_output)]
     if per_object:
         from models.data.objects import YCBV_CLASSES
 
         for obj in YCBV_CLASSES:
             sibling = checkpoint.with_name(f"{checkpoint.stem}.{obj}{checkpoint.suffix}")
             if sibling.is_file():
-                _export_one(sibling, output.with_name(f"{output.stem}.{obj}{output.suffix}"), opset, lrn)
+                jobs.append((
+                    sibling,
+                    output.with_name(f"{output.stem}.{obj}{output.suffix}"),
+                    int8_output.with_name(f"{int8_output.stem}.{obj}{int8_output.suffix}"),
+                ))
+    for ckpt, out, out_int8 in jobs:
+        _export_one(ckpt, out, opset, lrn)
+        if int8:
+            _quantize_one(out, out_int8, scheme, calib)
+
+
+def _quantize_one(fp32: Path, out: Path, scheme: str, calib: Path | None) -> None:
+    """Write the INT8 model ``out`` from the fp32 model ``fp32`` (see :func:`export.quantize.quantize_model`)."""
+    calibration = None
+    if calib is not None:
+        from refiner_rt.session import RefinerSession
+
+        try:
+            calibration = dataset_calibration(calib, RefinerSession(fp32).contract)
+        except (FileNotFoundError, ValueError) as exc:
+            raise click.BadParameter(str(exc), param_hint="'--calib'") from exc
+    click.echo(f"quantising {fp32} ({scheme})")
+    try:
+        report = quantize_model(fp32, out, scheme=scheme, calibration=calibration)
+    except QuantizationError as exc:
+        raise click.ClickException(f"{exc} (bounds {MAX_MEAN_DEG:g} / {MAX_MAX_DEG:g} deg)") from exc
+    click.echo(report.summary())
 
 
 def _export_one(checkpoint: Path, output: Path, opset: int, lrn: str) -> None:
