@@ -3,13 +3,15 @@
 For each model, at one batch size and thread count (default batch 1, 1 thread), on the bench's synthetic
 640x480 BGR frame:
 
-1. **Overhead**: ``refine()`` and a bare ``InferenceSession.run`` on the same session with the same,
-   already-cropped feed, timed interleaved (alternating blocks, so machine drift hits both); medians.
-   ``outside run = p50(refine) - p50(run)``: crop, validation, casts and quaternion composition.
-2. **onnxruntime profiler**: the same session options with ``enable_profiling``; the median ``model_run``
-   event (time inside onnxruntime) and the operators that take the most kernel time.
-3. **cProfile** of ``refine()``: the Python functions outside ``session.run``, per call (cProfile inflates
-   Python time, so read it for the ranking, and step 1 for the amount).
+1. **Overhead in the loop**: ``refine()`` and a bare ``InferenceSession.run`` on the same session with the
+   same, already-cropped feed, alternating call by call (so both see the same cache and machine state);
+   medians. ``outside run = p50(refine) - p50(run)``: crop, validation, casts, quaternion composition, and
+   the cache misses they take after the network has streamed its weights through the caches.
+2. **Overhead with warm caches**: the same for a constant-output model with the same input size and
+   contract (the network does no work, so nothing evicts the Python side): what the Python code itself costs.
+3. **onnxruntime profiler**: the operators that take the most kernel time (the profiler adds a cost per
+   node, so its ``model_run`` time is inflated: read it for the ranking).
+4. **cProfile** of ``refine()``: the Python functions outside ``session.run``, per call (inflated likewise).
 
 Usage (from the repository root)::
 
@@ -75,8 +77,8 @@ def _time(fn, n: int) -> list[float]:
     return out
 
 
-def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float, rounds: int = 10) -> dict:
-    """Interleaved p50 of ``refine()`` and of the bare ``InferenceSession.run`` on the same feed (seconds)."""
+def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float) -> dict:
+    """p50 of ``refine()`` and of the bare ``InferenceSession.run`` on the same feed, alternating call by call (s)."""
     s = sess.input_size
     boxes = validate_boxes(boxes)
     crops = np.stack([crop_to_square(image, b, s, sess.contract.crop_context) for b in boxes])
@@ -84,24 +86,47 @@ def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float, rounds: i
         crops = np.ascontiguousarray(crops[..., ::-1])
     feed = {INPUT_IMAGE: crops, INPUT_QUATERNION: q_in.astype(np.float32)}
     raw = sess._session  # the onnxruntime.InferenceSession refine() calls (private: benchmark only)
-
-    def run():
-        raw.run([OUTPUT_QUATERNION], feed)
-
-    def refine():
-        sess.refine(image, boxes, q_in)
-
+    perf = time.perf_counter
     for _ in range(20):
-        run()
-        refine()
-    t_call = statistics.median(_time(refine, 20))
-    n = max(5, int(seconds / rounds / t_call / 2))
+        raw.run([OUTPUT_QUATERNION], feed)
+        sess.refine(image, boxes, q_in)
+    t0 = perf()
+    sess.refine(image, boxes, q_in)
+    n = max(200, int(seconds / 2 / max(perf() - t0, 1e-6)))
     lat_run, lat_refine = [], []
-    for _ in range(rounds):
-        lat_run += _time(run, n)
-        lat_refine += _time(refine, n)
+    for _ in range(n):
+        t0 = perf()
+        raw.run([OUTPUT_QUATERNION], feed)
+        t1 = perf()
+        sess.refine(image, boxes, q_in)
+        t2 = perf()
+        lat_run.append(t1 - t0)
+        lat_refine.append(t2 - t1)
     p_run, p_refine = statistics.median(lat_run), statistics.median(lat_refine)
-    return {"run_p50": p_run, "refine_p50": p_refine, "outside": p_refine - p_run, "calls": len(lat_refine)}
+    return {"run_p50": p_run, "refine_p50": p_refine, "outside": p_refine - p_run, "calls": n}
+
+
+def constant_model(contract) -> bytes:
+    """A model with ``sess``'s contract and input size whose output is the identity rotation (no work)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    s = contract.input_size
+    props = {k: (v if isinstance(v, str) else json.dumps(v)) for k, v in contract.as_dict().items()}
+    props["input_size"], props["crop_context"] = str(s), repr(contract.crop_context)
+    graph = helper.make_graph(
+        [helper.make_node("Mul", [INPUT_QUATERNION, "zero"], ["z"]), helper.make_node("Add", ["z", "one"], [OUTPUT_QUATERNION])],
+        "constant_refiner",
+        [helper.make_tensor_value_info(INPUT_IMAGE, TensorProto.UINT8, ["batch", s, s, 3]),
+         helper.make_tensor_value_info(INPUT_QUATERNION, TensorProto.FLOAT, ["batch", 4])],
+        [helper.make_tensor_value_info(OUTPUT_QUATERNION, TensorProto.FLOAT, ["batch", 4])],
+        initializer=[helper.make_tensor("zero", TensorProto.FLOAT, [1], [0.0]),
+                     helper.make_tensor("one", TensorProto.FLOAT, [4], [1.0, 0.0, 0.0, 0.0])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    helper.set_model_props(model, props)
+    return model.SerializeToString()
 
 
 def ort_profile(sess: RefinerSession, image, boxes, q_in, calls: int, workdir: Path, top: int) -> dict:
@@ -176,23 +201,27 @@ def main(argv=None) -> int:
         for label, path in paths.items():
             sess = RefinerSession(path, threads=args.threads)
             o = overhead(sess, image, boxes, q_in, args.seconds)
+            warm = overhead(RefinerSession(constant_model(sess.contract), threads=args.threads), image, boxes, q_in, 1.0)
             op = ort_profile(sess, image, boxes, q_in, min(args.calls, 500), tmp, args.top)
             py = python_profile(sess, image, boxes, q_in, args.calls, args.top)
             share = o["outside"] / o["refine_p50"]
-            summary.append((label, sess.contract.quantization, o, op, share))
+            summary.append((label, sess.contract.quantization, o, op, share, warm))
             print(f"\n## {label} ({sess.contract.arch}, quantization {sess.contract.quantization})")
             print(f"refine() p50 {o['refine_p50'] * 1e6:.1f} us | session.run p50 {o['run_p50'] * 1e6:.1f} us | "
                   f"outside run {o['outside'] * 1e6:.1f} us = {share:.1%} of refine()  ({o['calls']} calls each)")
-            print(f"onnxruntime profiler: model_run p50 {op['model_run_p50'] * 1e6:.1f} us inside onnxruntime; "
+            print(f"warm caches (constant-output model, same input size): refine() p50 {warm['refine_p50'] * 1e6:.1f} us, "
+                  f"session.run p50 {warm['run_p50'] * 1e6:.1f} us, outside run {warm['outside'] * 1e6:.1f} us")
+            print(f"onnxruntime profiler: model_run p50 {op['model_run_p50'] * 1e6:.1f} us (inflated by profiling); "
                   f"kernel time by operator: " + ", ".join(f"{k} {v:.0%}" for k, v in op["ops"]))
             print("cProfile, tottime per refine() call (inflated by the profiler):")
             for name, t in py:
                 print(f"    {t * 1e6:8.1f} us  {name}")
-        print("\n| model | quant | refine() p50 us | session.run p50 us | outside run us | outside share | refinements/s |")
-        print("|---|---|---:|---:|---:|---:|---:|")
-        for label, quant, o, _, share in summary:
+        print("\n| model | quant | refine() p50 us | session.run p50 us | outside run us | outside share | "
+              "outside, warm caches us | refinements/s |")
+        print("|---|---|---:|---:|---:|---:|---:|---:|")
+        for label, quant, o, _, share, warm in summary:
             print(f"| {label} | {quant} | {o['refine_p50'] * 1e6:.1f} | {o['run_p50'] * 1e6:.1f} | "
-                  f"{o['outside'] * 1e6:.1f} | {share:.1%} | {args.batch / o['refine_p50']:,.0f} |")
+                  f"{o['outside'] * 1e6:.1f} | {share:.1%} | {warm['outside'] * 1e6:.1f} | {args.batch / o['refine_p50']:,.0f} |")
     print(f"load average {os.getloadavg()[0]:.2f} at end")
     return 0
 

@@ -8,11 +8,19 @@ Conventions (design.md section 2):
     * images are ``H x W x 3`` ``uint8`` **BGR** (what ``cv2.imread`` gives);
     * boxes are ``(x1, y1, x2, y2)`` in pixels, continuous coordinates (pixel ``i`` covers ``[i, i+1)``);
     * the refined rotation is ``q_refined = q_in * q_out`` (the paper's composition).
+
+Speed (issue 6; ``benchmarks/profile_refine.py`` measures it): for up to :data:`SMALL_BATCH` boxes, the
+per-box checks and the quaternion maths run on Python floats, since numpy's fixed cost per call (about a
+microsecond per ufunc on a 4-vector) would otherwise exceed the network's time for the small models. The
+operations and their order are those of :mod:`refiner_rt.quaternion`, so results are bit-identical to the
+vectorised path used for larger batches. Crops go into a reusable uint8 batch, one ``cv2.warpAffine`` each.
+A session is not meant to be called from several threads at once (it reuses its buffers): use one per thread.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,9 +38,85 @@ from refiner_rt.metadata import (
 )
 from refiner_rt.preprocess import crop_to_square, resize_crop, validate_boxes, validate_image
 
-__all__ = ["RefinerSession", "RefineResult", "ray_quaternions"]
+__all__ = ["RefinerSession", "RefineResult", "SMALL_BATCH", "available_cores", "ray_quaternions"]
 
 log = logging.getLogger(__name__)
+
+# Up to this many boxes, refine() validates and composes on Python floats (see the module docstring). Measured on
+# the project's EPYC (checks + composition, warm caches): about 1.8 us per box on Python floats against about
+# 90 us for the numpy path at any N up to 64, so the crossover is near 50 boxes.
+SMALL_BATCH = 32
+_MIN_NORM = 1e-12  # as refiner_rt.quaternion.as_quaternion: a smaller norm is a zero quaternion
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, which cgroups and ``taskset`` restrict)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _unit_rows(rows: list) -> list | None:
+    """:func:`refiner_rt.quaternion.normalize` on Python floats: unit norm, canonical sign ``w >= 0``.
+
+    Same IEEE operations in the same order as the numpy version (sequential sum of squares, ``sqrt``,
+    division, sign key ``w``, then ``x``, ``y``, ``z`` when ``w == 0``), so the results are identical.
+
+    Args:
+        rows: ``N`` lists ``[w, x, y, z]`` of floats.
+
+    Returns:
+        ``N`` lists ``[w, x, y, z]``, or None when a row is non-finite or has a norm below 1e-12 (the caller
+        then takes the numpy path, which raises the detailed error).
+    """
+    isfinite = math.isfinite
+    out = []
+    for w, x, y, z in rows:
+        if not (isfinite(w) and isfinite(x) and isfinite(y) and isfinite(z)):
+            return None
+        norm = math.sqrt(w * w + x * x + y * y + z * z)
+        if norm < _MIN_NORM:
+            return None
+        w, x, y, z = w / norm, x / norm, y / norm, z / norm
+        key = w if w != 0.0 else x if x != 0.0 else y if y != 0.0 else z
+        out.append([-w, -x, -y, -z] if key < 0.0 else [w, x, y, z])
+    return out
+
+
+def _multiply_rows(a: list, b: list) -> list:
+    """:func:`refiner_rt.quaternion.multiply` (Hamilton product ``a * b``, ``wxyz``) on Python floats, row by row."""
+    out = []
+    for (aw, ax, ay, az), (bw, bx, by, bz) in zip(a, b):
+        out.append([
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ])
+    return out
+
+
+def _small_boxes(boxes, image_shape) -> tuple[np.ndarray, list] | None:
+    """Fast path of :func:`validate_boxes` for up to :data:`SMALL_BATCH` well-formed ``(N, 4)`` numeric boxes.
+
+    Returns:
+        ``(float64 (N, 4) array, N lists [x1, y1, x2, y2])`` when every box is finite, non-empty and overlaps
+        the image; None otherwise (the caller then runs :func:`validate_boxes`, which raises or converts).
+    """
+    arr = boxes if isinstance(boxes, np.ndarray) else np.asarray(boxes)
+    if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 4 or len(arr) > SMALL_BATCH:
+        return None
+    arr = arr.astype(np.float64, copy=False)
+    rows = arr.tolist()
+    h, w = image_shape[0], image_shape[1]
+    isfinite = math.isfinite
+    for x1, y1, x2, y2 in rows:
+        if not (isfinite(x1) and isfinite(y1) and isfinite(x2) and isfinite(y2)):
+            return None
+        if not (x1 < x2 and y1 < y2 and x2 > 0 and y2 > 0 and x1 < w and y1 < h):
+            return None
+    return arr, rows
 
 
 @dataclass(frozen=True)
@@ -99,11 +183,22 @@ class RefinerSession:
 
     Args:
         model: path to a ``.onnx`` file, or the model's bytes.
-        threads: intra-op threads for onnxruntime (``>= 1``); ``0`` lets onnxruntime pick (all cores).
+        threads: threads the network runs on (``>= 1``), the calling thread included; ``0`` means every
+            core this process may run on (:func:`available_cores`, its CPU affinity). Cropping and the
+            quaternion maths run on the calling thread. With 1 thread onnxruntime creates no thread pool.
+            With more, its workers spin briefly after each call (measured up to 1.5x faster at batch 1 than
+            without spinning on a 2-core EPYC), which takes CPU from other processes on those cores: on a
+            machine shared with a renderer, prefer ``threads=1``.
         providers: onnxruntime execution providers, default ``["CPUExecutionProvider"]``. Each must
             be available: there is no silent fallback to another provider.
         session_options: an ``onnxruntime.SessionOptions`` to use instead of the defaults (then
-            ``threads`` is ignored).
+            ``threads`` is ignored and :attr:`threads` reports the options' intra-op thread count).
+
+    Default session options, each chosen by measurement (``benchmarks/profile_refine.py`` and the notes in
+    issue 6): graph optimisation ``ORT_ENABLE_ALL`` (``EXTENDED``/``BASIC`` ran 1.2-1.5x slower at batch 1; ALL adds the
+    layout transformations such as NCHWc convolutions), CPU memory arena and memory pattern on (turning them off never helped), sequential
+    execution with one inter-op thread (the graph is a chain), intra-op spinning left at onnxruntime's
+    default (on).
 
     Raises:
         FileNotFoundError: ``model`` is a path that does not exist.
@@ -129,7 +224,9 @@ class RefinerSession:
             raise TypeError(f"model must be a path or the ONNX model's bytes; got {type(model).__name__}")
         if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 0:
             raise ValueError(f"threads must be an integer >= 0 (0 = all cores); got {threads!r}")
-        self.threads = int(threads)
+        # 0 is resolved here: onnxruntime's own default counts physical cores and ignores the CPU affinity, so
+        # under `taskset -c 0` it would start 2 threads on 1 core.
+        self.threads = int(threads) or available_cores()
 
         available = ort.get_available_providers()
         providers = list(providers) if providers is not None else ["CPUExecutionProvider"]
@@ -145,6 +242,8 @@ class RefinerSession:
             session_options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
             session_options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
             session_options.log_severity_level = 3
+        else:
+            self.threads = session_options.intra_op_num_threads
         self._session = ort.InferenceSession(source, sess_options=session_options, providers=providers)
 
         self.contract: ModelContract = parse_metadata(self._session.get_modelmeta().custom_metadata_map)
@@ -167,6 +266,10 @@ class RefinerSession:
                 f"model input {INPUT_IMAGE!r} has shape {declared}; the metadata's input_size={s} expects (batch, {s}, {s}, 3)"
             )
         self._buffer = np.zeros((0, s, s, 3), dtype=np.uint8)
+        self._q32 = np.zeros((0, 4), dtype=np.float32)
+        self._output_names = [OUTPUT_QUATERNION]
+        self._rgb = self.contract.channel_order == "RGB"
+        self._ray = self.contract.rotation_frame == "ray"
 
     # ------------------------------------------------------------------ properties
     @property
@@ -213,11 +316,17 @@ class RefinerSession:
             ValueError / TypeError: a bad argument, named with what was expected and what was given.
         """
         image = validate_image(image_bgr, "image_bgr")
-        boxes = validate_boxes(boxes_xyxy, image.shape, "boxes_xyxy")
-        q_in = self._validate_q(q_in_wxyz, len(boxes), "boxes_xyxy")
-        iterations = self._validate_iterations(iterations)
+        small = _small_boxes(boxes_xyxy, image.shape)
+        if small is None:
+            boxes = validate_boxes(boxes_xyxy, image.shape, "boxes_xyxy")
+            rows = boxes
+        else:
+            boxes, rows = small
+        q_in, q_rows = self._q_in(q_in_wxyz, len(boxes), "boxes_xyxy")
+        if type(iterations) is not int or iterations < 1:
+            iterations = self._validate_iterations(iterations)
         q_frame = None
-        if self.contract.rotation_frame == "ray":
+        if self._ray:
             if K is None:
                 raise ValueError(
                     "K is required: this model was trained in the viewing-ray frame (metadata rotation_frame='ray'); "
@@ -227,10 +336,10 @@ class RefinerSession:
         elif K is not None:
             _validate_K(K)
         crops = self._crops(len(boxes))
-        ctx = self.contract.crop_context
-        for i in range(len(boxes)):
-            crop_to_square(image, boxes[i], self.input_size, ctx, out=crops[i])
-        return self._run(crops, q_in, iterations, q_frame)
+        size, context = self.contract.input_size, self.contract.crop_context
+        for i, box in enumerate(rows):
+            crop_to_square(image, box, size, context, out=crops[i])
+        return self._run(crops, q_in, q_rows, iterations, q_frame)
 
     def refine_crops(self, crops_bgr, q_in_wxyz, iterations: int = 1) -> RefineResult:
         """Refine rotations from crops that are already cut out (the crop window, any size).
@@ -260,7 +369,7 @@ class RefinerSession:
             )
         for i, c in enumerate(crops_list):
             validate_image(c, f"crops_bgr[{i}]")
-        q_in = self._validate_q(q_in_wxyz, len(crops_list), "crops_bgr")
+        q_in, q_rows = self._q_in(q_in_wxyz, len(crops_list), "crops_bgr")
         iterations = self._validate_iterations(iterations)
         crops = self._crops(len(crops_list))
         for i, c in enumerate(crops_list):
@@ -268,9 +377,21 @@ class RefinerSession:
                 crops[i] = c
             else:
                 resize_crop(np.ascontiguousarray(c), self.input_size, out=crops[i])
-        return self._run(crops, q_in, iterations, None)
+        return self._run(crops, q_in, q_rows, iterations, None)
 
     # ------------------------------------------------------------------ internals
+    def _q_in(self, q, n: int, other: str) -> tuple[np.ndarray, list | None]:
+        """Validated, unit, canonical ``q_in`` as ``(float64 (n, 4) array, rows)``; rows (Python floats) only for
+        ``0 < n <= SMALL_BATCH`` well-formed input, else None. Anything unusual takes :meth:`_validate_q`, which
+        raises the detailed errors."""
+        if 0 < n <= SMALL_BATCH:
+            arr = q if isinstance(q, np.ndarray) else np.asarray(q)
+            if arr.dtype.kind in "fiu" and arr.shape == (n, 4):
+                rows = _unit_rows(arr.astype(np.float64, copy=False).tolist())
+                if rows is not None:
+                    return np.array(rows), rows
+        return self._validate_q(q, n, other), None
+
     def _validate_q(self, q, n: int, other: str) -> np.ndarray:
         q = rq.as_quaternion(q, "q_in_wxyz")
         if q.ndim == 1:
@@ -294,26 +415,39 @@ class RefinerSession:
             self._buffer = np.zeros((max(n, 2 * len(self._buffer)), s, s, 3), dtype=np.uint8)
         return self._buffer[:n]
 
-    def _run(self, crops: np.ndarray, q_in: np.ndarray, iterations: int, q_frame) -> RefineResult:
+    def _q_net(self, n: int) -> np.ndarray:
+        """A view of ``n`` rows of the reusable float32 ``q_in`` input buffer (grown when needed)."""
+        if len(self._q32) < n:
+            self._q32 = np.zeros((max(n, 2 * len(self._q32)), 4), dtype=np.float32)
+        return self._q32[:n]
+
+    def _run(self, crops: np.ndarray, q_in: np.ndarray, q_rows: list | None, iterations: int, q_frame) -> RefineResult:
+        """Run the network ``iterations`` times and compose; Python floats when ``q_rows`` is given, else numpy."""
         n = len(q_in)
         if n == 0:
             empty = np.zeros((0, 4))
             return RefineResult(q_refined=empty, q_out=empty.copy(), q_in=empty.copy())
-        if self.contract.channel_order == "RGB":
-            crops = crops[..., ::-1]
-        crops = np.ascontiguousarray(crops)
+        if self._rgb:
+            crops = np.ascontiguousarray(crops[..., ::-1])
+        q_net = self._q_net(n)
+        feed = {INPUT_IMAGE: crops, INPUT_QUATERNION: q_net}
         # The network sees rotations in its own frame; for "ray" models q_net = q_ray^-1 * q.
         # q_refined = q_prev * q_out holds in either frame (q_ray * (q_ray^-1 q) * q_out = q * q_out).
-        q = q_in
+        q = q_in if q_rows is None else q_rows
         q_out = None
         for _ in range(iterations):
-            q_net = q if q_frame is None else rq.multiply(rq.inverse(q_frame), q)
-            out = self._session.run(
-                [OUTPUT_QUATERNION],
-                {INPUT_IMAGE: crops, INPUT_QUATERNION: q_net.astype(np.float32)},
-            )[0]
-            q_out = rq.normalize(out.astype(np.float64))
-            q = rq.normalize(rq.multiply(q, q_out))
+            q_net[...] = q if q_frame is None else rq.multiply(rq.inverse(q_frame), q)
+            out = self._session.run(self._output_names, feed)[0]
+            if q_rows is not None:
+                q_out = _unit_rows(out.tolist())
+                if q_out is None:  # a non-finite or zero model output: rq.normalize raises the detailed error
+                    rq.normalize(out.astype(np.float64))
+                q = _unit_rows(_multiply_rows(q, q_out))  # unit * unit: always finite and unit
+            else:
+                q_out = rq.normalize(out.astype(np.float64))
+                q = rq.normalize(rq.multiply(q, q_out))
+        if q_rows is not None:
+            q, q_out = np.array(q), np.array(q_out)
         return RefineResult(q_refined=q, q_out=q_out, q_in=q_in)
 
     def __repr__(self) -> str:

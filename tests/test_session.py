@@ -1,5 +1,6 @@
 """RefinerSession against closed-form test models (tests/onnx_fixtures.py) and SciPy's Rotation."""
 
+import os
 import subprocess
 import sys
 
@@ -154,3 +155,162 @@ def test_loads_from_path_and_reports_metadata(tmp_path):
 def test_importing_runtime_does_not_import_torch():
     code = "import sys, refiner_rt; from refiner_rt import RefinerSession, quaternion, cli, bench, info; assert 'torch' not in sys.modules, 'torch imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ---------------------------------------------------------------- lean refine() path (issue 6)
+import onnxruntime as ort  # noqa: E402
+from onnx import TensorProto, helper  # noqa: E402
+
+import refiner_rt.session as session_module  # noqa: E402
+from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION  # noqa: E402
+
+
+def mix_model(size: int = 8, props=None) -> bytes:
+    """``q_out = normalize(q_in + 0.5 * (0, m_0, m_1, m_2))``, ``m_c`` the mean of input channel ``c`` / 255.
+
+    Depends on the crop's pixels, their channel order and on ``q_in``, so any difference between two refine()
+    implementations in cropping, channel handling, frames or composition shows in the output.
+    """
+    inits = [
+        helper.make_tensor("axes", TensorProto.INT64, [2], [1, 2]),
+        helper.make_tensor("scale", TensorProto.FLOAT, [1], [0.5 / 255.0]),
+        helper.make_tensor("pads", TensorProto.INT64, [4], [0, 1, 0, 0]),
+        helper.make_tensor("last", TensorProto.INT64, [1], [1]),
+    ]
+    nodes = [
+        helper.make_node("Cast", [INPUT_IMAGE], ["imgf"], to=TensorProto.FLOAT),
+        helper.make_node("ReduceMean", ["imgf", "axes"], ["means"], keepdims=0),
+        helper.make_node("Mul", ["means", "scale"], ["m"]),
+        helper.make_node("Pad", ["m", "pads"], ["m4"]),
+        helper.make_node("Add", [INPUT_QUATERNION, "m4"], ["q"]),
+        helper.make_node("ReduceL2", ["q", "last"], ["n"], keepdims=1),
+        helper.make_node("Div", ["q", "n"], [OUTPUT_QUATERNION]),
+    ]
+    return fx._model(nodes, inits, size, fx.contract(input_size=size) if props is None else props)
+
+
+def reference_refine(model: bytes, image, boxes, q_in, iterations=1, K=None, size=8, context=1.2, rgb=False, ray=False):
+    """The straightforward refine(): crop_to_square per box, session.run, rq.multiply; float64 numpy throughout."""
+    sess = ort.InferenceSession(model, providers=["CPUExecutionProvider"])
+    boxes = np.asarray(boxes, dtype=np.float64)
+    crops = np.stack([crop_to_square(image, b, size, context) for b in boxes])
+    if rgb:
+        crops = np.ascontiguousarray(crops[..., ::-1])
+    q_in = rq.normalize(np.asarray(q_in, dtype=np.float64))
+    q_frame = ray_quaternions(K, boxes) if ray else None
+    q = q_in
+    for _ in range(iterations):
+        q_net = q if q_frame is None else rq.multiply(rq.inverse(q_frame), q)
+        out = sess.run([OUTPUT_QUATERNION], {INPUT_IMAGE: crops, INPUT_QUATERNION: q_net.astype(np.float32)})[0]
+        q_out = rq.normalize(out.astype(np.float64))
+        q = rq.normalize(rq.multiply(q, q_out))
+    return q, q_out, q_in
+
+
+K_TEST = np.array([[500.0, 0, 31.5], [0, 500.0, 23.5], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("n", [1, 3, session_module.SMALL_BATCH, session_module.SMALL_BATCH + 7])
+@pytest.mark.parametrize("frame,order", [("camera", "BGR"), ("ray", "BGR"), ("camera", "RGB")])
+@pytest.mark.parametrize("iterations", [1, 3])
+def test_lean_refine_is_bit_identical_to_the_reference(n, frame, order, iterations):
+    rng = np.random.default_rng(n)
+    side = rng.uniform(6, 30, n)
+    cx, cy = rng.uniform(0, 64, n), rng.uniform(0, 48, n)
+    boxes = np.stack([cx - side / 2, cy - side / 2, cx + side / 2, cy + side * 0.3], axis=1)
+    q_in = rng.standard_normal((n, 4)) * 3  # non-unit: normalised by both
+    model = mix_model(props=fx.contract(rotation_frame=frame, channel_order=order))
+    K = K_TEST if frame == "ray" else None
+    res = RefinerSession(model).refine(IMG, boxes, q_in, iterations=iterations, K=K)
+    ref = reference_refine(model, IMG, boxes, q_in, iterations, K, rgb=order == "RGB", ray=frame == "ray")
+    for got, want in zip((res.q_refined, res.q_out, res.q_in), ref):
+        assert got.dtype == np.float64 and got.shape == (n, 4)
+        np.testing.assert_array_equal(got, want)
+
+
+def test_python_float_and_numpy_paths_agree_exactly(monkeypatch):
+    rng = np.random.default_rng(5)
+    q_in = rng.standard_normal((3, 4))
+    q_in[1] = [0.0, -0.5, 0.5, 0.5]  # w == 0: the sign key falls through to x
+    q_in[2, 0] = -2.0  # flipped to w >= 0
+    sess = RefinerSession(mix_model())
+    small = sess.refine(IMG, BOXES, q_in, iterations=2)
+    monkeypatch.setattr(session_module, "SMALL_BATCH", 0)
+    vectorised = sess.refine(IMG, BOXES, q_in, iterations=2)
+    for a, b in zip((small.q_refined, small.q_out, small.q_in), (vectorised.q_refined, vectorised.q_out, vectorised.q_in)):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(small.q_in[:, 0] >= 0) and small.q_in[1, 1] > 0
+
+
+def test_results_do_not_alias_the_reused_buffers():
+    sess = RefinerSession(mix_model())
+    first = sess.refine(IMG, BOXES, rq.identity((3,)))
+    kept = [a.copy() for a in (first.q_refined, first.q_out, first.q_in)]
+    sess.refine(255 - IMG, BOXES, rq.from_axis_angle([1, 0, 0], [10.0, 20.0, 30.0]))
+    for a, b in zip((first.q_refined, first.q_out, first.q_in), kept):
+        np.testing.assert_array_equal(a, b)
+    crops = sess.refine_crops(np.stack([crop_to_square(IMG, b, 8, 1.2) for b in BOXES]), rq.identity((3,)))
+    np.testing.assert_array_equal(crops.q_out, first.q_out)
+
+
+def test_lean_path_accepts_lists_and_other_numeric_dtypes():
+    sess = RefinerSession(mix_model())
+    ref = sess.refine(IMG, BOXES, np.array([[1.0, 0, 0, 0]] * 3))
+    for boxes, q in [
+        (BOXES.tolist(), [[1, 0, 0, 0]] * 3),
+        (BOXES.astype(np.float32).astype(np.float64), np.array([[2, 0, 0, 0]] * 3, dtype=np.int32)),
+        (BOXES, np.array([[1, 0, 0, 0]] * 3, dtype=np.float32)),
+    ]:
+        res = sess.refine(IMG, boxes, q, iterations=np.int64(1))
+        np.testing.assert_array_equal(res.q_refined, ref.q_refined)
+    np.testing.assert_array_equal(sess.refine(IMG, BOXES[0], [1, 0, 0, 0]).q_refined, ref.q_refined[:1])
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(boxes_xyxy=[[5, 6, np.inf, 30]] * 3), r"boxes_xyxy\[0\] must be finite"),
+        (dict(boxes_xyxy=[[5, 6, 25, 30], [5, 6, 25, np.nan], [5, 6, 25, 30]]), r"boxes_xyxy\[1\] must be finite"),
+        (dict(boxes_xyxy=[[5, 6, 25, 30], [5, 6, 25, 30], [64, 6, 70, 30]]), r"boxes_xyxy\[2\] lies entirely outside"),
+        (dict(q_in_wxyz=[[1, 0, 0, 0], [1, 0, 0, np.inf], [1, 0, 0, 0]]), "finite"),
+        (dict(q_in_wxyz=[[1, 0, 0, 0], [0, 0, 0, 1e-13], [1, 0, 0, 0]]), "zero quaternion"),
+        (dict(q_in_wxyz=np.array([[True, False, False, False]] * 3)), "numeric"),
+        (dict(iterations=1.0), "iterations must be an integer >= 1"),
+        (dict(iterations=True), "iterations must be an integer >= 1"),
+    ],
+)
+def test_fast_paths_fall_back_to_the_detailed_errors(kwargs, match):
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    args = dict(image_bgr=IMG, boxes_xyxy=BOXES, q_in_wxyz=rq.identity((3,)))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        sess.refine(**args)
+
+
+def test_non_finite_model_output_is_an_error():
+    sess = RefinerSession(fx.constant_model([float("nan"), 0, 0, 0]))
+    with pytest.raises(ValueError, match="finite"):
+        sess.refine(IMG, BOXES, rq.identity((3,)))
+
+
+def _os_threads() -> int:
+    return len(os.listdir("/proc/self/task"))
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="counts OS threads through /proc (Linux)")
+def test_threads_does_what_it_says():
+    model = fx.constant_model([1, 0, 0, 0])
+    before = _os_threads()
+    one = RefinerSession(model, threads=1)
+    assert one.threads == 1 and _os_threads() == before  # 1 thread: no onnxruntime pool, calls run on the caller
+    assert one._session.get_session_options().intra_op_num_threads == 1
+    two = RefinerSession(model, threads=2)
+    assert two.threads == 2 and _os_threads() == before + 1  # the caller plus one pool thread
+    every = RefinerSession(model, threads=0)
+    assert every.threads == session_module.available_cores() == len(os.sched_getaffinity(0))
+    assert every._session.get_session_options().intra_op_num_threads == every.threads
+    assert "threads=" in repr(every)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 3
+    assert RefinerSession(model, threads=1, session_options=options).threads == 3
+    del one, two, every
