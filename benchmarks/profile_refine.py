@@ -108,7 +108,6 @@ def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float) -> dict:
 
 def constant_model(contract) -> bytes:
     """A model with ``sess``'s contract and input size whose output is the identity rotation (no work)."""
-    import onnx
     from onnx import TensorProto, helper
 
     s = contract.input_size
