@@ -1,0 +1,153 @@
+"""refiner_rt.bench: operation counts and roofline bounds, interleaved timing, variants, and `refiner-rt bench` rows."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from onnx import TensorProto, helper, numpy_helper
+
+import onnx_fixtures as fx
+from refiner_rt import bench
+from refiner_rt.cli import main
+
+
+def _graph_model(nodes, inits, inputs, outputs, path):
+    graph = helper.make_graph(nodes, "g", inputs, outputs, initializer=inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    helper.set_model_props(model, fx.contract(input_size=8))
+    path.write_bytes(model.SerializeToString())
+    return path
+
+
+def test_model_cost_counts_conv_and_gemm_in_fp32(tmp_path):
+    w = np.zeros((6, 3, 5, 5), np.float32)   # conv 3 -> 6, 5x5, pad 2: 8x8 output
+    g = np.zeros((10, 384), np.float32)      # Gemm transB: 384 -> 10
+    nodes = [
+        helper.make_node("Conv", ["x", "w"], ["c"], pads=[2, 2, 2, 2]),
+        helper.make_node("Flatten", ["c"], ["f"]),
+        helper.make_node("Gemm", ["f", "g"], ["y"], transB=1),
+    ]
+    path = _graph_model(
+        nodes, [numpy_helper.from_array(w, "w"), numpy_helper.from_array(g, "g")],
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["batch", 3, 8, 8])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["batch", 10])], tmp_path / "m.onnx",
+    )
+    cost = bench.model_cost(path)
+    assert cost.weight_bytes == w.nbytes + g.nbytes
+    assert cost.flops == 2 * (8 * 8 * 6 * 3 * 25 + 384 * 10)
+    assert cost.int8_ops == 0 and cost.quantization == "none"
+
+
+def test_model_cost_counts_quantised_layers_as_int8(tmp_path):
+    b = np.zeros((64, 32), np.int8)
+    nodes = [
+        helper.make_node("DynamicQuantizeLinear", ["x"], ["xq", "xs", "xz"]),
+        helper.make_node("MatMulInteger", ["xq", "b", "xz"], ["y"]),
+    ]
+    path = _graph_model(
+        nodes, [numpy_helper.from_array(b, "b")],
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["batch", 64])],
+        [helper.make_tensor_value_info("y", TensorProto.INT32, ["batch", 32])], tmp_path / "q.onnx",
+    )
+    cost = bench.model_cost(path)
+    assert cost.int8_ops == 2 * 64 * 32 and cost.flops == 0 and cost.weight_bytes == b.nbytes
+
+
+def test_roofline_bound_takes_the_slower_limit():
+    limits = bench.MachineLimits(bandwidth=10e9, peak_fp32={1: 100e9}, peak_int8={1: 400e9})
+    cost = bench.ModelCost(weight_bytes=10_000_000, flops=10e6, int8_ops=40e6)  # 1 ms memory; 0.2 ms per crop
+    fps, limit = bench.roofline_bound(cost, 1, 1, limits)
+    assert limit == "memory" and fps == pytest.approx(1000.0)
+    fps, limit = bench.roofline_bound(cost, 10, 1, limits)  # 2 ms of compute for 10 crops
+    assert limit == "compute" and fps == pytest.approx(10 / 2e-3)
+
+
+def test_measured_limits_are_plausible():
+    assert bench.measure_bandwidth(megabytes=16, repeats=2) > 1e8
+    assert bench.measure_peak(int8=False, threads=1, size=128, repeats=2) > 1e8
+    assert bench.measure_peak(int8=True, threads=1, size=128, repeats=2) > 1e8
+
+
+def test_measure_interleaved_takes_turns_and_honours_min_calls():
+    order = []
+    runners = {name: (lambda n=name: order.append(n)) for name in ("a", "b")}
+    lat = bench.measure_interleaved(runners, seconds=0.0, rounds=3, min_calls=3)
+    assert {k: len(v) for k, v in lat.items()} == {"a": 3, "b": 3}
+    timed = order[-6:]
+    assert timed == ["a", "b"] * 3  # one call each per round, alternating
+
+
+def test_parse_variant():
+    assert bench.parse_variant('h512=shallow:{"head_widths": [512, 256, 64]}') == (
+        "h512", "shallow", {"head_widths": [512, 256, 64]}
+    )
+    label, arch, config = bench.parse_variant('fusion:{"fuse_width": 256}')
+    assert (label, arch, config) == ('fusion:{"fuse_width":256}', "fusion", {"fuse_width": 256})
+    for bad in ("shallow", "shallow:[1]", "shallow:{oops", ':{"a": 1}'):
+        with pytest.raises(Exception, match="ARCH:JSON"):
+            bench.parse_variant(bad)
+
+
+ROW_KEYS = ("arch", "runtime", "threads", "batch", "fps", "p50_ms", "p90_ms", "ratio_shallow_over_vggm", "quantization",
+            "config", "weight_bytes", "flops_per_call", "int8_ops_per_call", "bound_fps", "bound", "roofline_ratio")
+
+
+def test_bench_json_rows_carry_quantization_and_roofline_fields(tmp_path):
+    a, b = tmp_path / "shallow.onnx", tmp_path / "vggm.onnx"
+    a.write_bytes(fx.constant_model([1, 0, 0, 0], size=16, props=fx.contract(input_size=16, arch="shallow")))
+    b.write_bytes(fx.channel_mean_model(size=16, props=fx.contract(input_size=16, arch="vggm")))
+    out = tmp_path / "bench.json"
+    res = CliRunner().invoke(main, ["bench", "--model", str(a), "--model", str(b), "--seconds", "0.05",
+                                    "--batch", "1,3", "--threads", "1", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    rows = json.loads(out.read_text())
+    assert len(rows) == 4
+    for r in rows:
+        for key in ROW_KEYS:
+            assert key in r
+        assert r["quantization"] == "none" and r["bound"] in ("memory", "compute")
+        assert r["bound_fps"] > 0 and r["roofline_ratio"] == pytest.approx(r["fps"] / r["bound_fps"])
+        assert r["bandwidth_gbs"] > 0 and r["peak_int8_gops"]["1"] > 0
+    assert "Roofline: bandwidth" in res.output and "of bound" in res.output
+
+
+SMALL = {
+    "shallow": {"input_size": 32, "conv_channels": [4, 8], "pose_widths": [16, 128], "head_widths": [64, 16]},
+    "vggm": {"input_size": 64, "pose_widths": [8, 16], "head_widths": [16, 8], "fc_widths": [32, 32]},
+}
+
+
+def test_bench_builds_fp32_and_int8_rows_of_variants(tmp_path):
+    out = tmp_path / "bench.json"
+    args = ["bench", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}",
+            "--variant", f"vggm=vggm:{json.dumps(SMALL['vggm'])}", "--batch", "1", "--threads", "1",
+            "--seconds", "0.05", "--json", str(out)]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    rows = json.loads(out.read_text())
+    cells = {(r["model"], r["runtime"], r["quantization"]) for r in rows}
+    assert cells == {(m, rt, q) for m in ("shallow", "vggm")
+                     for rt, q in (("onnxruntime", "none"), ("onnxruntime", "dynamic-int8"), ("torch", "none"))}
+    for r in rows:
+        assert r["config"] == SMALL[r["model"]] and r["bound_fps"] > 0
+        if r["runtime"] == "onnxruntime":
+            assert r["ratio_onnxruntime_over_torch"] > 0
+        if r["model"] == "shallow":
+            assert r["ratio_shallow_over_vggm"] > 0
+    int8 = next(r for r in rows if r["model"] == "shallow" and r["quantization"] == "dynamic-int8")
+    fp32 = next(r for r in rows if r["model"] == "shallow" and r["quantization"] == "none" and r["runtime"] == "onnxruntime")
+    assert int8["weight_bytes"] < fp32["weight_bytes"] / 2 and int8["int8_ops_per_call"] > 0
+    assert fp32["int8_ops_per_call"] == 0 and fp32["flops_per_call"] > int8["flops_per_call"]
+
+
+def test_bench_help_and_bad_options():
+    res = CliRunner().invoke(main, ["bench", "--help"])
+    assert res.exit_code == 0
+    for text in ("--variant", "--int8", "--archs", "shallow,fusion,vggm", "1,8,32", "roofline"):
+        assert text in res.output
+    res = CliRunner().invoke(main, ["bench", "--variant", "shallow"])
+    assert res.exit_code != 0 and "ARCH:JSON" in res.output
+    res = CliRunner().invoke(main, ["bench", "--archs", ""])
+    assert res.exit_code != 0 and "nothing to benchmark" in res.output
