@@ -5,7 +5,8 @@
     print(report.summary())
 
 See :mod:`export.onnx_export` for the graph contract and the exporter decisions (dynamo exporter, how VGG-M's
-LRN is written, uint8 input in OpenCV), :mod:`export.parity` for the checks.
+LRN is written, uint8 input in OpenCV), :mod:`export.parity` for the checks, and :mod:`export.quantize` for INT8
+models (``quantize_model``; schemes, the agreement bound and why dynamic MatMul/Gemm quantisation is the default).
 """
 
 from __future__ import annotations

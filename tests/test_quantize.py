@@ -131,7 +131,9 @@ def test_cli_export_help_mentions_int8():
 
 def test_cli_export_int8(tmp_path, cubes):
     torch.manual_seed(0)
-    ckpt = models.save_checkpoint(models.build_refiner("fusion", **CONFIGS["fusion"]), tmp_path / "f.pt", **INFO)
+    model = models.build_refiner("fusion", **CONFIGS["fusion"])
+    ckpt = models.save_checkpoint(model, tmp_path / "f.pt", **INFO)
+    models.save_checkpoint(model, tmp_path / "f.003_cracker_box.pt", **INFO)  # a per-object fine-tuned sibling
     runner = CliRunner()
     result = runner.invoke(cli_main, ["export", str(ckpt), "--int8"])
     assert result.exit_code == 0, result.output
@@ -139,6 +141,9 @@ def test_cli_export_int8(tmp_path, cubes):
     fp32, int8 = tmp_path / "f.onnx", tmp_path / "f.int8.onnx"
     assert _props(fp32)["quantization"] == "none" and _props(int8)["quantization"] == "dynamic-int8"
     assert RefinerSession(int8).contract.quantization == "dynamic-int8"
+    # Siblings sit where `refiner-rt eval` looks for them next to either base model.
+    assert _props(tmp_path / "f.003_cracker_box.onnx")["quantization"] == "none"
+    assert _props(tmp_path / "f.int8.003_cracker_box.onnx")["quantization"] == "dynamic-int8"
     # --calib selects static QDQ calibrated on the dataset's training crops.
     out = tmp_path / "g.onnx"
     result = runner.invoke(cli_main, ["export", str(ckpt), "-o", str(out), "--int8", "--calib", str(cubes)])
