@@ -476,41 +476,15 @@ def quantize_model(
             f"got {calibration.images.shape[1]}x{calibration.images.shape[2]}"
         )
 
-    with tempfile.TemporaryDirectory(prefix="refiner-rt-int8-") as work:
-        src, dst = Path(work) / "fp32.onnx", Path(work) / "int8.onnx"
-        onnx.save(_without_value_info(proto), str(src))
-        with _without_preprocess_advice():
-            _QUANTIZERS[scheme](src, dst, calibration)
-        quantized = onnx.load(str(dst))
-    new_props = {**props, "quantization": scheme}
-    if calibration is not None:
-        new_props["int8_calibration"] = calibration.source
-    del quantized.metadata_props[:]
-    onnx.helper.set_model_props(quantized, new_props)
-    parse_metadata(new_props)
-    quantized.doc_string = f"{proto.doc_string} [INT8: {scheme}]".strip()
-    onnx.checker.check_model(quantized, full_check=True)
-    data = quantized.SerializeToString()
-
+    data = _quantized_proto(proto, scheme, calibration).SerializeToString()
     fd, tmp_name = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=".tmp")
     tmp = Path(tmp_name)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         _check_loads(tmp, scheme)
-        heldout = calibration is not None and calibration.check_images is not None
-        images, q_in = random_inputs(contract.input_size, n_check, PARITY_SEED)
-        agreement = int8_agreement(fp32_path, tmp, images, q_in, enforced=not heldout)
-        heldout_agreement = (
-            int8_agreement(fp32_path, tmp, calibration.check_images, calibration.check_q_in,
-                           inputs="held-out calibration crops")
-            if heldout
-            else None
-        )
-        enforced = heldout_agreement if heldout else agreement
-        for result in (agreement, heldout_agreement):
-            if result is not None:
-                logger.info("%s", result)
+        agreement, heldout_agreement = _agreements(fp32_path, tmp, contract.input_size, calibration, n_check)
+        enforced = heldout_agreement if heldout_agreement is not None else agreement
         if not enforced.passed:
             raise QuantizationError(f"refusing to write {out_path}: {enforced}", enforced)
         os.replace(tmp, out_path)
@@ -528,6 +502,42 @@ def quantize_model(
     )
     logger.info("quantised %s to %s (%s, %d bytes)", fp32_path, out_path, scheme, report.size_bytes)
     return report
+
+
+def _quantized_proto(proto: onnx.ModelProto, scheme: str, calibration: Calibration | None) -> onnx.ModelProto:
+    """Run onnxruntime's quantiser for ``scheme``; the result carries the fp32 metadata plus the scheme, and passes
+    the full ONNX check."""
+    with tempfile.TemporaryDirectory(prefix="refiner-rt-int8-") as work:
+        src, dst = Path(work) / "fp32.onnx", Path(work) / "int8.onnx"
+        onnx.save(_without_value_info(proto), str(src))
+        with _without_preprocess_advice():
+            _QUANTIZERS[scheme](src, dst, calibration)
+        quantized = onnx.load(str(dst))
+    props = {p.key: p.value for p in proto.metadata_props}
+    props["quantization"] = scheme
+    if calibration is not None:
+        props["int8_calibration"] = calibration.source
+    parse_metadata(props)
+    del quantized.metadata_props[:]
+    onnx.helper.set_model_props(quantized, props)
+    quantized.doc_string = f"{proto.doc_string} [INT8: {scheme}]".strip()
+    onnx.checker.check_model(quantized, full_check=True)
+    return quantized
+
+
+def _agreements(fp32_path: Path, int8_path: Path, input_size: int, calibration: Calibration | None, n_check: int):
+    """``(on the parity inputs, on held-out calibration crops or None)``; the held-out one is enforced when present."""
+    heldout = calibration is not None and calibration.check_images is not None
+    images, q_in = random_inputs(input_size, n_check, PARITY_SEED)
+    parity = int8_agreement(fp32_path, int8_path, images, q_in, enforced=not heldout)
+    logger.info("%s", parity)
+    if not heldout:
+        return parity, None
+    held = int8_agreement(
+        fp32_path, int8_path, calibration.check_images, calibration.check_q_in, inputs="held-out calibration crops"
+    )
+    logger.info("%s", held)
+    return parity, held
 
 
 def _check_loads(path: Path, scheme: str) -> None:
