@@ -659,54 +659,24 @@ def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, se
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="refiner-rt-bench-") as tmp:
-        if model_paths:
-            seen = set()
-            bench_models = []
-            for p in model_paths:
-                label = p.stem if p.stem not in seen else str(p)
-                seen.add(label)
-                bench_models.append(BenchModel(label, p))
-            weights = "user-supplied models"
-        else:
-            specs = [(a.strip(), a.strip(), {}) for a in archs.split(",") if a.strip()] + list(variants)
-            if not specs:
-                raise click.BadParameter("nothing to benchmark: give --archs, --variant or --model", param_hint="'--archs'")
-            labels = [label for label, _, _ in specs]
-            if len(set(labels)) != len(labels):
-                raise click.BadParameter(f"model labels must be unique; got {labels}", param_hint="'--variant'")
-            echo(f"Building random-weight models {[s[0] for s in specs]} (speed does not depend on weight values)...")
-            bench_models = build_default_models(specs, Path(tmp), int8=with_int8, echo=echo)
-            weights = "random weights (speed does not depend on weight values)"
+        bench_models, weights = _prepare_models(model_paths, archs, variants, with_int8, Path(tmp), echo)
         thread_counts = sorted({t or available_cores() for t in threads})
         limits, costs = _roofline_inputs(bench_models, thread_counts, echo)
-        n_cells = len(threads) * len(batches)
         echo(
             f"Timing refine() on a {FRAME_W}x{FRAME_H} frame: {len(bench_models)} model(s), batches {batches}, "
             f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell"
         )
-        with click.progressbar(length=n_cells, label="cells", file=sys.stderr) as bar:
+        with click.progressbar(length=len(threads) * len(batches), label="cells", file=sys.stderr) as bar:
             rows = run_bench(
                 bench_models, batches, threads, seconds, with_torch, limits, costs, progress=lambda: bar.update(1)
             )
-        roofline_lines = []
-        if limits is not None:
-            for i, m in enumerate(bench_models):
-                roofline_lines.append(describe_roofline(m.label, costs[i], limits, thread_counts))
     wall = time.perf_counter() - t0
     click.echo("")
     click.echo(f"Machine: {machine['cpu']}, {machine['cores']} cores, onnxruntime {machine['onnxruntime']}, torch {machine['torch']}")
     click.echo(f"Weights: {weights}. Full refine() path, medians over interleaved rounds; wall {wall:.0f} s.")
     if limits is not None:
-        peaks = ", ".join(
-            f"{n} thr: fp32 {limits.peak_fp32[n] / 1e9:.0f} GFLOP/s, int8 {limits.peak_int8[n] / 1e9:.0f} Gop/s"
-            for n in thread_counts
-        )
-        click.echo(
-            f"Roofline: bandwidth {limits.bandwidth / 1e9:.1f} GB/s (numpy copy of {BANDWIDTH_BUFFER_MB} MB, read + "
-            f"write); onnxruntime MatMul peaks {peaks}. Bound = batch / max(weight bytes / bandwidth, "
-            "batch x ops / peak); inference only, weights assumed to come from DRAM."
-        )
-        click.echo("\n".join(roofline_lines))
+        click.echo(_describe_limits(limits, thread_counts))
+        click.echo("\n".join(describe_roofline(m.label, costs[i], limits, thread_counts) for i, m in enumerate(bench_models)))
     click.echo(format_table(rows))
     if json_path:
         # A list of rows (what machines read); each row carries the run's context.
@@ -714,3 +684,34 @@ def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, se
                    "wall_s": wall, **(limits.as_dict() if limits is not None else {})}
         json_path.write_text(json.dumps([{**asdict(r), **context} for r in rows], indent=2))
         click.echo(f"Wrote {json_path}")
+
+
+def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir: Path, echo) -> tuple[list, str]:
+    """The models to time and a note on their weights: the given files, or random-weight builds (and INT8)."""
+    if model_paths:
+        seen, bench_models = set(), []
+        for p in model_paths:
+            label = p.stem if p.stem not in seen else str(p)
+            seen.add(label)
+            bench_models.append(BenchModel(label, p))
+        return bench_models, "user-supplied models"
+    specs = [(a.strip(), a.strip(), {}) for a in archs.split(",") if a.strip()] + list(variants)
+    if not specs:
+        raise click.BadParameter("nothing to benchmark: give --archs, --variant or --model", param_hint="'--archs'")
+    labels = [label for label, _, _ in specs]
+    if len(set(labels)) != len(labels):
+        raise click.BadParameter(f"model labels must be unique; got {labels}", param_hint="'--variant'")
+    echo(f"Building random-weight models {labels} (speed does not depend on weight values)...")
+    return build_default_models(specs, workdir, int8=with_int8, echo=echo), "random weights (speed does not depend on weight values)"
+
+
+def _describe_limits(limits: MachineLimits, thread_counts) -> str:
+    peaks = ", ".join(
+        f"{n} thr: fp32 {limits.peak_fp32[n] / 1e9:.0f} GFLOP/s, int8 {limits.peak_int8[n] / 1e9:.0f} Gop/s"
+        for n in thread_counts
+    )
+    return (
+        f"Roofline: bandwidth {limits.bandwidth / 1e9:.1f} GB/s (numpy copy of {BANDWIDTH_BUFFER_MB} MB, read + "
+        f"write); onnxruntime MatMul peaks {peaks}. Bound = batch / max(weight bytes / bandwidth, "
+        "batch x ops / peak); inference only, weights assumed to come from DRAM."
+    )
