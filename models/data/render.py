@@ -243,10 +243,12 @@ def projection_matrix_gl(K, width: int, height: int, near: float = 0.05, far: fl
     """
     fx, fy, cx, cy = K[0][0], K[1][1], K[0][2], K[1][2]
     P = np.zeros((4, 4))
+    # TinyRenderer samples pixel column i at continuous x = i and flips the rows, hence these offsets
+    # (measured: the rendered mask's centroid matches K's projection to a few hundredths of a pixel).
     P[0, 0] = 2 * fx / width
-    P[0, 2] = 1 - (2 * cx + 1) / width
+    P[0, 2] = 1 - 2 * cx / width
     P[1, 1] = 2 * fy / height
-    P[1, 2] = (2 * cy + 1) / height - 1
+    P[1, 2] = 2 * (cy + 1) / height - 1
     P[2, 2] = -(far + near) / (far - near)
     P[2, 3] = -2 * far * near / (far - near)
     P[3, 2] = -1
