@@ -68,15 +68,6 @@ def build_models(archs: list[str], workdir: Path, int8: bool) -> dict[str, Path]
     return out
 
 
-def _time(fn, n: int) -> list[float]:
-    out = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return out
-
-
 def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float) -> dict:
     """p50 of ``refine()`` and of the bare ``InferenceSession.run`` on the same feed, alternating call by call (s)."""
     s = sess.input_size

@@ -1,6 +1,5 @@
 """Training loop, noise specs, CropSet and metrics: behaviour on small synthetic data."""
 
-import json
 import os
 import socket
 import subprocess

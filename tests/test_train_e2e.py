@@ -6,7 +6,6 @@ model give the same evaluation, and that the per-object fine-tuned models are fo
 
 import json
 
-import numpy as np
 import pytest
 from click.testing import CliRunner
 
