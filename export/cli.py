@@ -19,10 +19,8 @@ from export.onnx_export import (
     LRN_LOWERINGS,
     MIN_OPSET,
     ParityError,
-    checkpoint_metadata_extra,
-    export_model,
+    export_loaded_checkpoint,
 )
-from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS
 from export.quantize import (
     DEFAULT_SCHEME,
     MAX_MAX_DEG,
@@ -33,7 +31,7 @@ from export.quantize import (
     int8_path_for,
     quantize_model,
 )
-from models.checkpoint import file_sha256, load_checkpoint
+from models.checkpoint import load_checkpoint
 
 __all__ = ["export_cmd"]
 
@@ -176,17 +174,7 @@ def _export_one(checkpoint: Path, output: Path, opset: int, lrn: str) -> None:
         raise click.BadParameter(str(exc), param_hint="'CHECKPOINT'") from exc
     click.echo(f"exporting {model.arch} ({model.input_size}x{model.input_size} {model.channel_order}) from {checkpoint}")
     try:
-        report = export_model(
-            model,
-            output,
-            opset=opset,
-            info=info,
-            metadata_extra=checkpoint_metadata_extra(info),
-            checkpoint_sha256=file_sha256(checkpoint),
-            n_parity=MIN_PARITY_INPUTS,
-            tol=DEFAULT_TOL,
-            lrn=lrn,
-        )
+        report = export_loaded_checkpoint(model, info, checkpoint, output, opset=opset, lrn=lrn)
     except ParityError as exc:
         raise click.ClickException(str(exc)) from exc
     except ValueError as exc:  # e.g. checkpoint info the metadata contract does not accept

@@ -73,6 +73,7 @@ __all__ = [
     "ParityError",
     "build_model_metadata",
     "export_checkpoint",
+    "export_loaded_checkpoint",
     "export_model",
     "to_onnx_proto",
 ]
@@ -413,9 +414,25 @@ def export_checkpoint(
     ckpt_path = Path(ckpt_path)
     model, info = load_checkpoint(ckpt_path)
     out = Path(out_path) if out_path is not None else ckpt_path.with_suffix(".onnx")
+    return export_loaded_checkpoint(model, info, ckpt_path, out, opset=opset, n_parity=n_parity, tol=tol, lrn=lrn)
+
+
+def export_loaded_checkpoint(
+    model: Refiner,
+    info: dict,
+    ckpt_path,
+    out_path,
+    *,
+    opset: int = DEFAULT_OPSET,
+    n_parity: int = MIN_PARITY_INPUTS,
+    tol: float = DEFAULT_TOL,
+    lrn: str = DEFAULT_LRN_LOWERING,
+) -> ExportReport:
+    """Export a checkpoint already loaded with :func:`models.load_checkpoint` (its info and SHA-256 go into the
+    metadata); the one place that maps a checkpoint to :func:`export_model`'s arguments."""
     return export_model(
         model,
-        out,
+        Path(out_path),
         opset=opset,
         info=info,
         metadata_extra=checkpoint_metadata_extra(info),
