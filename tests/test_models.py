@@ -300,3 +300,17 @@ def test_vggm_init_state_dict_rejects_bad_files(tmp_path):
     torch.save({"conv1.weight": torch.zeros(96, 3, 5, 5)}, bad_shape)
     with pytest.raises(ValueError, match=r"'conv1.weight' has shape \(96, 3, 5, 5\); expected \(96, 3, 7, 7\)"):
         models.build_refiner("vggm", **cfg, init_state_dict=str(bad_shape))
+
+
+def test_fusion_quaternion_to_matrix_matches_scipy():
+    from scipy.spatial.transform import Rotation
+
+    from models.fusion import quaternion_to_matrix_flat
+
+    rot = Rotation.random(200, random_state=3)
+    q_wxyz = np.roll(rot.as_quat(), 1, axis=1)  # scipy is xyzw
+    got = quaternion_to_matrix_flat(torch.tensor(q_wxyz, dtype=torch.float64)).numpy().reshape(-1, 3, 3)
+    np.testing.assert_allclose(got, rot.as_matrix(), atol=1e-12)
+    # q and -q are the same rotation, and give the same matrix.
+    got_neg = quaternion_to_matrix_flat(torch.tensor(-q_wxyz, dtype=torch.float64)).numpy().reshape(-1, 3, 3)
+    np.testing.assert_allclose(got_neg, got, atol=1e-12)
