@@ -1,0 +1,94 @@
+"""benchmarks/paper.py on the tiny cube dataset: JSON schema, the report, skipping finished experiments, option errors.
+
+Every training is capped at 1 epoch per stage of 2 steps: this checks the runner's plumbing, not accuracy.
+"""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from cube_dataset import make_cube_dataset
+
+SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "paper.py"
+
+
+def _load_runner():
+    spec = importlib.util.spec_from_file_location("paper_runner", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve their module through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def runner():
+    return _load_runner()
+
+
+@pytest.fixture(scope="module")
+def ran(runner, tmp_path_factory):
+    root = tmp_path_factory.mktemp("paper")
+    make_cube_dataset(root / "cubes", scenes=4, frames=30)
+    argv = ["--data", str(root / "cubes"), "--runs", str(root / "runs"), "--results", str(root / "results"),
+            "--cache", str(root / "cache"), "--threads", "1", "--max-epochs", "1", "--max-steps-per-epoch", "2",
+            "--only", "baseline,iterations,input_angle"]
+    assert runner.main(argv) == 0
+    return root, argv
+
+
+def test_results_follow_the_eval_schema_with_both_models(ran):
+    root, _ = ran
+    for name in ("baseline", "iterations", "input_angle"):
+        doc = json.loads((root / "results" / f"{name}.json").read_text())
+        assert doc["experiment"] == name
+        assert set(doc["objects"]) == {"003_cracker_box", "006_mustard_bottle"}
+        assert doc["objects"]["003_cracker_box"]["mean_deg"] == doc["paper"]["objects"]["003_cracker_box"]["mean_deg"]
+        assert "mean_deg" in doc["average"] and "input_mean_deg" in doc["average"]
+        for model, arch in (("paper", "shallow"), ("improved", "fusion")):
+            assert "average" in doc[model]
+            assert doc["budget"][model]["arch"] == arch
+            assert doc["budget"][model]["max_steps_per_epoch"] == 2
+        assert doc["command"].startswith("python benchmarks/paper.py --data")
+        assert "cpu" in doc["machine"] and doc["wall_s"] > 0
+    baseline = json.loads((root / "results" / "baseline.json").read_text())
+    assert baseline["paper_reference"]["average_mean_deg"] == 6.67
+    assert baseline["paper"]["per_object_models"] and not baseline["improved"]["per_object_models"]
+    assert baseline["budget"]["improved"]["images_per_object"] == {"base": 5000, "fine_tune": 0}
+    iterations = json.loads((root / "results" / "iterations.json").read_text())
+    assert set(iterations["settings"]) == {"1", "2", "3"}
+    assert [iterations["settings"][k]["improved"]["iterations"] for k in "123"] == [1, 2, 3]
+    # eval-only experiments evaluate the baseline's models on the same test inputs
+    assert iterations["paper"]["average"] == pytest.approx(baseline["paper"]["average"])
+    bins = json.loads((root / "results" / "input_angle.json").read_text())["bins"]
+    for model in ("paper", "improved"):
+        assert [(b["lo_deg"], b["hi_deg"]) for b in bins[model]] == [(k, k + 5) for k in range(0, 45, 5)]
+        assert sum(b["n"] for b in bins[model]) == json.loads((root / "results" / "input_angle.json").read_text())[model]["average"]["n"]
+
+
+def test_report_writes_tables_and_plots(runner, ran):
+    root, _ = ran
+    assert runner.main(["--report", "--results", str(root / "results")]) == 0
+    md = (root / "results" / "tables.md").read_text()
+    assert "## baseline" in md and "| **average** | 6.67 |" in md
+    assert "## size_5000" in md and "**not run**" in md
+    for png in ("baseline.png", "input_angle.png"):
+        assert (root / "results" / png).stat().st_size > 1000
+
+
+def test_second_invocation_skips_finished_experiments(runner, ran, capsys):
+    root, argv = ran
+    before = {p.name: p.stat().st_mtime_ns for p in (root / "results").glob("*.json")}
+    assert runner.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.count("skipped") == 3
+    assert {p.name: p.stat().st_mtime_ns for p in (root / "results").glob("*.json")} == before
+
+
+def test_unknown_experiment_lists_the_valid_ones(runner, capsys):
+    with pytest.raises(SystemExit):
+        runner.main(["--only", "baseline,nope", "--list"])
+    err = capsys.readouterr().err
+    assert "unknown experiment(s) ['nope']" in err and "input_angle" in err
