@@ -198,8 +198,9 @@ def budget_of(opts: dict, exp: Experiment, reduced: bool) -> dict:
     else:
         protocol = "one network for all objects, no per-object fine-tuning (the fine-tune images join its base set)"
     return {
-        "arch": opts["arch"], "protocol": protocol, "epochs": epochs,
-        "images_per_object": images, "val_per_object": opts["val_per_object"], "lr": opts["lr"], "lr_schedule": opts["lr_schedule"],
+        "arch": opts["arch"], "arch_config": opts.get("arch_config", {}), "protocol": protocol, "epochs": epochs,
+        "images_per_object": images, "val_per_object": opts["val_per_object"], "lr": opts["lr"],
+        "fine_tune_lr": (opts.get("ft_lr") or opts["lr"] / 3) if fine_tunes else None, "lr_schedule": opts["lr_schedule"],
         "rotation_frame": opts["rotation_frame"], "noise": opts["noise"], "split_mode": opts["split_mode"],
         "max_steps_per_epoch": opts["max_steps_per_epoch"] or "full pass",
         "reduced": "VGGM_REDUCED: VGG-M at 224x224 costs ~100x the shallow per sample on this CPU; "

@@ -7,6 +7,8 @@ Differences from the paper's design (``models.shallow``), each chosen by measure
     * image and pose features are projected to the same width ``d`` and fused as
       ``concat[a, b, a * b]`` (the product lets the head compare appearance with the claimed pose
       directly) instead of a plain 4096 + 4096 concatenation;
+    * 3x3 convolutions instead of 5x5: the convolutions are most of the INT8 model's time at batch 1, and
+      3x3 cuts their FLOPs 2.8x (1.7x faster refine() on one core) with no loss of accuracy in training;
     * the head is narrower (``3d -> 256 -> 64 -> 4``), so the model is about 4x smaller than the
       paper's and faster on a CPU.
 
@@ -20,10 +22,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from models.blocks import InputNormalization, RefinementHead, Refiner, mlp, validate_int_list
+from models.blocks import InputNormalization, RefinementHead, Refiner, mlp, unit_normalize, validate_int_list
 from models.registry import register_refiner
 
-__all__ = ["FusionRefiner", "quaternion_to_matrix_flat"]
+__all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices"]
 
 
 def _quadratic_form_matrix() -> torch.Tensor:
@@ -68,6 +70,44 @@ def quaternion_to_matrix_flat(q: torch.Tensor) -> torch.Tensor:
     return outer @ _QUADRATIC_FORM.to(dtype=q.dtype, device=q.device)
 
 
+def matrix_from_6d(x: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices from 6 numbers by Gram-Schmidt (Zhou et al., CVPR 2019: continuous, unlike quaternions).
+
+    Args:
+        x: ``(N, 6)`` float, two 3-vectors ``a1, a2`` (need not be unit or orthogonal).
+
+    Returns:
+        ``(N, 3, 3)`` float rotation matrices with columns ``b1 = a1/|a1|``, ``b2`` (``a2`` made orthogonal
+        to ``b1``, unit), ``b3 = b1 x b2``.
+    """
+    a1, a2 = x[:, :3], x[:, 3:]
+    b1 = a1 / torch.linalg.vector_norm(a1, dim=1, keepdim=True).clamp_min(1e-8)
+    a2 = a2 - (b1 * a2).sum(dim=1, keepdim=True) * b1
+    b2 = a2 / torch.linalg.vector_norm(a2, dim=1, keepdim=True).clamp_min(1e-8)
+    b3 = torch.cross(b1, b2, dim=1)
+    return torch.stack([b1, b2, b3], dim=2)
+
+
+def correction_from_matrices(r_in: torch.Tensor, r_abs: torch.Tensor) -> torch.Tensor:
+    """``q_out`` (``wxyz``, ``w >= 0``) of ``R_out = R_in^T R_abs``, the correction that takes ``R_in`` to ``R_abs``.
+
+    Uses ``w = sqrt(1 + trace) / 2``: exact and well conditioned for corrections up to well past 90 degrees
+    (a refiner's corrections are small); near 180 degrees, where ``w -> 0``, the clamp keeps it finite and the
+    unit normalisation keeps the result a rotation.
+
+    Args:
+        r_in: ``(N, 3, 3)`` input rotations; r_abs: ``(N, 3, 3)`` estimated rotations (same frame).
+
+    Returns:
+        ``(N, 4)`` unit quaternions, ``wxyz``, ``w >= 0``.
+    """
+    r = r_in.transpose(1, 2) @ r_abs
+    trace = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
+    w4 = 2.0 * torch.sqrt((1.0 + trace).clamp_min(1e-6))  # 4 w
+    q = torch.stack([w4 / 4.0, (r[:, 2, 1] - r[:, 1, 2]) / w4, (r[:, 0, 2] - r[:, 2, 0]) / w4, (r[:, 1, 0] - r[:, 0, 1]) / w4], dim=1)
+    return unit_normalize(q)
+
+
 @register_refiner("fusion")
 class FusionRefiner(Refiner):
     """Shallow CNN + rotation-matrix pose stage + multiplicative fusion ``concat[a, b, a*b]``.
@@ -75,10 +115,14 @@ class FusionRefiner(Refiner):
     Config keys (beyond the common ones of :class:`models.blocks.Refiner`):
         * ``conv_channels`` (list of ints, default ``[16, 16]``): one ``conv 5x5 - BN - ReLU - maxpool 2``
           block per entry.
-        * ``kernel_size`` (odd int, default 5).
+        * ``kernel_size`` (odd int, default 3; the paper's network uses 5).
         * ``fuse_width`` (int, default 512): width ``d`` of the image and pose feature vectors.
         * ``pose_input`` (``"matrix"`` or ``"quaternion"``, default ``"matrix"``).
         * ``fusion`` (``"product"`` = ``concat[a, b, a*b]``, default; or ``"concat"`` = ``concat[a, b]``).
+        * ``output`` (``"relative"``: the head predicts ``q_out`` directly, as the paper's; ``"absolute"``: the
+          head predicts the rotation the crop shows, ``R_abs``, as 6 numbers (:func:`matrix_from_6d`), and the
+          graph computes ``q_out`` from ``R_in^T R_abs`` (:func:`correction_from_matrices`), so the network
+          never has to learn the composition of two rotations).
         * ``pose_widths`` (default ``[64, 512]``): pose MLP widths; the last must equal ``fuse_width``.
         * ``head_widths`` (default ``[256, 64]``).
 
@@ -91,10 +135,11 @@ class FusionRefiner(Refiner):
     DEFAULT_CONFIG = {
         "input_size": 64,
         "conv_channels": [16, 16],
-        "kernel_size": 5,
+        "kernel_size": 3,
         "fuse_width": 512,
         "pose_input": "matrix",
         "fusion": "product",
+        "output": "relative",
         "pose_widths": [64, 512],
         "head_widths": [256, 64],
     }
@@ -118,6 +163,8 @@ class FusionRefiner(Refiner):
             raise ValueError(f"config['pose_widths'] must end with fuse_width={d}; got {cfg['pose_widths']}")
         if cfg["pose_input"] not in ("matrix", "quaternion"):
             raise ValueError(f"config['pose_input'] must be 'matrix' or 'quaternion'; got {cfg['pose_input']!r}")
+        if cfg["output"] not in ("relative", "absolute"):
+            raise ValueError(f"config['output'] must be 'relative' or 'absolute'; got {cfg['output']!r}")
         if cfg["fusion"] not in ("product", "concat"):
             raise ValueError(f"config['fusion'] must be 'product' or 'concat'; got {cfg['fusion']!r}")
         return cfg
@@ -134,7 +181,10 @@ class FusionRefiner(Refiner):
         n_pose_in = 9 if cfg["pose_input"] == "matrix" else 4
         self.pose = mlp([n_pose_in, *cfg["pose_widths"]], relu_last=True)
         n_fused = 3 * d if cfg["fusion"] == "product" else 2 * d
-        self.head = RefinementHead(n_fused, cfg["head_widths"])
+        if cfg["output"] == "relative":
+            self.head = RefinementHead(n_fused, cfg["head_widths"])
+        else:
+            self.head = mlp([n_fused, *cfg["head_widths"], 6], relu_last=False)
 
     def build_feature_stage(self, config: dict) -> tuple[nn.Module, int]:
         k = config["kernel_size"]
@@ -152,7 +202,10 @@ class FusionRefiner(Refiner):
         """Predict ``q_out`` (``q_refined = q_in * q_out``); same contract as :meth:`Refiner.forward`."""
         self._check_inputs(image, q_in)
         a = self.features(self.normalize(image))
-        pose_in = quaternion_to_matrix_flat(q_in) if self.config["pose_input"] == "matrix" else q_in
-        b = self.pose(pose_in)
+        r_in = quaternion_to_matrix_flat(q_in)
+        b = self.pose(r_in if self.config["pose_input"] == "matrix" else q_in)
         fused = torch.cat([a, b, a * b] if self.config["fusion"] == "product" else [a, b], dim=1)
-        return self.head(fused)
+        if self.config["output"] == "relative":
+            return self.head(fused)
+        # "absolute": the head estimates the rotation the crop shows; the correction is computed exactly.
+        return correction_from_matrices(r_in.view(-1, 3, 3), matrix_from_6d(self.head(fused)))

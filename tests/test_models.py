@@ -314,3 +314,34 @@ def test_fusion_quaternion_to_matrix_matches_scipy():
     # q and -q are the same rotation, and give the same matrix.
     got_neg = quaternion_to_matrix_flat(torch.tensor(-q_wxyz, dtype=torch.float64)).numpy().reshape(-1, 3, 3)
     np.testing.assert_allclose(got_neg, got, atol=1e-12)
+
+
+def test_fusion_absolute_output_is_the_exact_correction():
+    from scipy.spatial.transform import Rotation
+
+    from models.fusion import correction_from_matrices, matrix_from_6d, quaternion_to_matrix_flat
+
+    r_in, r_abs = Rotation.random(100, random_state=4), Rotation.random(100, random_state=5)
+    q = correction_from_matrices(torch.tensor(r_in.as_matrix()), torch.tensor(r_abs.as_matrix())).numpy()
+    ref = np.roll((r_in.inv() * r_abs).as_quat(), 1, axis=1)
+    ref *= np.sign(ref[:, :1])
+    np.testing.assert_allclose(q, ref, atol=1e-9)
+    # Gram-Schmidt of 6 numbers gives a proper rotation; of a rotation's first two columns, that rotation.
+    m = matrix_from_6d(torch.randn(50, 6, dtype=torch.float64))
+    np.testing.assert_allclose((m.transpose(1, 2) @ m).numpy(), np.broadcast_to(np.eye(3), (50, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(torch.linalg.det(m).numpy(), 1.0, atol=1e-12)
+    cols = torch.tensor(r_abs.as_matrix())[:, :, :2].transpose(1, 2).reshape(100, 6)
+    np.testing.assert_allclose(matrix_from_6d(cols).numpy(), r_abs.as_matrix(), atol=1e-12)
+    # In the model: q_in * q_out equals the rotation the head estimated.
+    model = models.build_refiner("fusion", output="absolute", input_size=16, conv_channels=[4], fuse_width=16,
+                                 pose_widths=[16], head_widths=[8]).eval()
+    image = torch.randint(0, 256, (5, 16, 16, 3), dtype=torch.uint8)
+    q_in = torch.tensor(np.roll(Rotation.random(5, random_state=6).as_quat(), 1, axis=1), dtype=torch.float32)
+    with torch.no_grad():
+        q_out = model(image, q_in).double().numpy()
+        a = model.features(model.normalize(image))
+        b = model.pose(quaternion_to_matrix_flat(q_in))
+        r_est = matrix_from_6d(model.head(torch.cat([a, b, a * b], dim=1))).double().numpy()
+    assert (q_out[:, 0] >= 0).all()
+    q_refined = Rotation.from_quat(np.roll(q_in.double().numpy(), -1, axis=1)) * Rotation.from_quat(np.roll(q_out, -1, axis=1))
+    np.testing.assert_allclose(q_refined.as_matrix(), r_est, atol=1e-4)
