@@ -59,8 +59,8 @@ if str(REPO) not in sys.path:
 # training set, so both models see the same images and the same split (the scenes split too). A positive
 # per_object in an experiment's recipe override replaces the experiment's fine-tune size for that model.
 RECIPES = {
-    "paper": dict(arch="shallow", lr=1e-4, lr_schedule="constant", epochs_mse=5, epochs_geodesic=25,
-                  ft_epochs_mse=5, ft_epochs_geodesic=10, rotation_frame="ray"),
+    "paper": dict(arch="shallow", lr=1e-4, ft_lr=1e-4, lr_schedule="constant", epochs_mse=5, epochs_geodesic=25,
+                  ft_epochs_mse=5, ft_epochs_geodesic=15, rotation_frame="ray"),
     "improved": dict(arch="fusion", lr=1e-3, ft_lr=5e-4, lr_schedule="cosine", epochs_mse=2, epochs_geodesic=18,
                      ft_epochs_mse=2, ft_epochs_geodesic=28, rotation_frame="ray"),
 }
