@@ -113,7 +113,7 @@ class FusionRefiner(Refiner):
     """Shallow CNN + rotation-matrix pose stage + multiplicative fusion ``concat[a, b, a*b]``.
 
     Config keys (beyond the common ones of :class:`models.blocks.Refiner`):
-        * ``conv_channels`` (list of ints, default ``[16, 16]``): one ``conv 5x5 - BN - ReLU - maxpool 2``
+        * ``conv_channels`` (list of ints, default ``[16, 16]``): one ``conv k x k - BN - ReLU - maxpool 2``
           block per entry.
         * ``kernel_size`` (odd int, default 3; the paper's network uses 5).
         * ``fuse_width`` (int, default 512): width ``d`` of the image and pose feature vectors.
