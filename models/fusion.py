@@ -202,7 +202,8 @@ class FusionRefiner(Refiner):
         """Predict ``q_out`` (``q_refined = q_in * q_out``); same contract as :meth:`Refiner.forward`."""
         self._check_inputs(image, q_in)
         a = self.features(self.normalize(image))
-        r_in = quaternion_to_matrix_flat(q_in)
+        matrix_needed = self.config["pose_input"] == "matrix" or self.config["output"] == "absolute"
+        r_in = quaternion_to_matrix_flat(q_in) if matrix_needed else None
         b = self.pose(r_in if self.config["pose_input"] == "matrix" else q_in)
         fused = torch.cat([a, b, a * b] if self.config["fusion"] == "product" else [a, b], dim=1)
         if self.config["output"] == "relative":
