@@ -299,14 +299,12 @@ def input_angle_errors(ckpt: Path, noise: str, args) -> dict:
     import models
     from models.data.objects import YCBV_CLASSES
     from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.pipeline import checkpoint_test_set
     from models.train import set_threads
 
     set_threads(args.threads)
     net, info = models.load_checkpoint(ckpt)
-    spec = DataSpec.from_dict({**info["data"], "data": str(args.data)})
-    test = cropset_for(load_splits(spec), "test", spec, net.input_size, net.config["crop_context"],
-                       cache_root=args.cache, progress=False)
+    test, _ = checkpoint_test_set(net, info, data=args.data, cache_root=args.cache)
     predictor = {obj: torch_predictor(net) for obj in test.objects}
     for obj in YCBV_CLASSES:
         sibling = ckpt.with_name(f"{ckpt.stem}.{obj}.pt")

@@ -35,15 +35,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import models
     from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.pipeline import checkpoint_test_set
     from models.train import set_threads
     from refiner_rt import quaternion as rq
 
     set_threads(args.threads)
     net, info = models.load_checkpoint(args.checkpoint)
-    spec = DataSpec.from_dict(info["data"])
-    test = cropset_for(load_splits(spec), "test", spec, net.input_size, net.config["crop_context"],
-                       cache_root=args.cache, progress=False)
+    test, spec = checkpoint_test_set(net, info, cache_root=args.cache)
     if test.q_ray is None:
         raise SystemExit(f"{spec.data}: the test crops have no intrinsics K, so no viewing ray")
     errors = evaluate_errors(torch_predictor(net.eval()), test, rotation_frame=info.get("rotation_frame", "camera"))

@@ -19,7 +19,7 @@ import numpy as np
 from models.cropset import CropSet
 from refiner_rt.session import ray_quaternions
 
-__all__ = ["DataSpec", "detect_format", "load_samples", "load_splits", "cropset_for", "PARTS"]
+__all__ = ["DataSpec", "detect_format", "load_samples", "load_splits", "cropset_for", "checkpoint_test_set", "PARTS"]
 
 log = logging.getLogger(__name__)
 
@@ -164,3 +164,26 @@ def cropset_for(
         scene_ids=np.asarray(cache.scene_ids),
     )
     return cs if obj_id is None else cs.for_object(obj_id)
+
+
+def checkpoint_test_set(
+    model, info: dict, *, data: str | Path | None = None, cache_root: Path | None = None, progress: bool = False
+) -> tuple[CropSet, DataSpec]:
+    """The test crops a checkpoint was trained against: its recorded data spec, cropped for the model.
+
+    Args:
+        model: the loaded refiner (gives ``input_size`` and ``config["crop_context"]``).
+        info: the checkpoint's ``info`` (``models.load_checkpoint``); its ``data`` entry names the split.
+        data: the dataset folder if it moved since training (default: the recorded one).
+        cache_root: where crop caches live (default ``<data>/.crops``).
+        progress: progress bar while the cache is built.
+
+    Returns:
+        ``(test CropSet, DataSpec)``.
+    """
+    if not info.get("data"):
+        raise ValueError("the checkpoint records no training data spec (info['data']); evaluate it with refiner-rt eval --data")
+    spec = DataSpec.from_dict({**info["data"], **({"data": str(data)} if data is not None else {})})
+    test = cropset_for(load_splits(spec), "test", spec, model.input_size, model.config["crop_context"],
+                       cache_root=cache_root, progress=progress)
+    return test, spec

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from data_fixtures import make_bop, make_ycbv
-from models.pipeline import DataSpec, cropset_for, detect_format, load_samples, load_splits
+from models.pipeline import DataSpec, checkpoint_test_set, cropset_for, detect_format, load_samples, load_splits
 from refiner_rt import quaternion as rq
 from refiner_rt.session import ray_quaternions
 
@@ -40,3 +40,19 @@ def test_cropset_of_a_split_part_carries_rays_and_ground_truth(tmp_path):
     np.testing.assert_allclose(rq.geodesic_angle(cs.q_ray, ref), 0, atol=1e-9)
     with pytest.raises(ValueError, match="part must be one of"):
         cropset_for(splits, "holdout", spec, 16, 1.2)
+
+
+def test_checkpoint_test_set_rebuilds_the_recorded_test_split(tmp_path):
+    make_bop(tmp_path / "bop")
+    spec = DataSpec(data=str(tmp_path / "bop"), min_visib=0.0, min_box_size=0, sizes=(1, 0, 0, 1))
+
+    class Net:
+        input_size, config = 16, {"crop_context": 1.2}
+
+    direct = cropset_for(load_splits(spec), "test", spec, 16, 1.2, cache_root=tmp_path / "cache", progress=False)
+    test, got = checkpoint_test_set(Net(), {"data": spec.as_dict()}, cache_root=tmp_path / "cache")
+    assert got == spec
+    np.testing.assert_array_equal(test.crops, direct.crops)
+    np.testing.assert_allclose(test.q_gt, direct.q_gt)
+    with pytest.raises(ValueError, match="records no training data spec"):
+        checkpoint_test_set(Net(), {}, cache_root=tmp_path / "cache")
