@@ -1,0 +1,153 @@
+"""Held-out error of one object's refiner against the number of training crops, on both split protocols.
+
+The ``frames`` split (the paper's) tests on frames whose neighbours in the same video were trained on; the
+``scenes`` split holds whole scenes out, which is what a robot in a new room sees. This study trains the same
+network with the same number of optimisation steps on growing subsets of one object's training crops and
+measures the test error on each protocol, so the gap between them, and how it shrinks with data, is measured
+rather than guessed.
+
+Usage (from the repository root)::
+
+    python benchmarks/data_scaling.py --data DIR --object 003_cracker_box --sizes 1000,3000,10000 \\
+        --samples 150000 [--augment] [--json benchmarks/results/data_scaling.json]
+
+For each mode the split is made once with the largest size (so the test crops are the same for every size) and
+each run trains on the first N crops of a seeded permutation of that split's training part. Every run draws
+``--samples`` training samples (epochs of at most ``--epoch-samples``); the validation part picks the best epoch;
+the reported error is on the test part with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024).
+``--augment`` adds a run with colour and box jitter at the largest size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+
+def _parse_sizes(text: str) -> list[int]:
+    try:
+        sizes = sorted({int(s) for s in text.split(",") if s.strip()})
+    except ValueError:
+        raise SystemExit(f"--sizes: expected comma-separated integers like 1000,3000; got {text!r}") from None
+    if not sizes or sizes[0] <= 0:
+        raise SystemExit(f"--sizes: expected positive integers; got {text!r}")
+    return sizes
+
+
+def run(args) -> dict:
+    import torch
+
+    import models
+    from models.evaluate import evaluate_errors, torch_predictor
+    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.train import TrainConfig, set_threads, train_refiner
+
+    threads = set_threads(args.threads)
+    sizes = _parse_sizes(args.sizes)
+    probe = models.build_refiner(args.arch)
+    size, context = probe.input_size, probe.config["crop_context"]
+    rows = []
+    t_all = time.perf_counter()
+    for mode in args.modes.split(","):
+        spec = DataSpec(data=str(args.data), objects=[args.object], split_mode=mode, split_seed=args.split_seed,
+                        sizes=(sizes[-1], 0, args.val, args.test))
+        splits = load_splits(spec)
+        parts = {p: cropset_for(splits, p, spec, size, context, cache_root=args.cache, progress=not args.quiet)
+                 for p in ("train_base", "val", "test")}
+        train_all, val, test = parts["train_base"], parts["val"], parts["test"]
+        scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
+        order = np.random.default_rng(args.seed).permutation(len(train_all))
+        runs = [(n, False) for n in sizes] + ([(sizes[-1], True)] if args.augment else [])
+        for n, augment in runs:
+            if n > len(train_all):
+                print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
+                continue
+            train = train_all.subset(np.sort(order[:n]))
+            per_epoch = min(n, args.epoch_samples)
+            epochs = max(2, math.ceil(args.samples / per_epoch))
+            cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
+                              rotation_frame=args.rotation_frame, augment=augment, seed=args.seed,
+                              max_steps_per_epoch=math.ceil(per_epoch / 64))
+            torch.manual_seed(args.seed)
+            model = models.build_refiner(args.arch)
+            t0 = time.perf_counter()
+            res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
+            errors = evaluate_errors(torch_predictor(res.model.eval()), test, rotation_frame=args.rotation_frame)
+            row = {"mode": mode, "train_crops": n, "augment": augment, "epochs": epochs,
+                   "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
+                   "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
+                   "scenes": scenes, "wall_s": round(time.perf_counter() - t0, 1)}
+            rows.append(row)
+            print(f"{mode:6s} n={n:6d} augment={augment!s:5s}: test {row['mean_deg']:.2f} deg "
+                  f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
+                  f"{row['wall_s']:.0f} s", file=sys.stderr)
+    return {
+        "study": "held-out error vs training crops, frames and scenes splits",
+        "object": args.object, "arch": args.arch, "rotation_frame": args.rotation_frame, "lr": args.lr,
+        "lr_schedule": "cosine", "test_noise": "uniform:0:30", "rows": rows,
+        "command": shlex.join(["python", "benchmarks/data_scaling.py", *args.argv]),
+        "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
+                    "threads": threads, "torch": torch.__version__},
+        "wall_s": round(time.perf_counter() - t_all, 1),
+    }
+
+
+def markdown(doc: dict) -> str:
+    lines = [f"{doc['object']}, {doc['arch']} ({doc['rotation_frame']} frame), same number of samples per run:", "",
+             "| split | training crops | augment | test mean (deg) | median | under 5 deg | input mean | train/val/test scenes |",
+             "|---|---:|---|---:|---:|---:|---:|---|"]
+    for r in doc["rows"]:
+        s = r["scenes"]
+        lines.append(f"| {r['mode']} | {r['train_crops']} | {'yes' if r['augment'] else 'no'} | {r['mean_deg']:.2f} | "
+                     f"{r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% | {r['input_mean_deg']:.2f} | "
+                     f"{s['train_base']}/{s['val']}/{s['test']} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", type=Path, required=True, help="rendered or real dataset (BOP or YCB-Video layout)")
+    p.add_argument("--object", default="003_cracker_box", help="YCB id of the object to study")
+    p.add_argument("--sizes", default="1000,3000,10000", help="training crops per run, comma-separated")
+    p.add_argument("--modes", default="frames,scenes", help="split protocols, comma-separated")
+    p.add_argument("--samples", type=int, default=150_000, help="training samples drawn by every run")
+    p.add_argument("--epoch-samples", type=int, default=3000, help="samples per epoch at most (validation after each)")
+    p.add_argument("--val", type=int, default=1500, help="validation crops")
+    p.add_argument("--test", type=int, default=3000, help="test crops")
+    p.add_argument("--arch", default="fusion")
+    p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of the cosine schedule")
+    p.add_argument("--rotation-frame", default="ray", choices=("camera", "ray"))
+    p.add_argument("--augment", action="store_true", help="add a run with colour and box jitter at the largest size")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--split-seed", type=int, default=0)
+    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--json", type=Path, help="write the rows and the command here")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    for m in args.modes.split(","):
+        if m not in ("frames", "scenes"):
+            p.error(f"--modes: expected frames and/or scenes; got {m!r}")
+    doc = run(args)
+    print(markdown(doc))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
