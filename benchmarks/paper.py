@@ -58,14 +58,17 @@ if str(REPO) not in sys.path:
 # per_object=0 in a recipe: no per-object fine-tuning; the experiment's fine-tune images then join the base
 # training set, so both models see the same images and the same split (the scenes split too). A positive
 # per_object in an experiment's recipe override replaces the experiment's fine-tune size for that model.
-# ft_restart_epochs_geodesic: once the fine-tuning has run its schedule, it is resumed with this many geodesic
-# epochs (``refiner-rt train --resume --ft-epochs-geodesic N``): the cosine schedule is stretched to the new length,
-# so the learning rate restarts from its value at the old end's position of the longer schedule (a warm restart).
+# ft_continue: once the fine-tuning has run its schedule, it is resumed (``refiner-rt train --resume``) with these
+# options changed; every object continues from its own last epoch. paper: 10 more epochs at a fifth of the learning
+# rate. improved: the cosine schedule stretched from 30 to 70 epochs, so the learning rate restarts from its value
+# at epoch 30 of the longer schedule (a warm restart).
 RECIPES = {
     "paper": dict(arch="shallow", lr=1e-4, ft_lr=1e-4, lr_schedule="constant", epochs_mse=5, epochs_geodesic=25,
-                  ft_epochs_mse=5, ft_epochs_geodesic=45, rotation_frame="ray"),
+                  ft_epochs_mse=5, ft_epochs_geodesic=45, rotation_frame="ray",
+                  ft_continue=dict(ft_epochs_geodesic=55, ft_lr=2e-5)),
     "improved": dict(arch="fusion", lr=1e-3, ft_lr=5e-4, lr_schedule="cosine", epochs_mse=2, epochs_geodesic=18,
-                     ft_epochs_mse=2, ft_epochs_geodesic=28, ft_restart_epochs_geodesic=68, rotation_frame="ray"),
+                     ft_epochs_mse=2, ft_epochs_geodesic=28, rotation_frame="ray",
+                     ft_continue=dict(ft_epochs_geodesic=68)),
 }
 # The improved refiner's fine-tuning images per object in the baseline and scenes experiments (the rest of the
 # frames split's training frames; the paper's network keeps the paper's 2000).
@@ -73,7 +76,7 @@ IMPROVED_FINETUNE = {"improved": {"per_object": 5000}}
 # VGG-M experiments below --budget full: images per object and epochs of every stage, for both models.
 VGGM_REDUCED = dict(base_per_object=500, per_object=500, val_per_object=500, epochs_mse=1, epochs_geodesic=4,
                     ft_epochs_mse=1, ft_epochs_geodesic=2)
-EPOCH_KEYS = ("epochs_mse", "epochs_geodesic", "ft_epochs_mse", "ft_epochs_geodesic", "ft_restart_epochs_geodesic")
+EPOCH_KEYS = ("epochs_mse", "epochs_geodesic", "ft_epochs_mse", "ft_epochs_geodesic")
 PAPER_SOURCE = "Jain & Dellaert, Fast 3D Pose Refinement with RGB Images, Results (YCB-Video, mean over nine objects)"
 ANGLE_BINS = tuple(range(0, 50, 5))  # input-angle bin edges (degrees) of input_angle
 BASELINE_DATA = dict(split_mode="frames", base_per_object=3000, per_object=2000, val_per_object=3000, test_per_object=3000,
@@ -157,6 +160,7 @@ def _train_defaults(data: Path) -> dict:
 
 
 def _scale_epochs(opts: dict, args) -> dict:
+    opts = dict(opts)
     for key in EPOCH_KEYS:
         e = opts.get(key)
         if e is None:
@@ -166,6 +170,8 @@ def _scale_epochs(opts: dict, args) -> dict:
         if args.max_epochs:
             e = min(e, args.max_epochs)
         opts[key] = e
+    if opts.get("ft_continue"):
+        opts["ft_continue"] = _scale_epochs(opts["ft_continue"], args)
     return opts
 
 
@@ -180,10 +186,10 @@ def train_options(exp: Experiment, model: str, args) -> dict:
     if _reduced(exp, args):
         data.update({k: v for k, v in VGGM_REDUCED.items() if k not in EPOCH_KEYS})
         recipe.update({k: v for k, v in VGGM_REDUCED.items() if k in EPOCH_KEYS})
-        recipe.pop("ft_restart_epochs_geodesic", None)
+        recipe.pop("ft_continue", None)
     if exp.protocol == "fine_only":
         data.update(base_per_object=data["per_object"], per_object=0)
-        recipe = {k: v for k, v in recipe.items() if k not in ("ft_epochs_mse", "ft_epochs_geodesic", "ft_restart_epochs_geodesic")}
+        recipe = {k: v for k, v in recipe.items() if k not in ("ft_epochs_mse", "ft_epochs_geodesic", "ft_continue")}
     elif recipe.get("per_object") == 0:
         data.update(base_per_object=data["base_per_object"] + data["per_object"], per_object=0)
     elif recipe.get("per_object"):
@@ -200,8 +206,8 @@ def budget_of(opts: dict, exp: Experiment, reduced: bool) -> dict:
     if fine_tunes:
         epochs.update(fine_tune_mse=opts.get("ft_epochs_mse", opts["epochs_mse"]),
                       fine_tune_geodesic=opts.get("ft_epochs_geodesic", opts["epochs_geodesic"]))
-        if opts.get("ft_restart_epochs_geodesic"):
-            epochs["fine_tune_geodesic_after_restart"] = opts["ft_restart_epochs_geodesic"]
+        if opts.get("ft_continue"):
+            epochs["fine_tune_continued"] = opts["ft_continue"]
     images = {"base": opts["base_per_object"], "fine_tune": opts["per_object"]}
     if exp.protocol == "fine_only":
         protocol = "each object trained alone from scratch on its fine-tune images (no base network)"
@@ -242,15 +248,15 @@ def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
     state = Path(f"{out.with_suffix('')}.state")
     resume = not args.force and state.is_dir() and any(state.iterdir())
     print(f"    training {opts['arch']} -> {out}{' (resuming)' if resume else ''}", flush=True)
-    train = {k: v for k, v in opts.items() if k != "ft_restart_epochs_geodesic"}
+    train = {k: v for k, v in opts.items() if k != "ft_continue"}
     common = {"data": args.data, "out": out, "threads": args.threads, "cache_root": args.cache, "quiet": True}
     run_training(**{**defaults, **train, **common, "resume": resume})
-    restart = opts.get("ft_restart_epochs_geodesic")
-    if restart and opts["per_object"] and restart > train.get("ft_epochs_geodesic", 0):
-        # Objects whose extended fine-tuning already ran further are left as they are by the first call
-        # (their state is past its last epoch), so an interrupted restart resumes where it stopped.
-        print(f"    warm restart of the fine-tuning: {restart} geodesic epochs", flush=True)
-        run_training(**{**defaults, **train, **common, "ft_epochs_geodesic": restart, "resume": True})
+    cont = opts.get("ft_continue") or {}
+    if opts["per_object"] and cont.get("ft_epochs_geodesic", 0) > train.get("ft_epochs_geodesic", 0):
+        # Objects whose continued fine-tuning already ran further are left as they are by the first call
+        # (their state is past its last epoch), so an interrupted continuation resumes where it stopped.
+        print(f"    continuing the fine-tuning with {cont}", flush=True)
+        run_training(**{**defaults, **train, **common, **cont, "resume": True})
     done.write_text(json.dumps({k: v for k, v in opts.items() if k != "objects"}, indent=2))
 
 

@@ -96,10 +96,10 @@ def test_unknown_experiment_lists_the_valid_ones(runner, capsys):
     assert "unknown experiment(s) ['nope']" in err and "input_angle" in err
 
 
-def test_warm_restart_extends_every_objects_fine_tuning(runner, tmp_path, monkeypatch):
+def test_continued_fine_tuning_extends_every_objects_schedule(runner, tmp_path, monkeypatch):
     make_cube_dataset(tmp_path / "cubes", scenes=4, frames=30)
-    recipe = {**runner.RECIPES["improved"], "epochs_mse": 1, "epochs_geodesic": 0, "ft_epochs_mse": 1,
-              "ft_epochs_geodesic": 1, "ft_restart_epochs_geodesic": 3}
+    recipe = {**runner.RECIPES["improved"], "lr_schedule": "constant", "epochs_mse": 1, "epochs_geodesic": 0, "ft_epochs_mse": 1,
+              "ft_epochs_geodesic": 1, "ft_continue": {"ft_epochs_geodesic": 3, "ft_lr": 1e-5}}
     monkeypatch.setitem(runner.RECIPES, "improved", recipe)
     argv = ["--data", str(tmp_path / "cubes"), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"),
             "--cache", str(tmp_path / "cache"), "--threads", "1", "--max-steps-per-epoch", "1",
@@ -107,7 +107,8 @@ def test_warm_restart_extends_every_objects_fine_tuning(runner, tmp_path, monkey
     assert runner.main(argv) == 0
     rows = [json.loads(line) for line in (tmp_path / "runs" / "baseline" / "improved" / "fusion.log.jsonl").open()]
     for obj in ("003_cracker_box", "006_mustard_bottle"):
-        # 1 MSE + 1 geodesic epoch, then resumed to 1 + 3: epochs 3 and 4 continue the same state.
+        # 1 MSE + 1 geodesic epoch, then resumed to 1 + 3 at the new rate: epochs 3 and 4 continue the same state.
         assert [r["epoch"] for r in rows if r["stage"] == obj] == [1, 2, 3, 4]
     doc = json.loads((tmp_path / "results" / "baseline.json").read_text())
-    assert doc["budget"]["improved"]["epochs"]["fine_tune_geodesic_after_restart"] == 3
+    assert doc["budget"]["improved"]["epochs"]["fine_tune_continued"] == {"ft_epochs_geodesic": 3, "ft_lr": 1e-5}
+    assert [r["lr"] for r in rows if r["stage"] == "003_cracker_box"][2:] == [1e-5, 1e-5]
