@@ -15,7 +15,8 @@ For each mode the split is made once with the largest size (so the test crops ar
 each run trains on the first N crops of a seeded permutation of that split's training part. Every run draws
 ``--samples`` training samples (epochs of at most ``--epoch-samples``); the validation part picks the best epoch;
 the reported error is on the test part with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024).
-``--augment`` adds a run with colour and box jitter at the largest size.
+``--augment`` adds a run with colour and box jitter at the largest size. ``--table JSON`` prints the table of a
+written result again.
 """
 
 from __future__ import annotations
@@ -106,19 +107,21 @@ def run(args) -> dict:
 
 def markdown(doc: dict) -> str:
     lines = [f"{doc['object']}, {doc['arch']} ({doc['rotation_frame']} frame), same number of samples per run:", "",
-             "| split | training crops | augment | test mean (deg) | median | under 5 deg | input mean | train/val/test scenes |",
-             "|---|---:|---|---:|---:|---:|---:|---|"]
+             "| split | training crops | augment | test mean (deg) | median | under 5 deg | input mean | best epoch | "
+             "train/val/test scenes |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---|"]
     for r in doc["rows"]:
         s = r["scenes"]
         lines.append(f"| {r['mode']} | {r['train_crops']} | {'yes' if r['augment'] else 'no'} | {r['mean_deg']:.2f} | "
                      f"{r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% | {r['input_mean_deg']:.2f} | "
-                     f"{s['train_base']}/{s['val']}/{s['test']} |")
+                     f"{r['best_epoch']} of {r['epochs']} | {s['train_base']}/{s['val']}/{s['test']} |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, required=True, help="rendered or real dataset (BOP or YCB-Video layout)")
+    p.add_argument("--data", type=Path, help="rendered or real dataset (BOP or YCB-Video layout)")
+    p.add_argument("--table", type=Path, metavar="JSON", help="print the Markdown table of a written --json and exit")
     p.add_argument("--object", default="003_cracker_box", help="YCB id of the object to study")
     p.add_argument("--sizes", default="1000,3000,10000", help="training crops per run, comma-separated")
     p.add_argument("--modes", default="frames,scenes", help="split protocols, comma-separated")
@@ -138,6 +141,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
+    if args.table:
+        print(markdown(json.loads(args.table.read_text())))
+        return 0
+    if args.data is None:
+        p.error("--data is required (or --table JSON)")
     for m in args.modes.split(","):
         if m not in ("frames", "scenes"):
             p.error(f"--modes: expected frames and/or scenes; got {m!r}")

@@ -43,6 +43,8 @@ def test_study_writes_one_row_per_size_and_mode_on_fixed_test_sets(tmp_path, cap
         assert r["mean_deg"] >= 0 and r["input_mean_deg"] > 0
     assert "| scenes | 40 | yes |" in capsys.readouterr().out
     assert doc["command"].startswith("python benchmarks/data_scaling.py --data")
+    assert study.main(["--table", str(out)]) == 0
+    assert capsys.readouterr().out.count("| frames |") == 3
 
 
 def test_bad_sizes_are_named():
