@@ -136,7 +136,9 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--threads", default=0, show_default=True, type=click.IntRange(0), help="Torch threads (0: all cores, shared between torchrun ranks).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
 @click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
-@click.option("--resume", is_flag=True, help="Continue an interrupted run from OUT's .state folder.")
+@click.option("--resume", is_flag=True,
+              help="Continue from OUT's .state folder: an interrupted run, or a finished one given more epochs "
+                   "(each stage and object goes on from its last epoch with the options given now).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def train_cmd(**opts):
     """Train a refiner: base network on all objects, then per-object fine-tuning (the paper's recipe).
