@@ -80,7 +80,7 @@ def run(args) -> dict:
             epochs = max(2, math.ceil(args.samples / per_epoch))
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
                               rotation_frame=args.rotation_frame, augment=augment, seed=args.seed,
-                              max_steps_per_epoch=math.ceil(per_epoch / 64))
+                              max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
             model = models.build_refiner(args.arch)
             t0 = time.perf_counter()
