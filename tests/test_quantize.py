@@ -101,6 +101,16 @@ def test_refuses_to_write_a_model_beyond_the_bound(fp32_models, tmp_path):
     assert not out.exists() and [p.name for p in tmp_path.iterdir()] == []
 
 
+def test_enforce_false_reports_the_agreement_and_writes(fp32_models, tmp_path):
+    # The same out-of-bound model: measured and reported, not acted on (speed benchmarks of random weights).
+    s = CONFIGS["shallow"]["input_size"]
+    black = q8.Calibration(np.zeros((16, s, s, 3), np.uint8), np.tile([1, 0, 0, 0], (16, 1)).astype(np.float32), "black")
+    report = q8.quantize_model(fp32_models["shallow"], tmp_path / "bad.int8.onnx", scheme="static-qdq-int8",
+                               calibration=black, enforce=False)
+    assert report.path.is_file() and not report.agreement.passed and not report.agreement.enforced
+    assert "reported" in str(report.agreement) and "not enforced" in str(report.agreement)
+
+
 @pytest.fixture(scope="module")
 def cubes(tmp_path_factory):
     data = tmp_path_factory.mktemp("cubes") / "data"
