@@ -31,7 +31,9 @@ JSON layout of ``<results>/<experiment>.json``::
      "paper_reference": {"average_mean_deg": 6.67, "source": "..."},  # the paper's numbers ({} if none)
      "command": "python benchmarks/paper.py ...", "machine": machine_info(), "wall_s": 1234.5,
      "budget": {"paper": {level, arch, protocol, epochs, images_per_object, lr, lr_schedule, rotation_frame,
-                          max_steps_per_epoch, reduced, ...}, "improved": ...}}   # of the models evaluated
+                          max_steps_per_epoch, reduced, ...,
+                          "training": {epochs, seconds, samples}},   # from the epoch logs, resumes included
+                "improved": ...}}                                     # of the models evaluated
 
 Experiment-specific keys: ``iterations`` has settings ``"1"``, ``"2"``, ``"3"`` (primary ``"1"``); ``int8`` has
 settings ``"fp32"`` and ``"int8"`` (primary ``"int8"``) and ``"int8_minus_fp32"`` (per model: average and
@@ -230,6 +232,22 @@ def budget_of(opts: dict, exp: Experiment, reduced: bool) -> dict:
     }
 
 
+def training_record(ckpts: list[Path]) -> dict:
+    """Training time and samples of ``ckpts`` from their epoch logs (``<stem>.log.jsonl``), summed over every stage
+    and every invocation (resumed and continued runs included; validation time excluded)."""
+    epochs = {}
+    for ckpt in ckpts:
+        log = Path(f"{ckpt.resolve().with_suffix('')}.log.jsonl")  # beside the file a link points to
+        if not log.is_file():
+            return {}
+        for line in log.read_text().splitlines():
+            row = json.loads(line)
+            # keyed by stage and epoch: an epoch logged again by a resumed run counts once
+            epochs[(str(ckpt), row["stage"], row["epoch"])] = row
+    return {"epochs": len(epochs), "seconds": round(sum(r["seconds"] for r in epochs.values()), 1),
+            "samples": int(sum(r.get("samples", round(r["samples_per_s"] * r["seconds"])) for r in epochs.values()))}
+
+
 def model_dir(args, exp_name: str, model: str) -> Path:
     return args.runs / exp_name / model
 
@@ -389,6 +407,7 @@ def run_experiment(name: str, args, argv: list[str]) -> None:
         budget[model] = {"level": args.budget, **budget_of(train_options(EXPERIMENTS[source], model, args),
                                                            EXPERIMENTS[source], _reduced(EXPERIMENTS[source], args))}
         ckpts = checkpoints(source, model, args)
+        budget[model]["training"] = training_record(ckpts)
         if exp.measure == "input_angle":
             results[model] = {s: input_angle_errors(ckpts[0], opts["noise"], args) for s, opts in exp.settings.items()}
         elif exp.measure == "int8":
@@ -537,7 +556,9 @@ def write_report(results: Path) -> Path:
             lines.append(f"- budget {m}: {b['arch']}, {b['protocol']}; epochs: {epochs}; images per object: "
                          f"{images['base']} base + {images['fine_tune']} fine-tune; lr {b['lr']} ({b['lr_schedule']}); "
                          f"steps per epoch: {b['max_steps_per_epoch']}; frame {b['rotation_frame']}"
-                         + (f"; {b['reduced']}" if b.get("reduced") else ""))
+                         + (f"; {b['reduced']}" if b.get("reduced") else "")
+                         + (f"; trained {b['training']['samples']:,} samples in {b['training']['seconds']:,.0f} s "
+                            "(validation excluded)" if b.get("training") else ""))
         lines.append("")
         settings = doc.get("settings") or {"": {m: doc[m] for m in RECIPES if m in doc}}
         for s, setting in settings.items():

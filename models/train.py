@@ -103,7 +103,7 @@ class TrainResult:
         best_epoch: 1-based epoch with the lowest validation mean error (the last epoch without validation data).
         best_val_deg: that epoch's validation mean geodesic error (degrees), NaN without validation data.
         history: one dict per epoch: ``epoch``, ``loss_kind``, ``train_loss``, ``val_mean_deg``,
-            ``val_median_deg``, ``lr``, ``samples_per_s``, ``seconds``.
+            ``val_median_deg``, ``lr``, ``samples``, ``samples_per_s``, ``seconds`` (training only, not validation).
     """
 
     model: torch.nn.Module
@@ -306,6 +306,7 @@ def train_refiner(
             "loss_kind": loss_kind,
             "train_loss": total_loss / max(seen, 1),
             "lr": lr,
+            "samples": seen * world,
             "samples_per_s": seen * world / seconds,
             "seconds": seconds,
             "val_mean_deg": float("nan"),

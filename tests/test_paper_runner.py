@@ -51,6 +51,10 @@ def test_results_follow_the_eval_schema_with_both_models(ran):
             assert "average" in doc[model]
             assert doc["budget"][model]["arch"] == arch
             assert doc["budget"][model]["max_steps_per_epoch"] == 2
+            # 1 epoch per stage: base MSE + geodesic, then MSE + geodesic fine-tuning for each of the 2 objects;
+            # at most 2 steps of 64 crops each
+            training = doc["budget"][model]["training"]
+            assert training["epochs"] == 6 and training["seconds"] > 0 and 0 < training["samples"] <= 6 * 2 * 64
         assert doc["command"].startswith("python benchmarks/paper.py --data")
         assert "cpu" in doc["machine"] and doc["wall_s"] > 0
     baseline = json.loads((root / "results" / "baseline.json").read_text())
