@@ -19,8 +19,9 @@ recipe too; ``quick`` divides every epoch count by 3 (at least 1) for smoke runs
 
 Resuming: models go to ``<runs>/<experiment>/<model>/<arch>.pt`` (per-object siblings beside them, as
 ``refiner-rt train`` writes them) with a ``<arch>.done`` marker once trained; an interrupted training resumes
-from its ``.state`` folder. An experiment whose JSON holds the requested models and whose trainings are done is
-skipped unless ``--force`` (which retrains that experiment's own models and re-evaluates).
+from its ``.state`` folder, which is deleted once the model is done (``--keep-state`` keeps it). An experiment whose
+JSON holds the requested models and whose trainings are done is skipped unless ``--force`` (which retrains that
+experiment's own models and re-evaluates) or ``--reevaluate`` (which evaluates the trained models again).
 
 JSON layout of ``<results>/<experiment>.json``::
 
@@ -47,6 +48,7 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -279,6 +281,8 @@ def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
         print(f"    continuing the fine-tuning with {cont}", flush=True)
         run_training(**{**defaults, **train, **common, **cont, "resume": True})
     done.write_text(json.dumps({k: v for k, v in opts.items() if k != "objects"}, indent=2))
+    if not args.keep_state:
+        shutil.rmtree(state, ignore_errors=True)
 
 
 def checkpoints(exp_name: str, model: str, args) -> list[Path]:
@@ -606,6 +610,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--max-epochs", type=int, default=0, help="Cap every training stage's epochs (0: no cap).")
     p.add_argument("--max-steps-per-epoch", type=int, default=0, help="Cap optimisation steps per epoch (0: full pass).")
     p.add_argument("--force", action="store_true", help="Rerun finished experiments (retraining their own models).")
+    p.add_argument("--reevaluate", action="store_true",
+                   help="Evaluate finished experiments again and rewrite their JSON, reusing the trained models.")
+    p.add_argument("--keep-state", action="store_true",
+                   help="Keep a finished training's resumable state (<arch>.state: weights and optimiser moments per "
+                        "stage, 1.3 GB per object for VGG-M) for later `refiner-rt train --resume` continuations; "
+                        "by default it is deleted once the model is done.")
     p.add_argument("--list", action="store_true", help="List the experiments and their status, then exit.")
     p.add_argument("--report", action="store_true", help="Write RESULTS/tables.md and PNG plots from RESULTS/*.json.")
     args = p.parse_args(argv)
@@ -638,7 +648,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"Wrote {write_report(args.results)}")
         return 0
     for name in args.only:
-        if finished(name, args) and not args.force:
+        if finished(name, args) and not (args.force or args.reevaluate):
             print(f"== {name}: finished ({args.results / (name + '.json')}), skipped", flush=True)
             continue
         run_experiment(name, args, argv)

@@ -93,6 +93,28 @@ def test_second_invocation_skips_finished_experiments(runner, ran, capsys):
     assert {p.name: p.stat().st_mtime_ns for p in (root / "results").glob("*.json")} == before
 
 
+def test_reevaluate_rewrites_the_json_without_retraining(runner, ran, capsys):
+    root, argv = ran
+    model = root / "runs" / "baseline" / "paper" / "shallow.pt"
+    trained_at = model.stat().st_mtime_ns
+    doc = json.loads((root / "results" / "baseline.json").read_text())
+    assert runner.main([*argv[:-1], "baseline", "--reevaluate"]) == 0
+    out = capsys.readouterr().out
+    assert "trained (reused)" in out and "skipped" not in out
+    assert model.stat().st_mtime_ns == trained_at
+    again = json.loads((root / "results" / "baseline.json").read_text())
+    assert again["paper"]["average"] == pytest.approx(doc["paper"]["average"])  # same models, same test inputs
+    assert again["command"].endswith("--reevaluate")
+
+
+def test_finished_trainings_leave_no_resumable_state(ran):
+    root, _ = ran
+    for model, arch in (("paper", "shallow"), ("improved", "fusion")):
+        d = root / "runs" / "baseline" / model
+        assert (d / f"{arch}.done").is_file() and (d / f"{arch}.pt").is_file()
+        assert not (d / f"{arch}.state").exists()
+
+
 def test_unknown_experiment_lists_the_valid_ones(runner, capsys):
     with pytest.raises(SystemExit):
         runner.main(["--only", "baseline,nope", "--list"])
