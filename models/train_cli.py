@@ -77,7 +77,7 @@ def write_logs(history: list[dict], stem: Path) -> None:
     """The epoch history as CSV and a PNG of loss and validation error per stage."""
     if not history:
         return
-    fields = list(history[0])
+    fields = list(dict.fromkeys(k for row in history for k in row))  # a resumed run's older rows may lack newer keys
     with open(f"{stem}.log.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()

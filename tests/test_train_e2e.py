@@ -80,3 +80,18 @@ def test_checkpoint_and_onnx_evaluations_agree(trained):
     res = runner.invoke(main, ["eval", str(out), "--data", str(data), "--base-only", "--quiet", "--json", str(root / "b.json"),
                                "--cache", str(root / "cache"), "--threads", "1"], catch_exceptions=False)
     assert res.exit_code == 0 and json.loads((root / "b.json").read_text())["per_object_models"] == {}
+
+
+def test_logs_of_a_resumed_run_keep_every_column(tmp_path):
+    # A run resumed by a newer version mixes epoch rows without a column (here "samples") with rows that have it.
+    import csv
+
+    from models.train_cli import write_logs
+
+    old = {"stage": "base", "epoch": 1, "train_loss": 0.5, "seconds": 2.0, "val_mean_deg": 9.0}
+    new = {"stage": "base", "epoch": 2, "train_loss": 0.4, "samples": 128, "seconds": 2.0, "val_mean_deg": 8.0}
+    write_logs([old, new], tmp_path / "run")
+    with open(tmp_path / "run.log.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["epoch"] for r in rows] == ["1", "2"]
+    assert rows[0]["samples"] == "" and rows[1]["samples"] == "128"
