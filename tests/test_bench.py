@@ -113,6 +113,18 @@ def test_bench_json_rows_carry_quantization_and_roofline_fields(tmp_path):
     assert "Roofline: bandwidth" in res.output and "of bound" in res.output
 
 
+def test_bench_times_a_viewing_ray_model(tmp_path):
+    # Trained models use the viewing-ray frame, whose refine() needs the camera intrinsics: bench passes its frame's.
+    ray = tmp_path / "ray.onnx"
+    ray.write_bytes(fx.constant_model([1, 0, 0, 0], size=16, props=fx.contract(input_size=16, rotation_frame="ray")))
+    out = tmp_path / "bench.json"
+    res = CliRunner().invoke(main, ["bench", "--model", str(ray), "--seconds", "0.05", "--batch", "2",
+                                    "--threads", "1", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    rows = json.loads(out.read_text())
+    assert len(rows) == 1 and rows[0]["fps"] > 0
+
+
 SMALL = {
     "shallow": {"input_size": 32, "conv_channels": [4, 8], "pose_widths": [16, 128], "head_widths": [64, 16]},
     "vggm": {"input_size": 64, "pose_widths": [8, 16], "head_widths": [16, 8], "fc_widths": [32, 32]},
