@@ -97,6 +97,17 @@ def _multiply_rows(a: list, b: list) -> list:
     return out
 
 
+def _conjugate_rows(rows: list) -> list:
+    """:func:`refiner_rt.quaternion.inverse` on Python floats: ``(w, -x, -y, -z)`` with canonical sign (same sign
+    key as the numpy version; negation is exact, so the results are identical)."""
+    out = []
+    for w, x, y, z in rows:
+        x, y, z = -x, -y, -z
+        key = w if w != 0.0 else x if x != 0.0 else y if y != 0.0 else z
+        out.append([-w, -x, -y, -z] if key < 0.0 else [w, x, y, z])
+    return out
+
+
 def _small_boxes(boxes, image_shape) -> tuple[np.ndarray, list] | None:
     """Fast path of :func:`validate_boxes` for up to :data:`SMALL_BATCH` well-formed ``(N, 4)`` numeric boxes.
 
@@ -162,9 +173,13 @@ def ray_quaternions(K, boxes_xyxy) -> np.ndarray:
     pts = np.stack([u, v, np.ones_like(u)], axis=-1)
     d = np.einsum("...ij,...j->...i", np.linalg.inv(K), pts)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    # Half-way quaternion: q = normalize(1 + z.d, z x d) rotates z onto d (d never opposite z here).
-    z = np.array([0.0, 0.0, 1.0])
-    q = np.concatenate([1.0 + d[:, 2:3], np.cross(z, d)], axis=-1)
+    # Half-way quaternion: q = normalize(1 + z.d, z x d) rotates z onto d (d never opposite z here);
+    # z x d = (-d_y, d_x, 0), written out (np.cross costs a third of this function at batch 1).
+    q = np.empty((len(d), 4))
+    q[:, 0] = 1.0 + d[:, 2]
+    q[:, 1] = -d[:, 1]
+    q[:, 2] = d[:, 0]
+    q[:, 3] = 0.0
     return rq.canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
 
 
@@ -436,8 +451,14 @@ class RefinerSession:
         # q_refined = q_prev * q_out holds in either frame (q_ray * (q_ray^-1 q) * q_out = q * q_out).
         q = q_in if q_rows is None else q_rows
         q_out = None
+        frame_inv = None
+        if q_frame is not None:
+            frame_inv = rq.inverse(q_frame) if q_rows is None else _conjugate_rows(q_frame.tolist())
         for _ in range(iterations):
-            q_net[...] = q if q_frame is None else rq.multiply(rq.inverse(q_frame), q)
+            if frame_inv is None:
+                q_net[...] = q
+            else:
+                q_net[...] = rq.multiply(frame_inv, q) if q_rows is None else _multiply_rows(frame_inv, q)
             out = self._session.run(self._output_names, feed)[0]
             if q_rows is not None:
                 q_out = _unit_rows(out.tolist())
