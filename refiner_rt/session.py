@@ -170,17 +170,44 @@ def ray_quaternions(K, boxes_xyxy) -> np.ndarray:
     # continuous coordinates; K follows OpenCV's convention of pixel centres at integers).
     u = 0.5 * (boxes[:, 0] + boxes[:, 2]) - 0.5
     v = 0.5 * (boxes[:, 1] + boxes[:, 3]) - 0.5
-    pts = np.stack([u, v, np.ones_like(u)], axis=-1)
-    d = np.einsum("...ij,...j->...i", np.linalg.inv(K), pts)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    # Half-way quaternion: q = normalize(1 + z.d, z x d) rotates z onto d (d never opposite z here);
-    # z x d = (-d_y, d_x, 0), written out (np.cross costs a third of this function at batch 1).
-    q = np.empty((len(d), 4))
-    q[:, 0] = 1.0 + d[:, 2]
-    q[:, 1] = -d[:, 1]
-    q[:, 2] = d[:, 0]
-    q[:, 3] = 0.0
-    return rq.canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
+    if _is_pinhole(K):
+        # d = K^-1 (u, v, 1) by back-substitution, the operations _ray_rows repeats on Python floats.
+        fx, s, cx, fy, cy = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2], K[..., 1, 1], K[..., 1, 2]
+        y = (v - cy) / fy
+        x = (u - cx - s * y) / fx
+        z = np.ones_like(x)
+    else:
+        d = np.einsum("...ij,...j->...i", np.linalg.inv(K), np.stack([u, v, np.ones_like(u)], axis=-1))
+        x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    # Half-way quaternion: with n = |d|, q ~ (n + d_z, z x d) = (n + d_z, -d_y, d_x, 0) rotates z onto d
+    # (d never opposite z here). Sums in a fixed order so that _ray_rows matches bit for bit.
+    a = np.sqrt(x * x + y * y + z * z) + z
+    m = np.sqrt(a * a + y * y + x * x)
+    q = np.stack([a / m, -y / m, x / m, np.zeros_like(a)], axis=-1)
+    return rq.canonical(q)
+
+
+def _is_pinhole(K: np.ndarray) -> bool:
+    """Whether ``K`` (``(3, 3)`` or ``(N, 3, 3)``) has the pinhole form ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``."""
+    if K.ndim == 2:  # on Python floats: ~50x cheaper than three np.all calls at this size (timeit)
+        (_, _, _), (k10, _, _), k2 = K.tolist()
+        return k10 == 0.0 and k2 == [0.0, 0.0, 1.0]
+    return bool(np.all(K[..., 1, 0] == 0.0) and np.all(K[..., 2, :2] == 0.0) and np.all(K[..., 2, 2] == 1.0))
+
+
+def _ray_rows(K: np.ndarray, rows: list) -> list:
+    """:func:`ray_quaternions` on Python floats for a pinhole ``K`` (``(3, 3)``): the same operations in the same
+    order, so the results are identical. ``w = a / m > 0`` always, so no sign flip is needed."""
+    (fx, s, cx), (_, fy, cy) = K[0].tolist(), K[1].tolist()
+    sqrt = math.sqrt
+    out = []
+    for x1, y1, x2, y2 in rows:
+        y = (0.5 * (y1 + y2) - 0.5 - cy) / fy
+        x = (0.5 * (x1 + x2) - 0.5 - cx - s * y) / fx
+        a = sqrt(x * x + y * y + 1.0) + 1.0
+        m = sqrt(a * a + y * y + x * x)
+        out.append([a / m, -y / m, x / m, 0.0])
+    return out
 
 
 def _validate_K(K) -> np.ndarray:
@@ -348,7 +375,11 @@ class RefinerSession:
                     "K is required: this model was trained in the viewing-ray frame (metadata rotation_frame='ray'); "
                     "pass the (3, 3) camera intrinsics"
                 )
-            q_frame = ray_quaternions(_validate_K(K), boxes)
+            K = _validate_K(K)
+            if small is not None and _is_pinhole(K):
+                q_frame = _ray_rows(K, rows)
+            else:
+                q_frame = ray_quaternions(K, boxes)
         elif K is not None:
             _validate_K(K)
         crops = self._crops(len(boxes))
@@ -453,7 +484,10 @@ class RefinerSession:
         q_out = None
         frame_inv = None
         if q_frame is not None:
-            frame_inv = rq.inverse(q_frame) if q_rows is None else _conjugate_rows(q_frame.tolist())
+            if q_rows is None:
+                frame_inv = rq.inverse(np.asarray(q_frame))
+            else:
+                frame_inv = _conjugate_rows(q_frame if isinstance(q_frame, list) else q_frame.tolist())
         for _ in range(iterations):
             if frame_inv is None:
                 q_net[...] = q

@@ -90,6 +90,22 @@ def test_ray_quaternion_points_the_optical_axis_along_the_ray():
     np.testing.assert_allclose(rq.geodesic_angle(q[1], rq.identity()), 0.0, atol=1e-9)  # central box: no rotation
 
 
+def test_ray_quaternions_of_any_intrinsics_form_agree_and_the_float_path_matches_bit_for_bit():
+    rng = np.random.default_rng(11)
+    boxes = np.sort(rng.uniform(-50, 700, (20, 2, 2)), axis=1).transpose(0, 2, 1).reshape(20, 4)[:, [0, 2, 1, 3]]
+    K = np.array([[612.3, 1.7, 318.9], [0, 605.1, 243.2], [0, 0, 1]])  # with skew
+    q = ray_quaternions(K, boxes)
+    centres = np.stack([(boxes[:, 0] + boxes[:, 2]) / 2 - 0.5, (boxes[:, 1] + boxes[:, 3]) / 2 - 0.5, np.ones(20)], 1)
+    d = centres @ np.linalg.inv(K).T
+    np.testing.assert_allclose(rq.to_matrix(q) @ [0, 0, 1], d / np.linalg.norm(d, axis=1, keepdims=True), atol=1e-12)
+    # a scaled K (not in pinhole form: K[2, 2] != 1) takes the general path and gives the same rays
+    np.testing.assert_allclose(rq.geodesic_angle(ray_quaternions(3.0 * K, boxes), q), 0, atol=1e-9)
+    # one K per box
+    np.testing.assert_array_equal(ray_quaternions(np.stack([K] * 20), boxes), q)
+    # the Python-float twin used by refine() for small batches
+    np.testing.assert_array_equal(np.array(session_module._ray_rows(K, boxes.tolist())), q)
+
+
 def test_non_unit_q_in_is_normalised():
     sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
     res = sess.refine(IMG, BOXES[:1], [[2.0, 0, 0, 0]])
