@@ -132,6 +132,9 @@ def test_empty_batch_returns_empty_result():
         (dict(q_in_wxyz=np.ones((3, 3))), r"shape \(\.\.\., 4\)"),
         (dict(iterations=0), "iterations must be an integer >= 1"),
         (dict(K=np.eye(2)), r"K must be a \(3, 3\)"),
+        (dict(K=np.diag([500.0, 500.0, np.inf])), "K must be finite"),
+        (dict(K=np.diag([-500.0, 500.0, 1.0])), "fx > 0 and fy > 0"),
+        (dict(K=np.diag([500, 0, 1])), "fx > 0 and fy > 0"),
     ],
 )
 def test_bad_inputs_raise_clear_errors(kwargs, match):
