@@ -40,7 +40,7 @@ import numpy as np
 import onnxruntime as ort
 
 from refiner_rt import RefinerSession
-from refiner_rt.bench import machine_info, synthetic_frame
+from refiner_rt.bench import FRAME_K, machine_info, synthetic_frame
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION
 from refiner_rt.preprocess import crop_to_square, validate_boxes
 
@@ -68,8 +68,14 @@ def build_models(archs: list[str], workdir: Path, int8: bool) -> dict[str, Path]
     return out
 
 
+def frame_K(sess: RefinerSession):
+    """The synthetic frame's intrinsics for models in the viewing-ray frame (they require K), else None."""
+    return FRAME_K if sess.contract.rotation_frame == "ray" else None
+
+
 def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float) -> dict:
     """p50 of ``refine()`` and of the bare ``InferenceSession.run`` on the same feed, alternating call by call (s)."""
+    K = frame_K(sess)
     s = sess.input_size
     boxes = validate_boxes(boxes)
     crops = np.stack([crop_to_square(image, b, s, sess.contract.crop_context) for b in boxes])
@@ -80,16 +86,16 @@ def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float) -> dict:
     perf = time.perf_counter
     for _ in range(20):
         raw.run([OUTPUT_QUATERNION], feed)
-        sess.refine(image, boxes, q_in)
+        sess.refine(image, boxes, q_in, K=K)
     t0 = perf()
-    sess.refine(image, boxes, q_in)
+    sess.refine(image, boxes, q_in, K=K)
     n = max(200, int(seconds / 2 / max(perf() - t0, 1e-6)))
     lat_run, lat_refine = [], []
     for _ in range(n):
         t0 = perf()
         raw.run([OUTPUT_QUATERNION], feed)
         t1 = perf()
-        sess.refine(image, boxes, q_in)
+        sess.refine(image, boxes, q_in, K=K)
         t2 = perf()
         lat_run.append(t1 - t0)
         lat_refine.append(t2 - t1)
@@ -148,12 +154,13 @@ def ort_profile(sess: RefinerSession, image, boxes, q_in, calls: int, workdir: P
 
 def python_profile(sess: RefinerSession, image, boxes, q_in, calls: int, top: int) -> list[tuple[str, float]]:
     """cProfile of ``calls`` refine() calls: ``(function, tottime per call in s)``, highest first."""
+    K = frame_K(sess)
     for _ in range(20):
-        sess.refine(image, boxes, q_in)
+        sess.refine(image, boxes, q_in, K=K)
     prof = cProfile.Profile()
     prof.enable()
     for _ in range(calls):
-        sess.refine(image, boxes, q_in)
+        sess.refine(image, boxes, q_in, K=K)
     prof.disable()
     stats = pstats.Stats(prof).stats
     rows = []

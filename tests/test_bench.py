@@ -1,6 +1,8 @@
 """refiner_rt.bench: operation counts and roofline bounds, interleaved timing, variants, and `refiner-rt bench` rows."""
 
+import importlib.util
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -123,6 +125,21 @@ def test_bench_times_a_viewing_ray_model(tmp_path):
     assert res.exit_code == 0, res.output
     rows = json.loads(out.read_text())
     assert len(rows) == 1 and rows[0]["fps"] > 0
+
+
+def test_profile_refine_runs_on_camera_and_viewing_ray_models(tmp_path, capsys):
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / "profile_refine.py"
+    spec = importlib.util.spec_from_file_location("profile_refine", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    paths = []
+    for frame in ("camera", "ray"):
+        path = tmp_path / f"{frame}.onnx"
+        path.write_bytes(fx.q_echo_model(size=16, props=fx.contract(input_size=16, rotation_frame=frame)))
+        paths += ["--model", str(path)]
+    assert module.main(paths + ["--seconds", "0.05", "--calls", "20"]) == 0
+    table = capsys.readouterr().out.split("| model |")[1]
+    assert "| camera |" in table and "| ray |" in table
 
 
 SMALL = {
