@@ -13,7 +13,7 @@ Usage (from the repository root)::
     python benchmarks/paper.py --report                  # results/*.json -> results/tables.md and PNG plots
 
 Budgets (``--budget``): ``standard`` (default) is the recipes as written, except VGG-M at ``VGGM_REDUCED`` (224x224
-VGG-M from scratch costs about 100x the shallow network per sample on a CPU); ``full`` runs VGG-M with the full
+VGG-M from scratch trains about 50x slower per sample than the shallow network on a CPU, measured); ``full`` runs VGG-M with the full
 recipe too; ``quick`` divides every epoch count by 3 (at least 1) for smoke runs. ``--max-epochs`` and
 ``--max-steps-per-epoch`` cap every training stage further (tests).
 
