@@ -13,9 +13,9 @@ Usage (from the repository root)::
     python benchmarks/paper.py --report                  # results/*.json -> results/tables.md and PNG plots
 
 Budgets (``--budget``): ``standard`` (default) is the recipes as written, except VGG-M at ``VGGM_REDUCED`` (224x224
-VGG-M from scratch trains about 50x slower per sample than the shallow network on a CPU, measured); ``full`` runs VGG-M with the full
-recipe too; ``quick`` divides every epoch count by 3 (at least 1) for smoke runs. ``--max-epochs`` and
-``--max-steps-per-epoch`` cap every training stage further (tests).
+VGG-M from scratch trains about 50x slower per sample than the shallow network on a CPU, measured); ``full`` runs
+VGG-M with the full recipe too; ``quick`` divides every epoch count by 3 (at least 1) for smoke runs.
+``--max-epochs`` and ``--max-steps-per-epoch`` cap every training stage further (tests).
 
 Resuming: models go to ``<runs>/<experiment>/<model>/<arch>.pt`` (per-object siblings beside them, as
 ``refiner-rt train`` writes them) with a ``<arch>.done`` marker once trained; an interrupted training resumes
