@@ -8,6 +8,9 @@ Outputs, next to ``--out CKPT`` (e.g. ``runs/shallow.pt``):
     * ``<stem>.png``: loss and validation-error curves;
     * ``<stem>.state/``: resumable training state (used by ``--resume``).
 
+With ``--base BASE.pt`` the base stage is skipped: BASE (a trained base checkpoint) is copied to ``CKPT`` and only
+the per-object fine-tuning runs, e.g. to fine-tune on more images, or on an object the base never saw.
+
 Runs data-parallel under ``torchrun --nproc_per_node N`` (PyTorch DDP; gloo on CPU, nccl on GPUs).
 """
 
@@ -17,6 +20,7 @@ import csv
 import json
 import logging
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -113,7 +117,12 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--config", "arch_config", callback=_json_config, help="JSON object of architecture config overrides, e.g. '{\"head_widths\": [512, 64]}'.")
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Base checkpoint path (CKPT.pt); per-object ones go beside it.")
 @click.option("--objects", callback=_objects, help="Comma-separated YCB ids (default: the paper's nine).")
-@click.option("--base-per-object", default=PAPER_SIZES[0], show_default=True, type=click.IntRange(1), help="Base-training images per object.")
+@click.option("--base", "base_ckpt", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="A trained base checkpoint: skip base training and fine-tune it per object (needs --per-object > 0; "
+                   "--arch and --rotation-frame must be the checkpoint's).")
+@click.option("--base-per-object", default=PAPER_SIZES[0], show_default=True, type=click.IntRange(0),
+              help="Base-training images per object (0 only with --base: the fine-tuning images then start where "
+                   "the base images would, right after the validation ones).")
 @click.option("--per-object", default=PAPER_SIZES[1], show_default=True, type=click.IntRange(0), help="Fine-tuning images per object (0: no fine-tuning).")
 @click.option("--val-per-object", default=PAPER_SIZES[2], show_default=True, type=click.IntRange(1), help="Validation images per object.")
 @click.option("--test-per-object", default=PAPER_SIZES[3], show_default=True, type=click.IntRange(1), help="Test images per object (held out; used by eval).")
@@ -150,6 +159,40 @@ def train_cmd(**opts):
     run_training(**opts)
 
 
+def load_base(o: dict):
+    """The trained base network of ``--base`` (``o["base_ckpt"]``), checked against the options; None without it."""
+    path = o.get("base_ckpt")
+    if path is None:
+        if o["base_per_object"] == 0:
+            raise click.BadParameter("0 needs --base (a trained base network); without it the base stage trains "
+                                     "on these images", param_hint="--base-per-object")
+        return None
+    import models
+
+    if not o["per_object"]:
+        raise click.BadParameter("--base skips the base stage, so there must be fine-tuning: pass --per-object > 0",
+                                 param_hint="--base")
+    try:
+        model, info = models.load_checkpoint(path)
+    except (OSError, ValueError, KeyError) as exc:
+        raise click.BadParameter(f"{path}: {exc}", param_hint="--base") from None
+    stage = info.get("stage")
+    if stage != "base":
+        raise click.BadParameter(f"{path} is a {stage!r} checkpoint; expected a base network (stage 'base', the "
+                                 "CKPT that `refiner-rt train` writes, not a per-object sibling)", param_hint="--base")
+    if o["arch"] != model.arch:
+        raise click.BadParameter(f"{path} is a {model.arch!r} network; pass --arch {model.arch} (got {o['arch']!r})",
+                                 param_hint="--base/--arch")
+    if o["arch_config"] and any(model.config.get(k) != v for k, v in o["arch_config"].items()):
+        raise click.BadParameter(f"--config {json.dumps(o['arch_config'])} differs from the base checkpoint's "
+                                 f"config; leave --config out (the checkpoint's is used)", param_hint="--base/--config")
+    frame = info.get("rotation_frame", "camera")
+    if o["rotation_frame"] != frame:
+        raise click.BadParameter(f"{path} was trained in the {frame!r} rotation frame; pass --rotation-frame {frame} "
+                                 f"(got {o['rotation_frame']!r})", param_hint="--base/--rotation-frame")
+    return model
+
+
 def run_training(**o) -> dict:
     """The body of ``refiner-rt train`` (callable from Python with the same option names)."""
     import copy
@@ -183,16 +226,18 @@ def run_training(**o) -> dict:
         min_visib=o["min_visib"],
     )
     t_start = time.perf_counter()
+    base_model = load_base(o)
     splits = load_splits(spec)
     torch.manual_seed(o["seed"])
     try:
-        model = models.build_refiner(o["arch"], **o["arch_config"])
+        model = base_model or models.build_refiner(o["arch"], **o["arch_config"])
     except (KeyError, ValueError) as exc:
         raise click.BadParameter(str(exc), param_hint="--arch/--config") from None
     size, context = model.input_size, model.config["crop_context"]
     progress = not o["quiet"]
+    wanted = ["val"] + (["train_base"] if base_model is None else []) + (["train_finetune"] if o["per_object"] else [])
     parts = {p: cropset_for(splits, p, spec, size, context, cache_root=o["cache_root"], workers=o["workers"], progress=progress and rank == 0)
-             for p in ("train_base", "val") + (("train_finetune",) if o["per_object"] else ())}
+             for p in wanted}
     base_cfg = TrainConfig(
         epochs_mse=o["epochs_mse"],
         epochs_geodesic=o["epochs_geodesic"],
@@ -206,13 +251,16 @@ def run_training(**o) -> dict:
         max_steps_per_epoch=o["max_steps_per_epoch"],
     )
     log_path = Path(f"{stem}.log.jsonl") if rank == 0 else None
+    first = "train_base" if base_model is None else "train_finetune"
     click.echo(
-        f"Training {o['arch']} ({model.num_parameters():,} parameters) on {len(parts['train_base'])} crops of "
-        f"{len(parts['train_base'].objects)} objects, split {spec.split_mode}, {world} process(es)",
+        f"Training {o['arch']} ({model.num_parameters():,} parameters) on {len(parts[first])} crops of "
+        f"{len(parts[first].objects)} objects, split {spec.split_mode}, {world} process(es)"
+        + (f", fine-tuning the base network {o['base_ckpt']}" if base_model is not None else ""),
         err=True,
     )
-    res = train_refiner(model, parts["train_base"], parts["val"], base_cfg, state_path=state_dir / "base.pt",
-                        log_path=log_path, progress=progress, desc="base")
+    if base_model is None:
+        res = train_refiner(model, parts["train_base"], parts["val"], base_cfg, state_path=state_dir / "base.pt",
+                            log_path=log_path, progress=progress, desc="base")
     info_common = {
         "train_noise": o["noise"],
         "rotation_frame": o["rotation_frame"],
@@ -221,20 +269,27 @@ def run_training(**o) -> dict:
         "world_size": world,
     }
     outputs = {"base": str(out)}
-    if rank == 0:
-        models.save_checkpoint(
-            res.model, out, objects=parts["train_base"].objects, stage="base", train_config=vars(base_cfg),
-            best_epoch=res.best_epoch, val_mean_deg=res.best_val_deg, **info_common,
-        )
-        click.echo(f"base: best epoch {res.best_epoch}, validation mean error {res.best_val_deg:.2f} deg -> {out}", err=True)
-    history = list(res.history)
+    if base_model is not None:
+        history = []
+        if rank == 0 and out.resolve() != o["base_ckpt"].resolve():
+            shutil.copyfile(o["base_ckpt"], out)  # the per-object checkpoints name their base network beside them
+            click.echo(f"base: {o['base_ckpt']} (not retrained) -> {out}", err=True)
+    else:
+        if rank == 0:
+            models.save_checkpoint(
+                res.model, out, objects=parts["train_base"].objects, stage="base", train_config=vars(base_cfg),
+                best_epoch=res.best_epoch, val_mean_deg=res.best_val_deg, **info_common,
+            )
+            click.echo(f"base: best epoch {res.best_epoch}, validation mean error {res.best_val_deg:.2f} deg -> {out}",
+                       err=True)
+        history = list(res.history)
     if o["per_object"]:
         ft_cfg = copy.deepcopy(base_cfg)
         ft_cfg.epochs_mse = o["ft_epochs_mse"] if o["ft_epochs_mse"] is not None else o["epochs_mse"]
         ft_cfg.epochs_geodesic = o["ft_epochs_geodesic"] if o["ft_epochs_geodesic"] is not None else o["epochs_geodesic"]
         ft_cfg.lr = o["ft_lr"] or o["lr"] / 3
         ft_cfg.__post_init__()
-        base_state = copy.deepcopy(res.model.state_dict())
+        base_state = copy.deepcopy(model.state_dict())
         for obj in parts["train_finetune"].objects:
             model.load_state_dict(base_state)
             ft = train_refiner(model, parts["train_finetune"].for_object(obj), parts["val"].for_object(obj), ft_cfg,

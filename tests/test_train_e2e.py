@@ -95,3 +95,44 @@ def test_logs_of_a_resumed_run_keep_every_column(tmp_path):
         rows = list(csv.DictReader(f))
     assert [r["epoch"] for r in rows] == ["1", "2"]
     assert rows[0]["samples"] == "" and rows[1]["samples"] == "128"
+
+
+def test_fine_tuning_a_given_base_network(trained):
+    # --base skips base training: the base network is copied unchanged and only the per-object stage runs, here on
+    # the images that followed the validation ones (--base-per-object 0), i.e. the base run's base + fine-tune images.
+    import torch
+
+    import models
+
+    root, data, out = trained
+    new = root / "ft" / "cube.pt"
+    common = ["train", "--data", str(data), "--out", str(new), "--val-per-object", "10", "--test-per-object", "10",
+              "--threads", "1", "--quiet", "--cache", str(root / "cache")]
+    args = common + ["--base", str(out), "--arch", ARCH, "--base-per-object", "0", "--per-object", "100",
+                     "--ft-epochs-mse", "0", "--ft-epochs-geodesic", "1", "--epochs-geodesic", "1", "--lr", "1e-3"]
+    res = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    assert new.read_bytes() == out.read_bytes()
+    base, _ = models.load_checkpoint(out)
+    for obj in ("003_cracker_box", "006_mustard_bottle"):
+        tuned, info = models.load_checkpoint(new.with_name(f"cube.{obj}.pt"))
+        assert info["stage"] == "finetune" and info["objects"] == [obj]
+        parts = info["split"]["parts"]
+        assert info["data"]["sizes"][:2] == [0, 100] and parts["train_base"]["samples"] == 0
+        assert parts["train_finetune"]["per_object"][obj] > 20  # more than the base run's 20 fine-tuning images
+        changed = [k for k, v in tuned.state_dict().items() if v.is_floating_point()
+                   and not torch.equal(v, base.state_dict()[k])]
+        assert changed  # the fine-tuning moved the weights
+    rows = [json.loads(line) for line in open(new.with_suffix(".log.jsonl"))]
+    assert {r["stage"] for r in rows} == {"003_cracker_box", "006_mustard_bottle"}  # no base epochs
+
+    bad = {
+        "--base-per-object": common + ["--base-per-object", "0", "--per-object", "10"],
+        "--per-object > 0": common + ["--base", str(out), "--arch", ARCH, "--per-object", "0"],
+        "--arch fusion": common + ["--base", str(out), "--arch", "shallow"],
+        "stage 'base'": common + ["--base", str(new.with_name("cube.003_cracker_box.pt")), "--arch", ARCH],
+        "--rotation-frame camera": common + ["--base", str(out), "--arch", ARCH, "--rotation-frame", "ray"],
+    }
+    for expected, argv in bad.items():
+        res = CliRunner().invoke(main, argv)
+        assert res.exit_code == 2 and expected in res.output, (expected, res.output)
