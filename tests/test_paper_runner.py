@@ -138,3 +138,27 @@ def test_continued_fine_tuning_extends_every_objects_schedule(runner, tmp_path, 
     doc = json.loads((tmp_path / "results" / "baseline.json").read_text())
     assert doc["budget"]["improved"]["epochs"]["fine_tune_continued"] == {"ft_epochs_geodesic": 3, "ft_lr": 1e-5}
     assert [r["lr"] for r in rows if r["stage"] == "003_cracker_box"][2:] == [1e-5, 1e-5]
+
+
+def test_an_experiment_fine_tunes_another_ones_base_network(runner, ran, monkeypatch):
+    # base_from: the baseline's trained base networks are copied, not retrained, and fine-tuned per object on the
+    # images that follow the validation ones (base_per_object 0).
+    root, argv = ran
+    exp = runner.Experiment("fine-tuning the baseline's base networks", base_from="baseline",
+                            train={**runner.BASELINE_DATA, "base_per_object": 0, "per_object": 40},
+                            recipe={"paper": {"ft_continue": None}, "improved": {"ft_continue": None}})
+    monkeypatch.setitem(runner.EXPERIMENTS, "ft_small", exp)
+    only = argv.index("--only") + 1
+    assert runner.main(argv[:only] + ["ft_small"] + argv[only + 1:]) == 0
+    doc = json.loads((root / "results" / "ft_small.json").read_text())
+    for model, arch in (("paper", "shallow"), ("improved", "fusion")):
+        base = root / "runs" / "baseline" / model / f"{arch}.pt"
+        tuned = root / "runs" / "ft_small" / model / f"{arch}.pt"
+        assert tuned.read_bytes() == base.read_bytes()
+        rows = [json.loads(line) for line in tuned.with_suffix(".log.jsonl").open()]
+        assert {r["stage"] for r in rows} == {"003_cracker_box", "006_mustard_bottle"}  # no base stage
+        budget = doc["budget"][model]
+        assert budget["protocol"].startswith("baseline's base network (not retrained)")
+        assert budget["images_per_object"]["fine_tune"] == 40 and "base_mse" not in budget["epochs"]
+        assert budget["training"]["epochs"] == 4  # 1 MSE + 1 geodesic epoch for each of the 2 objects
+        assert "average" in doc[model]
