@@ -229,10 +229,12 @@ def run_training(**o) -> dict:
     base_model = load_base(o)
     splits = load_splits(spec)
     torch.manual_seed(o["seed"])
-    try:
-        model = base_model or models.build_refiner(o["arch"], **o["arch_config"])
-    except (KeyError, ValueError) as exc:
-        raise click.BadParameter(str(exc), param_hint="--arch/--config") from None
+    model = base_model
+    if model is None:
+        try:
+            model = models.build_refiner(o["arch"], **o["arch_config"])
+        except (KeyError, ValueError) as exc:
+            raise click.BadParameter(str(exc), param_hint="--arch/--config") from None
     size, context = model.input_size, model.config["crop_context"]
     progress = not o["quiet"]
     wanted = ["val"] + (["train_base"] if base_model is None else []) + (["train_finetune"] if o["per_object"] else [])
