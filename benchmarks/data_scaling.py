@@ -47,6 +47,16 @@ def _parse_sizes(text: str) -> list[int]:
     return sizes
 
 
+def _parse_config(text: str) -> dict:
+    try:
+        config = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"expected a JSON object like '{{\"fuse_width\": 1024}}'; {exc}") from None
+    if not isinstance(config, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object like '{{\"fuse_width\": 1024}}'; got {text!r}")
+    return config
+
+
 def run(args) -> dict:
     import torch
 
@@ -57,7 +67,7 @@ def run(args) -> dict:
 
     threads = set_threads(args.threads)
     sizes = _parse_sizes(args.sizes)
-    probe = models.build_refiner(args.arch)
+    probe = models.build_refiner(args.arch, **args.config)
     size, context = probe.input_size, probe.config["crop_context"]
     rows = []
     t_all = time.perf_counter()
@@ -82,7 +92,7 @@ def run(args) -> dict:
                               rotation_frame=args.rotation_frame, augment=augment, seed=args.seed,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
-            model = models.build_refiner(args.arch)
+            model = models.build_refiner(args.arch, **args.config)
             t0 = time.perf_counter()
             res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
             errors = evaluate_errors(torch_predictor(res.model.eval()), test, rotation_frame=args.rotation_frame)
@@ -96,7 +106,8 @@ def run(args) -> dict:
                   f"{row['wall_s']:.0f} s", file=sys.stderr)
     return {
         "study": "held-out error vs training crops, frames and scenes splits",
-        "object": args.object, "arch": args.arch, "rotation_frame": args.rotation_frame, "lr": args.lr,
+        "object": args.object, "arch": args.arch, "config": args.config,
+        "parameters": sum(p.numel() for p in probe.parameters()), "rotation_frame": args.rotation_frame, "lr": args.lr,
         "lr_schedule": "cosine", "test_noise": "uniform:0:30", "rows": rows,
         "command": shlex.join(["python", "benchmarks/data_scaling.py", *args.argv]),
         "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
@@ -106,7 +117,10 @@ def run(args) -> dict:
 
 
 def markdown(doc: dict) -> str:
-    lines = [f"{doc['object']}, {doc['arch']} ({doc['rotation_frame']} frame), same number of samples per run:", "",
+    arch = doc["arch"] + (f" {json.dumps(doc['config'])}" if doc.get("config") else "")
+    if "parameters" in doc:
+        arch += f", {doc['parameters'] / 1e6:.1f} M parameters"
+    lines = [f"{doc['object']}, {arch} ({doc['rotation_frame']} frame), same number of samples per run:", "",
              "| split | training crops | augment | test mean (deg) | median | under 5 deg | input mean | best epoch | "
              "train/val/test scenes |",
              "|---|---:|---|---:|---:|---:|---:|---:|---|"]
@@ -130,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--val", type=int, default=1500, help="validation crops")
     p.add_argument("--test", type=int, default=3000, help="test crops")
     p.add_argument("--arch", default="fusion")
+    p.add_argument("--config", type=_parse_config, default={},
+                   help="JSON object of architecture config overrides, e.g. '{\"fuse_width\": 1024}'")
     p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of the cosine schedule")
     p.add_argument("--rotation-frame", default="ray", choices=("camera", "ray"))
     p.add_argument("--augment", action="store_true", help="add a run with colour and box jitter at the largest size")
@@ -149,6 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     for m in args.modes.split(","):
         if m not in ("frames", "scenes"):
             p.error(f"--modes: expected frames and/or scenes; got {m!r}")
+    import models
+
+    try:
+        models.build_refiner(args.arch, **args.config)
+    except (KeyError, ValueError, TypeError) as exc:
+        p.error(f"--arch {args.arch} --config {json.dumps(args.config)}: {exc}")
     doc = run(args)
     print(markdown(doc))
     if args.json:

@@ -10,8 +10,10 @@ from pathlib import Path
 
 import pytest
 
+import models
 from cube_dataset import make_cube_dataset
 
+WIDE = {"fuse_width": 1024, "pose_widths": [64, 1024]}
 SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "data_scaling.py"
 
 
@@ -23,15 +25,23 @@ def _load():
     return module
 
 
+def _parameters(model) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
 def test_study_writes_one_row_per_size_and_mode_on_fixed_test_sets(tmp_path, capsys):
     study = _load()
     make_cube_dataset(tmp_path / "cubes", scenes=6, frames=20)
     out = tmp_path / "scaling.json"
     argv = ["--data", str(tmp_path / "cubes"), "--object", "003_cracker_box", "--sizes", "40,10",
             "--samples", "128", "--epoch-samples", "64", "--val", "10", "--test", "20", "--augment",
-            "--cache", str(tmp_path / "cache"), "--threads", "1", "--json", str(out), "--quiet"]
+            "--cache", str(tmp_path / "cache"), "--threads", "1", "--json", str(out), "--quiet",
+            "--config", json.dumps(WIDE)]
     assert study.main(argv) == 0
     doc = json.loads(out.read_text())
+    assert doc["config"] == WIDE
+    wide, default = models.build_refiner("fusion", **WIDE), models.build_refiner("fusion")
+    assert doc["parameters"] == _parameters(wide) != _parameters(default)
     rows = [(r["mode"], r["train_crops"], r["augment"]) for r in doc["rows"]]
     assert rows == [(m, n, a) for m in ("frames", "scenes") for n, a in ((10, False), (40, False), (40, True))]
     for mode in ("frames", "scenes"):
@@ -41,7 +51,8 @@ def test_study_writes_one_row_per_size_and_mode_on_fixed_test_sets(tmp_path, cap
         # 128 samples in epochs of at most 64: 2 epochs of ceil(min(n, 64) / 64) steps of 64 samples.
         assert r["epochs"] == (128 + min(r["train_crops"], 64) - 1) // min(r["train_crops"], 64)
         assert r["mean_deg"] >= 0 and r["input_mean_deg"] > 0
-    assert "| scenes | 40 | yes |" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "| scenes | 40 | yes |" in printed and f"fusion {json.dumps(WIDE)}, " in printed
     assert doc["command"].startswith("python benchmarks/data_scaling.py --data")
     assert study.main(["--table", str(out)]) == 0
     assert capsys.readouterr().out.count("| frames |") == 3
@@ -53,3 +64,13 @@ def test_bad_sizes_are_named():
         study.main(["--data", "x", "--sizes", "10,many"])
     with pytest.raises(SystemExit, match="--sizes: expected positive integers"):
         study.main(["--data", "x", "--sizes", "0"])
+
+
+def test_bad_config_is_named(capsys):
+    study = _load()
+    with pytest.raises(SystemExit):
+        study.main(["--data", "x", "--config", "[1024]"])
+    assert "--config: expected a JSON object" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        study.main(["--data", "x", "--config", '{"fuse_width": 1024}'])
+    assert "must end with fuse_width=1024" in capsys.readouterr().err
