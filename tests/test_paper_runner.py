@@ -162,3 +162,20 @@ def test_an_experiment_fine_tunes_another_ones_base_network(runner, ran, monkeyp
         assert budget["images_per_object"]["fine_tune"] == 40 and "base_mse" not in budget["epochs"]
         assert budget["training"]["epochs"] == 4  # 1 MSE + 1 geodesic epoch for each of the 2 objects
         assert "average" in doc[model]
+
+
+def test_every_experiments_training_options_are_train_options(runner, tmp_path):
+    # A misspelt recipe key would only fail hours into a run; every key must be a `refiner-rt train` parameter
+    # (ft_continue's too, since it is passed to a resumed training) and every arch a registered one.
+    import models
+
+    args = runner.parse_args(["--data", str(tmp_path), "--runs", str(tmp_path)])
+    known = set(runner._train_defaults(tmp_path))
+    for name, exp in runner.EXPERIMENTS.items():
+        if exp.train is None:
+            continue
+        for model in runner.RECIPES:
+            opts = runner.train_options(exp, model, args)
+            cont = opts.pop("ft_continue", None) or {}
+            assert set(opts) | set(cont) <= known, (name, model, (set(opts) | set(cont)) - known)
+            models.get_refiner_class(opts["arch"])
