@@ -67,7 +67,10 @@ def run(args) -> dict:
 
     threads = set_threads(args.threads)
     sizes = _parse_sizes(args.sizes)
-    probe = models.build_refiner(args.arch, **args.config)
+    try:
+        probe = models.build_refiner(args.arch, **args.config)
+    except ValueError as exc:
+        raise SystemExit(f"--arch {args.arch} --config {json.dumps(args.config)}: {exc}") from None
     size, context = probe.input_size, probe.config["crop_context"]
     rows = []
     t_all = time.perf_counter()
@@ -165,12 +168,6 @@ def main(argv: list[str] | None = None) -> int:
     for m in args.modes.split(","):
         if m not in ("frames", "scenes"):
             p.error(f"--modes: expected frames and/or scenes; got {m!r}")
-    import models
-
-    try:
-        models.build_refiner(args.arch, **args.config)
-    except (KeyError, ValueError, TypeError) as exc:
-        p.error(f"--arch {args.arch} --config {json.dumps(args.config)}: {exc}")
     doc = run(args)
     print(markdown(doc))
     if args.json:
