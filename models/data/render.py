@@ -4,8 +4,8 @@ Each BOP scene is one static arrangement (objects dropped onto a textured table 
 physics and left to settle, in a textured room) seen along a smooth camera path, like a YCB-Video
 sequence; so a ``frames`` split (random frames) has near-duplicate neighbours and a ``scenes``
 split (whole sequences held out) does not. Rendering uses pybullet's TinyRenderer (CPU, about
-35-60 ms per 640x480 frame here) with random light direction, colour and shadows, then sensor
-noise, blur and JPEG compression.
+35-60 ms per 640x480 frame here) with random light direction and colour (no shadows: the table is
+composited behind the objects), then sensor noise, blur and JPEG compression.
 
 Ground truth follows BOP (``scene_gt.json``: ``cam_R_m2c`` row-major object-to-camera, ``cam_t_m2c``
 in mm, ``obj_id`` by the YCB-Video numbering; ``scene_gt_info.json``: ``bbox_obj``/``bbox_visib``

@@ -1,0 +1,174 @@
+"""How far each test crop's rotation is from the nearest training rotation of its object, per split protocol.
+
+The refiner learns appearance -> rotation from its training crops; a test crop whose rotation (in the network's
+viewing-ray frame) is close to a training crop's can be answered by near-recall, one far from all of them must be
+interpolated. The ``frames`` split (the paper's) draws test frames from the same smooth camera paths as the
+training frames; the ``scenes`` split holds whole scenes out. This measures the gap between the two protocols in
+the data itself, without training anything: for every test sample, the geodesic angle to the nearest training
+sample of the same object (``train_base + train_finetune``), using the ground-truth rotations and boxes only (no
+images are read).
+
+Usage (from the repository root)::
+
+    python benchmarks/pose_coverage.py --data DIR [--sizes 3000,5000,3000,3000] [--modes frames,scenes] \\
+        [--json benchmarks/results/pose_coverage.json]
+
+``--sizes`` are the per-object ``train_base,train_finetune,val,test`` of the split (default: the improved
+refiner's baseline and scenes experiments); the split is ``make_splits`` with ``--split-seed``, as in training.
+Symmetries are not folded in (nor are they by the error metric).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from refiner_rt import quaternion as rq  # noqa: E402
+from refiner_rt.session import ray_quaternions  # noqa: E402
+
+THRESHOLDS_DEG = (2.0, 5.0, 10.0)
+
+
+def ray_frame_rotations(samples) -> np.ndarray:
+    """``(N, 4)`` wxyz ground-truth rotations in each sample's viewing-ray frame (``q_ray^-1 * q_gt``)."""
+    if not samples:
+        return np.zeros((0, 4))
+    K = np.stack([s.K for s in samples])
+    boxes = np.stack([s.box_xyxy for s in samples])
+    q_gt = np.stack([s.q_gt for s in samples])
+    return rq.normalize(rq.multiply(rq.inverse(ray_quaternions(K, boxes)), q_gt))
+
+
+def nearest_angles(query: np.ndarray, reference: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """Geodesic angle (degrees) from every ``query`` rotation to its nearest ``reference`` rotation.
+
+    Args:
+        query: ``(N, 4)`` unit quaternions (wxyz).
+        reference: ``(M, 4)`` unit quaternions, ``M >= 1``.
+        chunk: query rows per matrix product (bounds memory at ``chunk * M`` floats).
+    """
+    query = np.asarray(query, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    for name, q in (("query", query), ("reference", reference)):
+        if q.ndim != 2 or q.shape[1] != 4:
+            raise ValueError(f"{name} must be (N, 4) wxyz quaternions; got shape {q.shape}")
+    if len(reference) == 0:
+        raise ValueError("reference holds no rotations: there is nothing to be near")
+    best = np.empty(len(query))
+    for i in range(0, len(query), chunk):
+        dots = np.abs(query[i:i + chunk] @ reference.T)  # |<q, r>| = cos(angle / 2), sign-free (q ~ -q)
+        best[i:i + chunk] = dots.max(axis=1)
+    return np.degrees(2.0 * np.arccos(np.clip(best, 0.0, 1.0)))
+
+
+def summarize(angles: np.ndarray) -> dict:
+    """Mean, median, 90th percentile and the fraction under each of :data:`THRESHOLDS_DEG`."""
+    if len(angles) == 0:
+        raise ValueError("no angles to summarise")
+    out = {"n": int(len(angles)), "mean_deg": float(angles.mean()), "median_deg": float(np.median(angles)),
+           "p90_deg": float(np.percentile(angles, 90))}
+    out.update({f"under_{t:g}_deg": float((angles < t).mean()) for t in THRESHOLDS_DEG})
+    return out
+
+
+def split_coverage(splits) -> dict:
+    """Per object: the test part's nearest-training-rotation angles summarised, with the parts' scene counts."""
+    per_object = {}
+    for obj in sorted({s.obj_id for s in splits.test}):
+        train = splits.part("train", obj)
+        test = splits.part("test", obj)
+        if not train:
+            raise ValueError(f"{obj}: the training part is empty, so its test crops have no neighbours")
+        angles = nearest_angles(ray_frame_rotations(test), ray_frame_rotations(train))
+        per_object[obj] = {**summarize(angles), "train": len(train),
+                           "train_scenes": len({s.scene_key for s in train}),
+                           "test_scenes": len({s.scene_key for s in test})}
+    return per_object
+
+
+def _average(per_object: dict) -> dict:
+    keys = [k for k in next(iter(per_object.values())) if k.endswith("_deg") or k.startswith("under_")]
+    return {k: float(np.mean([row[k] for row in per_object.values()])) for k in keys}
+
+
+def _parse_sizes(text: str) -> tuple[int, int, int, int]:
+    try:
+        sizes = tuple(int(s) for s in text.split(","))
+    except ValueError:
+        sizes = ()
+    if len(sizes) != 4 or min(sizes) < 0 or sizes[3] == 0 or sizes[0] + sizes[1] == 0:
+        raise SystemExit(f"--sizes: expected train_base,train_finetune,val,test per object like 3000,5000,3000,3000 "
+                         f"(some training and some test); got {text!r}")
+    return sizes
+
+
+def run(args) -> dict:
+    from models.pipeline import DataSpec, load_splits
+
+    sizes = _parse_sizes(args.sizes)
+    modes = [m for m in args.modes.split(",") if m]
+    t0 = time.perf_counter()
+    result = {"data": str(args.data), "sizes": list(sizes), "split_seed": args.split_seed, "modes": {}}
+    for mode in modes:
+        spec = DataSpec(data=str(args.data), split_mode=mode, split_seed=args.split_seed, sizes=sizes,
+                        objects=args.objects.split(",") if args.objects else None)
+        try:
+            splits = load_splits(spec)
+        except ValueError as exc:
+            raise SystemExit(f"--modes {mode}: {exc}") from None
+        per_object = split_coverage(splits)
+        result["modes"][mode] = {"average": _average(per_object), "per_object": per_object}
+    result.update(command="python " + shlex.join(sys.argv), wall_s=round(time.perf_counter() - t0, 1),
+                  machine={"python": platform.python_version(), "platform": platform.platform()})
+    return result
+
+
+def table(result: dict) -> str:
+    """Markdown rows: one per mode and object, then the mode's average."""
+    lines = ["| split | object | test crops | train crops / scenes | nearest training rotation: mean | median | "
+             "90% | under 2 / 5 / 10 deg |", "|---|---|---:|---:|---:|---:|---:|---|"]
+    for mode, block in result["modes"].items():
+        for obj, r in block["per_object"].items():
+            lines.append(f"| {mode} | {obj} | {r['n']} | {r['train']} / {r['train_scenes']} | {r['mean_deg']:.2f} | "
+                         f"{r['median_deg']:.2f} | {r['p90_deg']:.2f} | {r['under_2_deg']:.0%} / "
+                         f"{r['under_5_deg']:.0%} / {r['under_10_deg']:.0%} |")
+        a = block["average"]
+        lines.append(f"| {mode} | **average** | | | **{a['mean_deg']:.2f}** | {a['median_deg']:.2f} | "
+                     f"{a['p90_deg']:.2f} | {a['under_2_deg']:.0%} / {a['under_5_deg']:.0%} / "
+                     f"{a['under_10_deg']:.0%} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, help="dataset folder (BOP split folder or YCB-Video root)")
+    parser.add_argument("--sizes", default="3000,5000,3000,3000",
+                        help="per-object train_base,train_finetune,val,test (default: %(default)s)")
+    parser.add_argument("--modes", default="frames,scenes", help="split modes, comma-separated (default: %(default)s)")
+    parser.add_argument("--objects", default=None, help="YCB ids, comma-separated (default: the paper's nine)")
+    parser.add_argument("--split-seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None, help="write the result here")
+    args = parser.parse_args(argv)
+    result = run(args)
+    print(table(result))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""benchmarks/pose_coverage.py: nearest-training-rotation angles against SciPy, on hand-built splits and a BOP folder."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cube_dataset import make_cube_dataset
+from models.data import Sample, SplitSizes, make_splits
+
+SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "pose_coverage.py"
+K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("pose_coverage", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _wxyz(r: Rotation) -> np.ndarray:
+    xyzw = np.atleast_2d(r.as_quat())
+    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+
+
+def _sample(R, box, scene=0, frame=0, obj="003_cracker_box") -> Sample:
+    return Sample(image_path=f"/d/{scene:06d}/rgb/{frame:06d}.png", obj_id=obj, R=R, t=[0.0, 0.0, 1.0],
+                  box_xyxy=box, K=K, image_size=(640, 480), scene_id=f"{scene:06d}", frame_id=frame,
+                  visib_fract=1.0, dataset="/d")
+
+
+def test_nearest_angles_match_scipy_brute_force_and_ignore_quaternion_sign():
+    cov = _load()
+    query, ref = Rotation.random(40, random_state=1), Rotation.random(25, random_state=2)
+    expected = np.array([np.degrees((ref.inv() * query[i]).magnitude()).min() for i in range(len(query))])
+    q, r = _wxyz(query), _wxyz(ref)
+    r[::2] *= -1  # q and -q are the same rotation
+    np.testing.assert_allclose(cov.nearest_angles(q, r, chunk=7), expected, atol=1e-6)
+    assert cov.nearest_angles(r, r).max() < 1e-4
+
+
+def test_nearest_angles_reject_bad_shapes_and_an_empty_reference():
+    cov = _load()
+    with pytest.raises(ValueError, match=r"reference must be \(N, 4\)"):
+        cov.nearest_angles(np.zeros((3, 4)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="nothing to be near"):
+        cov.nearest_angles(np.zeros((3, 4)), np.zeros((0, 4)))
+
+
+def test_ray_frame_rotation_removes_the_smallest_rotation_onto_the_box_ray():
+    cov = _load()
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True)
+    centred = _sample(R.as_matrix(), [300.0, 220.0, 340.0, 260.0])   # centre (320, 240): on the optical axis
+    off = _sample(R.as_matrix(), [500.0, 50.0, 560.0, 110.0])
+    got = cov.ray_frame_rotations([centred, off])
+    u, v = 530.0 - 0.5, 80.0 - 0.5
+    d = np.linalg.solve(K, [u, v, 1.0])
+    d /= np.linalg.norm(d)
+    axis = np.cross([0.0, 0.0, 1.0], d)
+    ray = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.arccos(d[2]))
+    for q, expected in zip(got, [R, ray.inv() * R]):
+        assert np.degrees((Rotation.from_quat(np.r_[q[1:], q[0]]).inv() * expected).magnitude()) < 1e-6
+
+
+def test_frames_split_finds_twins_that_the_scenes_split_holds_out():
+    """Static scenes: every frame of a scene shows one rotation, so frames-split test crops have exact twins in
+    training, and scenes-split ones are as far as the nearest other scene's rotation."""
+    cov = _load()
+    scene_rot = Rotation.random(12, random_state=3)
+    box = [300.0, 220.0, 340.0, 260.0]
+    samples = [_sample(scene_rot[s].as_matrix(), box, scene=s, frame=f) for s in range(12) for f in range(10)]
+    sizes = SplitSizes(train_base=40, train_finetune=20, val=20, test=20)
+    frames = cov.split_coverage(make_splits(samples, mode="frames", sizes=sizes, seed=0))
+    assert frames["003_cracker_box"]["mean_deg"] < 1e-4 and frames["003_cracker_box"]["under_2_deg"] == 1.0
+
+    splits = make_splits(samples, mode="scenes", sizes=sizes, seed=0)
+    row = cov.split_coverage(splits)["003_cracker_box"]
+    train_scenes = sorted({int(s.scene_id) for s in splits.train})
+    expected = [np.degrees((scene_rot[train_scenes].inv() * scene_rot[int(s.scene_id)]).magnitude()).min()
+                for s in splits.test]
+    assert row["n"] == len(splits.test) and row["train"] == len(splits.train)
+    assert row["train_scenes"] == len(train_scenes) and row["test_scenes"] == len({s.scene_id for s in splits.test})
+    assert row["mean_deg"] == pytest.approx(np.mean(expected), abs=1e-5) and row["mean_deg"] > 1.0
+    assert row["median_deg"] == pytest.approx(np.median(expected), abs=1e-5)
+
+
+def test_cli_writes_both_modes_for_a_bop_folder(tmp_path, capsys):
+    cov = _load()
+    make_cube_dataset(tmp_path / "cubes", scenes=6, frames=10)
+    out = tmp_path / "coverage.json"
+    assert cov.main(["--data", str(tmp_path / "cubes"), "--sizes", "20,10,5,10", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert set(doc["modes"]) == {"frames", "scenes"} and doc["sizes"] == [20, 10, 5, 10]
+    for block in doc["modes"].values():
+        rows = block["per_object"].values()
+        assert len(rows) == 2 and all(r["n"] > 0 and r["mean_deg"] >= 0 for r in rows)
+        assert block["average"]["mean_deg"] == pytest.approx(np.mean([r["mean_deg"] for r in rows]))
+    assert "| scenes | **average** |" in capsys.readouterr().out
+    assert doc["command"].startswith("python ")
+
+
+@pytest.mark.parametrize("sizes", ["3000,5000", "a,b,c,d", "3000,5000,3000,0", "0,0,10,10"])
+def test_cli_names_bad_sizes(tmp_path, sizes):
+    cov = _load()
+    with pytest.raises(SystemExit, match="--sizes: expected train_base,train_finetune,val,test"):
+        cov.main(["--data", str(tmp_path), "--sizes", sizes])
+
+
+def test_cli_names_an_unknown_split_mode(tmp_path):
+    cov = _load()
+    make_cube_dataset(tmp_path / "cubes", scenes=2, frames=4)
+    with pytest.raises(SystemExit, match="--modes sideways: .*mode must be one of"):
+        cov.main(["--data", str(tmp_path / "cubes"), "--sizes", "4,0,0,2", "--modes", "sideways"])
