@@ -1,4 +1,4 @@
-"""benchmarks/pose_coverage.py: nearest-training-rotation angles against SciPy, on hand-built splits and a BOP folder."""
+"""benchmarks/pose_coverage.py: nearest-training-rotation angles against SciPy, hand-built splits, a BOP folder."""
 
 import importlib.util
 import json
