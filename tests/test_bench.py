@@ -1,8 +1,6 @@
 """refiner_rt.bench: operation counts and roofline bounds, interleaved timing, variants, and `refiner-rt bench` rows."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +8,7 @@ from click.testing import CliRunner
 from onnx import TensorProto, helper, numpy_helper
 
 import onnx_fixtures as fx
+from bench_scripts import load_benchmark
 from refiner_rt import bench
 from refiner_rt.cli import main
 
@@ -128,10 +127,7 @@ def test_bench_times_a_viewing_ray_model(tmp_path):
 
 
 def test_profile_refine_runs_on_camera_and_viewing_ray_models(tmp_path, capsys):
-    script = Path(__file__).resolve().parent.parent / "benchmarks" / "profile_refine.py"
-    spec = importlib.util.spec_from_file_location("profile_refine", script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_benchmark("profile_refine")
     paths = []
     for frame in ("camera", "ray"):
         path = tmp_path / f"{frame}.onnx"

@@ -3,26 +3,19 @@
 Runs are capped at a few steps: this checks the study's plumbing and bookkeeping, not accuracy.
 """
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
 import models
+from bench_scripts import load_benchmark
 from cube_dataset import make_cube_dataset
 
 WIDE = {"fuse_width": 1024, "pose_widths": [64, 1024]}
-SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "data_scaling.py"
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("data_scaling", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("data_scaling")
 
 
 def _parameters(model) -> int:

@@ -3,24 +3,17 @@
 Every training is capped at 1 epoch per stage of 2 steps: this checks the runner's plumbing, not accuracy.
 """
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
+from bench_scripts import load_benchmark
 from cube_dataset import make_cube_dataset
 
-SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "paper.py"
 
 
 def _load_runner():
-    spec = importlib.util.spec_from_file_location("paper_runner", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve their module through sys.modules
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("paper")
 
 
 @pytest.fixture(scope="module")

@@ -1,27 +1,20 @@
 """benchmarks/pose_coverage.py: nearest-training-rotation angles against SciPy, hand-built splits, a BOP folder."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from bench_scripts import load_benchmark
 from cube_dataset import make_cube_dataset
 from models.data import Sample, SplitSizes, make_splits
 
-SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "pose_coverage.py"
 K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("pose_coverage", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("pose_coverage")
 
 
 def _wxyz(r: Rotation) -> np.ndarray:
