@@ -114,19 +114,24 @@ def _parse_sizes(text: str) -> tuple[int, int, int, int]:
 
 
 def run(args) -> dict:
-    from models.pipeline import DataSpec, load_splits
+    from models.data import SplitSizes, make_splits
+    from models.data.splits import SPLIT_MODES
+    from models.pipeline import DataSpec, load_samples
 
     sizes = _parse_sizes(args.sizes)
     modes = [m for m in args.modes.split(",") if m]
+    for mode in modes:
+        if mode not in SPLIT_MODES:
+            raise SystemExit(f"--modes {mode}: split mode must be one of {SPLIT_MODES}")
     t0 = time.perf_counter()
+    spec = DataSpec(data=str(args.data), objects=args.objects.split(",") if args.objects else None)
+    try:
+        samples = load_samples(spec)  # read once, split once per mode
+    except (FileNotFoundError, ValueError) as exc:
+        raise SystemExit(f"--data {args.data}: {exc}") from None
     result = {"data": str(args.data), "sizes": list(sizes), "split_seed": args.split_seed, "modes": {}}
     for mode in modes:
-        spec = DataSpec(data=str(args.data), split_mode=mode, split_seed=args.split_seed, sizes=sizes,
-                        objects=args.objects.split(",") if args.objects else None)
-        try:
-            splits = load_splits(spec)
-        except ValueError as exc:
-            raise SystemExit(f"--modes {mode}: {exc}") from None
+        splits = make_splits(samples, mode=mode, sizes=SplitSizes(*sizes), seed=args.split_seed)
         per_object = split_coverage(splits)
         result["modes"][mode] = {"average": _average(per_object), "per_object": per_object}
     result.update(command="python " + shlex.join(sys.argv), wall_s=round(time.perf_counter() - t0, 1),

@@ -110,3 +110,9 @@ def test_cli_names_an_unknown_split_mode(tmp_path):
     make_cube_dataset(tmp_path / "cubes", scenes=2, frames=4)
     with pytest.raises(SystemExit, match="--modes sideways: .*mode must be one of"):
         cov.main(["--data", str(tmp_path / "cubes"), "--sizes", "4,0,0,2", "--modes", "sideways"])
+
+
+def test_cli_names_a_missing_dataset_folder(tmp_path):
+    cov = _load()
+    with pytest.raises(SystemExit, match=r"--data .*nowhere: dataset folder not found"):
+        cov.main(["--data", str(tmp_path / "nowhere")])
