@@ -30,6 +30,8 @@ class CropSet:
         q_ray: ``(N, 4)`` float64 ``wxyz`` camera-to-ray-frame rotations, or None when the
             intrinsics are unknown (then only the ``"camera"`` frame is possible).
         scene_ids: ``(N,)`` scene/sequence ids, or None.
+        masks: ``(N, S, S)`` uint8, 1 on the instance's visible pixels, or None; with ``has_mask``
+            ``(N,)`` bool saying which crops have one (a crop without a mask has zeros there).
     """
 
     crops: np.ndarray
@@ -37,6 +39,8 @@ class CropSet:
     obj_ids: np.ndarray
     q_ray: np.ndarray | None = None
     scene_ids: np.ndarray | None = None
+    masks: np.ndarray | None = None
+    has_mask: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.crops)
@@ -54,6 +58,16 @@ class CropSet:
                 raise ValueError(f"q_ray must be ({n}, 4) wxyz; got shape {self.q_ray.shape}")
         if self.scene_ids is not None:
             self.scene_ids = np.asarray(self.scene_ids)
+        if self.masks is not None:
+            s = self.crops.shape[1:3]
+            if self.masks.shape != (n, *s) or self.masks.dtype != np.uint8:
+                raise ValueError(f"masks must be ({n}, {s[0]}, {s[1]}) uint8 0/1; got shape {self.masks.shape}, "
+                                 f"dtype {self.masks.dtype}")
+            self.has_mask = np.ones(n, bool) if self.has_mask is None else np.asarray(self.has_mask, dtype=bool)
+            if self.has_mask.shape != (n,):
+                raise ValueError(f"has_mask must have shape ({n},); got {self.has_mask.shape}")
+        elif self.has_mask is not None:
+            raise ValueError("has_mask was given without masks")
 
     def __len__(self) -> int:
         return len(self.crops)
@@ -79,6 +93,8 @@ class CropSet:
             obj_ids=self.obj_ids[idx],
             q_ray=None if self.q_ray is None else self.q_ray[idx],
             scene_ids=None if self.scene_ids is None else self.scene_ids[idx],
+            masks=None if self.masks is None else np.ascontiguousarray(self.masks[idx]),
+            has_mask=None if self.masks is None else self.has_mask[idx],
         )
 
     def for_object(self, obj_id: str) -> "CropSet":

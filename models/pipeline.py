@@ -162,6 +162,8 @@ def cropset_for(
         obj_ids=cache.obj_ids,
         q_ray=ray_quaternions(cache.K, cache.boxes_xyxy),
         scene_ids=np.asarray(cache.scene_ids),
+        masks=cache.masks,
+        has_mask=None if cache.masks is None else cache.has_mask,
     )
     return cs if obj_id is None else cs.for_object(obj_id)
 

@@ -41,11 +41,12 @@ def draw_cube(image: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, co
 
 
 def make_cube_dataset(split_dir: Path, obj_ids=(2, 5), scenes: int = 4, frames: int = 30, size=(160, 120), seed: int = 0,
-                      max_angle: float = 60.0):
+                      max_angle: float = 60.0, masks: bool = False):
     """Write ``scenes`` BOP scenes of ``frames`` frames, each showing one cube per ``obj_ids`` entry.
 
     Object ``k`` is told apart by a colour shift. Rotations are random per frame, within ``max_angle``
-    degrees of a fixed tilted view (like objects on a table); boxes come from the mask.
+    degrees of a fixed tilted view (like objects on a table); boxes come from the mask. With ``masks``,
+    each instance's visible pixels are written as BOP ``mask_visib/<im_id>_<gt_idx>.png`` (0/255).
     """
     rng = np.random.default_rng(seed)
     w, h = size
@@ -53,11 +54,13 @@ def make_cube_dataset(split_dir: Path, obj_ids=(2, 5), scenes: int = 4, frames: 
     for s in range(scenes):
         scene = Path(split_dir) / f"{s:06d}"
         (scene / "rgb").mkdir(parents=True, exist_ok=True)
+        if masks:
+            (scene / "mask_visib").mkdir(exist_ok=True)
         gt, info, cam = {}, {}, {}
         for im in range(frames):
             image = np.full((h, w, 3), 90, np.uint8)
             image += rng.integers(0, 30, image.shape, dtype=np.uint8)
-            gts, infos = [], []
+            gts, infos, drawn = [], [], []
             for k, obj in enumerate(obj_ids):
                 axis = rng.normal(size=3)
                 delta = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0, max_angle)))
@@ -65,12 +68,16 @@ def make_cube_dataset(split_dir: Path, obj_ids=(2, 5), scenes: int = 4, frames: 
                 x = (k + 0.5) / len(obj_ids) * w
                 t = np.linalg.inv(K) @ np.array([x, h / 2, 1.0]) * 0.45
                 mask = draw_cube(image, K, R, t, colour_shift=60 * k)
+                drawn.append(mask)
                 ys, xs = np.nonzero(mask)
                 box = [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
                 gts.append({"cam_R_m2c": R.flatten().tolist(), "cam_t_m2c": (t * 1000).tolist(), "obj_id": int(obj)})
                 infos.append({"bbox_obj": box, "bbox_visib": box, "px_count_all": int(mask.sum()),
                               "px_count_valid": int(mask.sum()), "px_count_visib": int(mask.sum()), "visib_fract": 1.0})
             cv2.imwrite(str(scene / "rgb" / f"{im:06d}.png"), image)
+            for k in range(len(drawn) if masks else 0):  # visible: not covered by a cube drawn later
+                visible = drawn[k] & ~np.any(drawn[k + 1:], axis=0) if k + 1 < len(drawn) else drawn[k]
+                cv2.imwrite(str(scene / "mask_visib" / f"{im:06d}_{k:06d}.png"), visible.astype(np.uint8) * 255)
             gt[im], info[im] = gts, infos
             cam[im] = {"cam_K": K.flatten().tolist(), "depth_scale": 1.0}
         bop_save_json(scene / "scene_gt.json", gt)

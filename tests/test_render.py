@@ -87,8 +87,11 @@ def test_boxes_and_visible_fractions_are_consistent(rendered):
     out, _ = rendered
     for scene in ("000000", "000001"):
         info = json.loads((out / scene / "scene_gt_info.json").read_text())
-        for frame in info.values():
-            for inst in frame:
+        for im, frame in info.items():
+            for k, inst in enumerate(frame):
+                mask = cv2.imread(str(out / scene / "mask_visib" / f"{int(im):06d}_{k:06d}.png"), cv2.IMREAD_UNCHANGED)
+                assert mask.shape == (120, 160) and set(np.unique(mask)) <= {0, 255}
+                assert int((mask > 0).sum()) == inst["px_count_visib"]
                 assert 0.0 <= inst["visib_fract"] <= 1.0
                 assert inst["px_count_visib"] <= inst["px_count_all"]
                 if inst["px_count_visib"]:

@@ -11,6 +11,8 @@ summarised in design.md section 6::
                                                   "px_count_*": int}, ...]}  (same order as scene_gt)
     <split_dir>/<scene:06d>/scene_camera.json    {"<im_id>": {"cam_K": 9 numbers row-major,
                                                   "depth_scale": float}}
+    <split_dir>/<scene:06d>/mask_visib/<im_id:06d>_<gt_idx:06d>.png   optional: the instance's visible
+                                                  pixels (non-zero); used by background augmentation
 
 Conventions of the produced samples: ``R`` object to camera (``cam_R_m2c``), ``t`` in **metres**
 (``cam_t_m2c / 1000``), ``box_xyxy = (x, y, x + w, y + h)`` in continuous pixel coordinates.
@@ -126,6 +128,7 @@ def _read_scene(scene: Path, id_map, wanted, box, min_visib, min_box_size, recor
     gt_path, info_path, cam_path = (scene / n for n in ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"))
     scene_gt, scene_info, scene_cam = read_json(gt_path), read_json(info_path), read_json(cam_path)
     listing = set(os.listdir(scene / "rgb")) if (scene / "rgb").is_dir() else set()
+    masks = set(os.listdir(scene / "mask_visib")) if (scene / "mask_visib").is_dir() else set()
     size = None  # (width, height), read from the first image used: a scene is one camera
     n_invisible = 0
     for key in sorted(scene_gt, key=int):
@@ -178,7 +181,9 @@ def _read_scene(scene: Path, id_map, wanted, box, min_visib, min_box_size, recor
             xyxy = check_box(xyxy, size, f"{where_info}: field {box_field!r} (as x1, y1, x2, y2)", inside=box == "visib")
             if max(xyxy[2] - xyxy[0], xyxy[3] - xyxy[1]) < min_box_size:
                 continue
-            records.append((scene.name, im_id, inst, name, t, xyxy, K, visib, image, size))
+            mask = f"{im_id:06d}_{inst:06d}.png"
+            mask = str(scene / "mask_visib" / mask) if mask in masks else ""
+            records.append((scene.name, im_id, inst, name, t, xyxy, K, visib, image, size, mask))
             matrices.append(R)
             where_R.append(f"{where_gt}: field 'cam_R_m2c'")
     return n_invisible
@@ -260,8 +265,9 @@ def load_bop(
             dataset=str(split_dir),
             instance=inst,
             box_source=f"bop:{BOX_FIELDS[box]}",
+            mask_path=mask,
         )
-        for i, (scene_name, im_id, inst, name, t, xyxy, K, visib, image, size) in enumerate(records)
+        for i, (scene_name, im_id, inst, name, t, xyxy, K, visib, image, size, mask) in enumerate(records)
     ]
     log.info(
         "load_bop(%s): %d samples from %d scenes (%d invisible instances skipped)",

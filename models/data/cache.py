@@ -6,9 +6,11 @@ would dominate the step time on a CPU. :class:`CropCache` cuts each sample's cro
 and stores it in ``<cache_dir>``::
 
     crops.npy       (N, S, S, 3) uint8, BGR, opened as a read-only memmap (numpy .npy format)
+    masks.npy       (N, S, S) uint8, 1 on the instance's visible pixels, cut by the same rule;
+                    only when some sample has a mask (``Sample.mask_path``)
     index.npz       per crop: q_gt (N, 4) float64 wxyz object to camera, R (N, 3, 3), t (N, 3)
                     metres, K (N, 3, 3), box_xyxy (N, 4) pixels, obj_id, scene_id, frame_id,
-                    image_path, visib_fract (NaN when unknown)
+                    image_path, visib_fract (NaN when unknown), has_mask (bool)
     manifest.json   what the cache was built from: a fingerprint of the sample list (paths, ids,
                     poses, boxes, K, in order), S, context, the source images' sizes and mtimes,
                     the crop rule's code version and the OpenCV version; written last
@@ -43,7 +45,7 @@ __all__ = ["CropCache", "CACHE_FORMAT", "crop_rule_version", "samples_fingerprin
 log = logging.getLogger(__name__)
 
 CACHE_FORMAT = "refiner-rt/crops/1"
-_CROPS, _INDEX, _MANIFEST, _LOCK = "crops.npy", "index.npz", "manifest.json", ".lock"
+_CROPS, _MASKS, _INDEX, _MANIFEST, _LOCK = "crops.npy", "masks.npy", "index.npz", "manifest.json", ".lock"
 # Manifest keys that must match for a cache to be reused.
 _KEYS = ("format", "n", "size", "context", "samples_fingerprint", "sources_fingerprint", "crop_rule_version")
 _IMAGES_PER_TASK = 16
@@ -59,10 +61,12 @@ def crop_rule_version() -> str:
 
 
 def samples_fingerprint(samples: Sequence[Sample]) -> str:
-    """SHA-256 of the ordered sample list: image path, object, scene, frame, instance, box, R, t, K."""
+    """SHA-256 of the ordered sample list: image path, object, scene, frame, instance, box, R, t, K, mask."""
     h = hashlib.sha256()
     for s in samples:
         h.update(f"{s.image_path}\0{s.obj_id}\0{s.scene_id}\0{s.frame_id}\0{s.instance}\0".encode())
+        if s.mask_path:  # samples without a mask hash as before masks existed, so their caches stay valid
+            h.update(f"mask\0{s.mask_path}\0{s.mask_value}\0".encode())
         for a in (s.box_xyxy, s.R, s.t, s.K):
             h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
     return h.hexdigest()
@@ -97,22 +101,48 @@ def _locked(cache_dir: Path):
 # --- worker side -------------------------------------------------------------------------------
 
 _worker_crops = None
+_worker_masks = None
 _worker_size = 0
 _worker_context = 0.0
 
 
-def _init_worker(crops_path: str, size: int, context: float, single_thread: bool = True) -> None:
-    global _worker_crops, _worker_size, _worker_context
+def _init_worker(crops_path: str, size: int, context: float, single_thread: bool = True, masks_path: str = "") -> None:
+    global _worker_crops, _worker_masks, _worker_size, _worker_context
     if single_thread:  # worker processes only: never change the caller's OpenCV threading
         cv2.setNumThreads(1)
     _worker_crops = np.load(crops_path, mmap_mode="r+")
+    _worker_masks = np.load(masks_path, mmap_mode="r+") if masks_path else None
     _worker_size, _worker_context = size, context
+
+
+def read_mask(path: str, value: int, image_size) -> np.ndarray:
+    """An instance's visible pixels as ``H x W`` uint8 0/1 from a mask image (``value`` 0: any non-zero pixel)."""
+    mask = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if mask is None:
+        raise ValueError(f"{path}: cannot be decoded as an image (needed as a mask by the crop cache)")
+    if mask.ndim != 2 or (mask.shape[1], mask.shape[0]) != tuple(image_size):
+        raise ValueError(
+            f"{path}: a mask must be one channel of {image_size[0]}x{image_size[1]} (its image's size); "
+            f"got shape {mask.shape}"
+        )
+    return (mask != 0 if value == 0 else mask == value).astype(np.uint8)
+
+
+def crop_mask(mask: np.ndarray, box_xyxy, size: int, context: float, out=None) -> np.ndarray:
+    """Cut a 0/1 mask by the crop rule (bilinear, then threshold at one half); ``S x S`` uint8 0/1."""
+    m = preprocess.crop_matrix(box_xyxy, size, context)
+    soft = cv2.warpAffine(mask * np.uint8(255), m, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if out is None:
+        out = np.empty((size, size), np.uint8)
+    out[...] = soft >= 128
+    return out
 
 
 def _crop_images(tasks) -> int:
     """Decode each image once and write its crops into the shared memmap; returns the crop count."""
     n = 0
-    for path, indices, boxes, image_size in tasks:
+    for path, indices, boxes, image_size, masks in tasks:
         image = cv2.imread(path, cv2.IMREAD_COLOR)  # BGR, 3 channels
         if image is None:
             raise ValueError(f"{path}: cannot be decoded as an image (needed by the crop cache)")
@@ -121,8 +151,11 @@ def _crop_images(tasks) -> int:
                 f"{path}: image is {image.shape[1]}x{image.shape[0]}, but its samples expect "
                 f"{image_size[0]}x{image_size[1]} (width x height)"
             )
-        for i, box in zip(indices, boxes):
+        for i, box, (mask_path, mask_value) in zip(indices, boxes, masks):
             preprocess.crop_to_square(image, box, _worker_size, _worker_context, out=_worker_crops[i])
+            if mask_path:
+                mask = read_mask(mask_path, mask_value, image_size)
+                crop_mask(mask, box, _worker_size, _worker_context, out=_worker_masks[i])
         n += len(indices)
     return n
 
@@ -144,6 +177,8 @@ class CropCache:
         K: ``(N, 3, 3)`` float64 intrinsics; ``boxes_xyxy``: ``(N, 4)`` float64 pixels.
         obj_ids, scene_ids, image_paths: ``(N,)`` str arrays; frame_ids: ``(N,)`` int64;
         visib_fract: ``(N,)`` float64, NaN when unknown.
+        masks: ``(N, S, S)`` uint8 read-only memmap, 1 on the instance's visible pixels, or None when
+            no sample had a mask; has_mask: ``(N,)`` bool (all False without masks).
         size: ``S``; context: the crop rule's context factor; manifest: the build record (dict).
         cache_dir: the folder.
 
@@ -176,6 +211,7 @@ class CropCache:
             self.frame_ids = index["frame_id"]
             self.image_paths = index["image_path"]
             self.visib_fract = index["visib_fract"]
+            self.has_mask = index["has_mask"] if "has_mask" in index else np.zeros(len(self.q_gt), bool)
         self._open_crops()
         n = int(self.manifest["n"])
         if self.crops.shape != (n, self.size, self.size, 3) or len(self.q_gt) != n:
@@ -186,13 +222,15 @@ class CropCache:
 
     def _open_crops(self) -> None:
         self.crops = np.load(self.cache_dir / _CROPS, mmap_mode="r")
+        masks = self.cache_dir / _MASKS
+        self.masks = np.load(masks, mmap_mode="r") if masks.is_file() and self.has_mask.any() else None
 
     def __len__(self) -> int:
         return len(self.q_gt)
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        del state["crops"]
+        del state["crops"], state["masks"]
         return state
 
     def __setstate__(self, state):
@@ -287,7 +325,7 @@ class CropCache:
 
     @staticmethod
     def _expected_manifest(samples: list[Sample], size: int, context: float) -> dict:
-        paths = sorted({s.image_path for s in samples})
+        paths = sorted({s.image_path for s in samples} | {s.mask_path for s in samples if s.mask_path})
         return {
             "format": CACHE_FORMAT,
             "n": len(samples),
@@ -327,18 +365,24 @@ class CropCache:
         n = len(samples)
         tmp_crops = cache_dir / f"crops.tmp-{os.getpid()}.npy"
         np.lib.format.open_memmap(tmp_crops, mode="w+", dtype=np.uint8, shape=(n, size, size, 3)).flush()
+        has_mask = np.array([bool(s.mask_path) for s in samples])
+        tmp_masks = cache_dir / f"masks.tmp-{os.getpid()}.npy" if has_mask.any() else None
+        if tmp_masks is not None:
+            np.lib.format.open_memmap(tmp_masks, mode="w+", dtype=np.uint8, shape=(n, size, size)).flush()
 
         groups: dict[str, list[int]] = {}
         for i, s in enumerate(samples):
             groups.setdefault(s.image_path, []).append(i)
         jobs = [
-            (path, idx, [samples[i].box_xyxy for i in idx], samples[idx[0]].image_size) for path, idx in groups.items()
+            (path, idx, [samples[i].box_xyxy for i in idx], samples[idx[0]].image_size,
+             [(samples[i].mask_path, samples[i].mask_value) for i in idx])
+            for path, idx in groups.items()
         ]
         chunks = [jobs[i : i + _IMAGES_PER_TASK] for i in range(0, len(jobs), _IMAGES_PER_TASK)]
         bar = tqdm(total=n, unit="crop", desc=f"crop cache {cache_dir.name}", disable=not progress, smoothing=0.1)
         try:
             if workers == 1:
-                _init_worker(str(tmp_crops), size, context, single_thread=False)
+                _init_worker(str(tmp_crops), size, context, single_thread=False, masks_path=str(tmp_masks or ""))
                 for chunk in chunks:
                     bar.update(_crop_images(chunk))
             else:
@@ -346,16 +390,23 @@ class CropCache:
 
                 # spawn: a fresh interpreter per worker, safe whatever threads (torch, OpenMP) the parent runs.
                 ctx = multiprocessing.get_context("spawn")
-                with ctx.Pool(workers, initializer=_init_worker, initargs=(str(tmp_crops), size, context)) as pool:
+                with ctx.Pool(workers, initializer=_init_worker,
+                              initargs=(str(tmp_crops), size, context, True, str(tmp_masks or ""))) as pool:
                     for done in pool.imap_unordered(_crop_images, chunks):
                         bar.update(done)
         except BaseException:
             tmp_crops.unlink(missing_ok=True)
+            if tmp_masks is not None:
+                tmp_masks.unlink(missing_ok=True)
             raise
         finally:
             bar.close()
             _reset_worker()
         os.replace(tmp_crops, cache_dir / _CROPS)
+        if tmp_masks is not None:
+            os.replace(tmp_masks, cache_dir / _MASKS)
+        else:
+            (cache_dir / _MASKS).unlink(missing_ok=True)  # a stale one from an earlier build
 
         q_gt = rq.from_matrix(np.stack([s.R for s in samples]))
         index = {
@@ -369,6 +420,7 @@ class CropCache:
             "frame_id": np.array([s.frame_id for s in samples], dtype=np.int64),
             "image_path": np.array([s.image_path for s in samples]),
             "visib_fract": np.array([np.nan if s.visib_fract is None else s.visib_fract for s in samples]),
+            "has_mask": has_mask,
         }
         tmp_index = cache_dir / f"index.tmp-{os.getpid()}.npz"
         with open(tmp_index, "wb") as f:
@@ -388,7 +440,8 @@ class CropCache:
 
 
 def _reset_worker() -> None:
-    global _worker_crops
-    if _worker_crops is not None:
-        _worker_crops.flush()
-    _worker_crops = None
+    global _worker_crops, _worker_masks
+    for memmap in (_worker_crops, _worker_masks):
+        if memmap is not None:
+            memmap.flush()
+    _worker_crops = _worker_masks = None

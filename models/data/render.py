@@ -10,10 +10,10 @@ composited behind the objects), then sensor noise, blur and JPEG compression.
 Ground truth follows BOP (``scene_gt.json``: ``cam_R_m2c`` row-major object-to-camera, ``cam_t_m2c``
 in mm, ``obj_id`` by the YCB-Video numbering; ``scene_gt_info.json``: ``bbox_obj``/``bbox_visib``
 ``[x, y, w, h]``, ``px_count_all``/``px_count_visib``/``visib_fract``; ``scene_camera.json``:
-``cam_K``). Poses are relative to the mesh file's own frame. Visible pixels come from the
-renderer's segmentation mask; the unoccluded silhouette (``px_count_all``, ``bbox_obj``) from
-projecting the mesh's triangles with the ground-truth pose, which also cross-checks the pose
-against what the renderer drew.
+``cam_K``; ``mask_visib/<im_id>_<gt_idx>.png``: 255 on the instance's visible pixels, 0 elsewhere).
+Poses are relative to the mesh file's own frame. Visible pixels come from the renderer's segmentation
+mask; the unoccluded silhouette (``px_count_all``, ``bbox_obj``) from projecting the mesh's triangles
+with the ground-truth pose, which also cross-checks the pose against what the renderer drew.
 
 Conventions: rotations object-to-camera, OpenCV camera (x right, y down, z forward), pixel
 centres at integer coordinates in ``K``; images written BGR.
@@ -483,6 +483,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     tmp = out_dir / f".{scene:06d}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "rgb").mkdir(parents=True)
+    (tmp / "mask_visib").mkdir()
     bodies, centre = build_scene(world, cfg, rng)
     K = np.asarray(cfg.K, dtype=np.float64)
     W, H = cfg.width, cfg.height
@@ -523,9 +524,10 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
             pos, orn = poses_w[b]
             R_wo = np.asarray(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
             Rt[b] = (R_cw @ R_wo, R_cw @ np.asarray(pos) + t_cw)
-        for b in bodies:
+        for k, b in enumerate(bodies):
             R, t = Rt[b]
             vis = seg == b
+            cv2.imwrite(str(tmp / "mask_visib" / f"{im:06d}_{k:06d}.png"), vis.astype(np.uint8) * 255)
             if _may_be_occluded(vis, seg, b, projected_bbox(world.meshes[bodies[b]], R, t, K), W, H):
                 full = silhouette(world.meshes[bodies[b]], R, t, K, W, H, known=vis)
             else:  # nothing can hide it and it is inside the image: visible pixels are the silhouette

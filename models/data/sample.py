@@ -78,6 +78,10 @@ class Sample:
             YCB-Video column of ``poses``).
         box_source: where ``box_xyxy`` came from: ``"bop:bbox_visib"``, ``"bop:bbox_obj"`` or
             ``"ycbv:box.txt"``.
+        mask_path: the image of the instance's visible pixels, ``""`` when the dataset has none
+            (BOP ``mask_visib/<im_id>_<gt_idx>.png``; YCB-Video ``<frame>-label.png``).
+        mask_value: the pixel value of this instance in ``mask_path``: ``0`` means any non-zero
+            pixel (BOP), otherwise the label (YCB-Video: the 1-based class index).
 
     Construction checks shapes and finiteness and stores float64 read-only copies; it does not
     re-check that ``R`` is a rotation (the loaders do, with the file name in the message).
@@ -96,6 +100,8 @@ class Sample:
     dataset: str = ""
     instance: int = 0
     box_source: str = ""
+    mask_path: str = ""
+    mask_value: int = 0
 
     def __post_init__(self):
         for name, shape in (("R", (3, 3)), ("t", (3,)), ("box_xyxy", (4,)), ("K", (3, 3))):
@@ -116,6 +122,14 @@ class Sample:
         object.__setattr__(self, "frame_id", int(self.frame_id))
         if self.visib_fract is not None:
             object.__setattr__(self, "visib_fract", float(self.visib_fract))
+        object.__setattr__(self, "mask_path", str(self.mask_path))
+        if isinstance(self.mask_value, bool) or not isinstance(self.mask_value, (int, np.integer)) or not (
+            0 <= self.mask_value <= 255
+        ):
+            raise ValueError(
+                f"Sample.mask_value must be an integer in [0, 255] (0: any non-zero pixel); got {self.mask_value!r}"
+            )
+        object.__setattr__(self, "mask_value", int(self.mask_value))
 
     @property
     def q_gt(self) -> np.ndarray:

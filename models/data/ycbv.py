@@ -9,6 +9,8 @@ summarised in design.md section 6::
                                            intrinsic_matrix 3x3 (per frame: it changes from seq 60 on);
                                            factor_depth (depth scale, not used here)
     <root>/data/<seq>/<frame>-box.txt      one line per object: "<class name> x1 y1 x2 y2"
+    <root>/data/<seq>/<frame>-label.png    optional: per-pixel 1-based class index (0 background);
+                                           used by background augmentation
     <root>/image_sets/<name>.txt           frame lists, one "<seq>/<frame>" per line ("0048/000001")
 
 Conventions of the produced samples: ``R`` object to camera (``poses[:, :3, i]``), ``t`` metres
@@ -225,7 +227,7 @@ def load_ycbv(
     if not frames:
         raise ValueError(f"{root}: no frames found (image_set={image_set!r})")
 
-    records = []  # (seq, frame, column, class name, R, t, box, K, image path, image size)
+    records = []  # (seq, frame, column, class name, R, t, box, K, image path, label path, class index)
     where_R = []
     listings: dict[str, set[str]] = {}
     sizes: dict[str, tuple[int, int]] = {}
@@ -252,7 +254,8 @@ def load_ycbv(
             box = check_box(boxes[name], sizes[seq], f"{box_path}: box of {name!r}")
             if max(box[2] - box[0], box[3] - box[1]) < min_box_size:
                 continue
-            records.append((seq, frame, col, name, poses[col, :, :3], poses[col, :, 3], box, K, color))
+            label = str(seq_dir / f"{frame}-label.png") if f"{frame}-label.png" in listings[seq] else ""
+            records.append((seq, frame, col, name, poses[col, :, :3], poses[col, :, 3], box, K, color, label, index))
             where_R.append(f"{meta_path}: field 'poses'[:, :3, {col}] ({name})")
 
     if not records:
@@ -274,8 +277,10 @@ def load_ycbv(
             dataset=str(root),
             instance=col,
             box_source="ycbv:box.txt",
+            mask_path=label,
+            mask_value=index if label else 0,
         )
-        for i, (seq, frame, col, name, _, t, box, K, color) in enumerate(records)
+        for i, (seq, frame, col, name, _, t, box, K, color, label, index) in enumerate(records)
     ]
     log.info("load_ycbv(%s): %d samples from %d frames", root, len(samples), len(frames))
     return samples
