@@ -53,6 +53,9 @@ class TrainConfig:
         augment: colour jitter + box jitter on the crops (off in the paper presets).
         box_jitter: with ``augment``, maximum shift of the crop centre and change of its side, as a
             fraction of the side.
+        background: probability that a training crop with a mask gets a new background (its pixels
+            outside the instance's visible mask replaced by another crop of the batch or by a random
+            smooth colour field, half each), before ``augment``; needs masks (``CropSet.masks``).
         seed: seed of the noise, shuffling and augmentation.
         val_seed: seed of the fixed validation noise (the same inputs every epoch).
         max_steps_per_epoch: cap on optimisation steps per epoch (0 = one full pass).
@@ -70,6 +73,7 @@ class TrainConfig:
     rotation_frame: str = "camera"
     augment: bool = False
     box_jitter: float = 0.05
+    background: float = 0.0
     seed: int = 0
     val_seed: int = 12345
     max_steps_per_epoch: int = 0
@@ -86,6 +90,8 @@ class TrainConfig:
             raise ValueError(f"lr must be > 0; got {self.lr}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine'; got {self.lr_schedule!r}")
+        if not 0.0 <= self.background <= 1.0:
+            raise ValueError(f"background must be a probability in [0, 1]; got {self.background}")
         if self.rotation_frame not in ("camera", "ray"):
             raise ValueError(f"rotation_frame must be 'camera' or 'ray'; got {self.rotation_frame!r}")
 
@@ -149,6 +155,28 @@ def _lr_at(cfg: TrainConfig, progress_epochs: float) -> float:
     span = max(cfg.epochs - cfg.warmup_epochs, 1e-9)
     t = min((progress_epochs - cfg.warmup_epochs) / span, 1.0)
     return cfg.lr * (cfg.lr_min_ratio + (1 - cfg.lr_min_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def _replace_background(images: torch.Tensor, masks: torch.Tensor, p: float, gen: torch.Generator) -> torch.Tensor:
+    """Give each crop with a mask, with probability ``p``, a new background: uint8 NHWC in and out.
+
+    ``masks`` is ``(N, S, S)`` uint8, 1 on the instance's visible pixels (all zeros: no mask, left as is).
+    The new background is, half the time each, another crop of the batch (real clutter, other objects)
+    or a smooth random colour field (a 4x4 colour grid, bicubic upsampled, plus pixel noise).
+    """
+    n, s = images.shape[0], images.shape[1]
+    has = (masks.flatten(1) > 0).any(dim=1)
+    pick = (torch.rand(n, generator=gen) < p) & has
+    if n == 0 or not pick.any():
+        return images
+    other = torch.roll(images, shifts=int(torch.randint(1, max(n, 2), (1,), generator=gen)), dims=0).float()
+    grid = torch.rand(n, 3, 4, 4, generator=gen) * 255
+    field = F.interpolate(grid, size=(s, s), mode="bicubic", align_corners=False).permute(0, 2, 3, 1)
+    field = field + torch.randn(n, s, s, 3, generator=gen) * 8
+    use_field = (torch.rand(n, generator=gen) < 0.5) | (n == 1)  # a batch of one has no other crop
+    background = torch.where(use_field[:, None, None, None], field, other)
+    keep = ((masks > 0) | ~pick[:, None, None])[..., None]
+    return torch.where(keep, images.float(), background).clamp(0, 255).round().to(torch.uint8)
 
 
 def _augment(images: torch.Tensor, cfg: TrainConfig, gen: torch.Generator) -> torch.Tensor:
@@ -236,6 +264,11 @@ def train_refiner(
         raise ValueError("the training CropSet is empty")
     if train.input_size != model.input_size:
         raise ValueError(f"crops are {train.input_size} px but the model takes {model.input_size} px")
+    if cfg.background > 0 and train.masks is None:
+        raise ValueError(
+            f"background={cfg.background} needs instance masks, but the training crops have none "
+            "(BOP mask_visib/ or YCB-Video -label.png files; `refiner-rt render` writes mask_visib/)"
+        )
     rank, world = _distributed()
     noise = NoiseSpec.parse(cfg.noise)
     q_gt_all = train.q_gt_in(cfg.rotation_frame)
@@ -281,6 +314,9 @@ def train_refiner(
             for g in opt.param_groups:
                 g["lr"] = lr
             images = torch.from_numpy(np.ascontiguousarray(train.crops[idx]))
+            if cfg.background > 0:
+                masks = torch.from_numpy(np.ascontiguousarray(train.masks[idx]))
+                images = _replace_background(images, masks, cfg.background, gen)
             if cfg.augment:
                 images = _augment(images, cfg, gen)
             q_in = torch.from_numpy(q_in_all[idx].astype(np.float32))

@@ -139,6 +139,9 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
 @click.option("--batch-size", default=64, show_default=True, type=click.IntRange(1))
 @click.option("--augment/--no-augment", default=False, show_default=True, help="Colour and detector-like box jitter (off in the paper's recipe).")
+@click.option("--background", default=0.0, show_default=True, type=click.FloatRange(0, 1),
+              help="Probability of giving a training crop a new background (another crop or a random colour field) "
+                   "outside its instance mask; needs masks (BOP mask_visib/, YCB-Video -label.png).")
 @click.option("--rotation-frame", type=click.Choice(["camera", "ray"]), default="camera", show_default=True, help="camera: paper; ray: rotation relative to the viewing ray (needs K at run time).")
 @click.option("--max-steps-per-epoch", default=0, show_default=True, type=click.IntRange(0), help="Cap optimisation steps per epoch (0: full pass).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed of initialisation, noise and shuffling.")
@@ -249,11 +252,18 @@ def run_training(**o) -> dict:
         noise=o["noise"],
         rotation_frame=o["rotation_frame"],
         augment=o["augment"],
+        background=o["background"],
         seed=o["seed"],
         max_steps_per_epoch=o["max_steps_per_epoch"],
     )
     log_path = Path(f"{stem}.log.jsonl") if rank == 0 else None
     first = "train_base" if base_model is None else "train_finetune"
+    if o["background"] > 0 and any(parts[p].masks is None for p in parts if p != "val"):
+        raise click.ClickException(
+            f"--background {o['background']} needs instance masks, but {o['data']} has none for the training crops "
+            "(BOP mask_visib/<im_id>_<gt_idx>.png or YCB-Video <frame>-label.png; "
+            "`refiner-rt render` writes mask_visib/)"
+        )
     click.echo(
         f"Training {o['arch']} ({model.num_parameters():,} parameters) on {len(parts[first])} crops of "
         f"{len(parts[first].objects)} objects, split {spec.split_mode}, {world} process(es)"
