@@ -9,14 +9,15 @@ rather than guessed.
 Usage (from the repository root)::
 
     python benchmarks/data_scaling.py --data DIR --object 003_cracker_box --sizes 1000,3000,10000 \\
-        --samples 150000 [--augment] [--background 0.5] [--json benchmarks/results/data_scaling.json]
+        --samples 150000 [--augment] [--background 0.5] [--occlude 0.5] [--json benchmarks/results/data_scaling.json]
 
 For each mode the split is made once with the largest size (so the test crops are the same for every size) and
 each run trains on the first N crops of a seeded permutation of that split's training part. Every run draws
 ``--samples`` training samples (epochs of at most ``--epoch-samples``); the validation part picks the best epoch;
 the reported error is on the test part with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024).
 ``--augment`` adds a run with colour and box jitter at the largest size; ``--background P`` a run that replaces
-the background of a crop with probability ``P`` (needs instance masks: BOP ``mask_visib/``, which
+the background of a crop with probability ``P``, ``--occlude P`` one that pastes another crop's object over it
+(both with the jitter of ``--augment`` when given; both need instance masks: BOP ``mask_visib/``, which
 ``refiner-rt render`` writes). ``--table JSON`` prints the table of a written result again.
 """
 
@@ -69,10 +70,11 @@ def _parse_probabilities(text: str) -> list[float]:
 
 
 def _augment_label(row: dict) -> str:
-    background = row.get("background", 0.0)
-    if not background:
+    extra = [f"{name} {row[key]:g}" for key, name in (("background", "background"), ("occlude", "occluders"))
+             if row.get(key)]
+    if not extra:
         return "yes" if row["augment"] else "no"
-    return ("jitter + " if row["augment"] else "") + f"background {background:g}"
+    return " + ".join((["jitter"] if row["augment"] else []) + extra)
 
 
 def run(args) -> dict:
@@ -99,14 +101,16 @@ def run(args) -> dict:
         parts = {p: cropset_for(splits, p, spec, size, context, cache_root=args.cache, progress=not args.quiet)
                  for p in ("train_base", "val", "test")}
         train_all, val, test = parts["train_base"], parts["val"], parts["test"]
-        if args.background and train_all.masks is None:
-            raise SystemExit(f"--background needs instance masks, but {args.data} has none "
+        if (args.background or args.occlude) and train_all.masks is None:
+            flag = "--background" if args.background else "--occlude"
+            raise SystemExit(f"{flag} needs instance masks, but {args.data} has none "
                              "(BOP mask_visib/; `refiner-rt render` writes them)")
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
         order = np.random.default_rng(args.seed).permutation(len(train_all))
-        runs = [(n, False, 0.0) for n in sizes] + ([(sizes[-1], True, 0.0)] if args.augment else [])
-        runs += [(sizes[-1], args.augment, p) for p in args.background]
-        for n, augment, background in runs:
+        runs = [(n, False, 0.0, 0.0) for n in sizes] + ([(sizes[-1], True, 0.0, 0.0)] if args.augment else [])
+        runs += [(sizes[-1], args.augment, p, 0.0) for p in args.background]
+        runs += [(sizes[-1], args.augment, 0.0, p) for p in args.occlude]
+        for n, augment, background, occlude in runs:
             if n > len(train_all):
                 print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
                 continue
@@ -115,19 +119,20 @@ def run(args) -> dict:
             epochs = max(2, math.ceil(args.samples / per_epoch))
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
                               rotation_frame=args.rotation_frame, augment=augment, background=background,
-                              seed=args.seed,
+                              occlude=occlude, seed=args.seed,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
             model = models.build_refiner(args.arch, **args.config)
             t0 = time.perf_counter()
             res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
             errors = evaluate_errors(torch_predictor(res.model.eval()), test, rotation_frame=args.rotation_frame)
-            row = {"mode": mode, "train_crops": n, "augment": augment, "background": background, "epochs": epochs,
+            row = {"mode": mode, "train_crops": n, "augment": augment, "background": background, "occlude": occlude,
+                   "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
                    "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
                    "scenes": scenes, "wall_s": round(time.perf_counter() - t0, 1)}
             rows.append(row)
-            print(f"{mode:6s} n={n:6d} augment={augment!s:5s} background={background:.2f}: "
+            print(f"{mode:6s} n={n:6d} augment={augment!s:5s} background={background:.2f} occlude={occlude:.2f}: "
                   f"test {row['mean_deg']:.2f} deg "
                   f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
                   f"{row['wall_s']:.0f} s", file=sys.stderr)
@@ -179,6 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--background", type=_parse_probabilities, default=[], metavar="P[,P...]",
                    help="add a run per probability of background replacement at the largest size (with the jitter "
                         "of --augment when given); needs instance masks in the dataset (BOP mask_visib/)")
+    p.add_argument("--occlude", type=_parse_probabilities, default=[], metavar="P[,P...]",
+                   help="add a run per probability of pasting another crop's object over a crop at the largest size "
+                        "(with the jitter of --augment when given); needs instance masks")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--split-seed", type=int, default=0)
     p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")

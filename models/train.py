@@ -56,6 +56,9 @@ class TrainConfig:
         background: probability that a training crop with a mask gets a new background (its pixels
             outside the instance's visible mask replaced by another crop of the batch or by a random
             smooth colour field, half each), before ``augment``; needs masks (``CropSet.masks``).
+        occlude: probability that a training crop gets an occluder: another crop's object (its masked
+            pixels), shifted by up to 60% of the side, pasted over it, after ``background`` and before
+            ``augment``; needs masks.
         seed: seed of the noise, shuffling and augmentation.
         val_seed: seed of the fixed validation noise (the same inputs every epoch).
         max_steps_per_epoch: cap on optimisation steps per epoch (0 = one full pass).
@@ -74,6 +77,7 @@ class TrainConfig:
     augment: bool = False
     box_jitter: float = 0.05
     background: float = 0.0
+    occlude: float = 0.0
     seed: int = 0
     val_seed: int = 12345
     max_steps_per_epoch: int = 0
@@ -90,8 +94,9 @@ class TrainConfig:
             raise ValueError(f"lr must be > 0; got {self.lr}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine'; got {self.lr_schedule!r}")
-        if not 0.0 <= self.background <= 1.0:
-            raise ValueError(f"background must be a probability in [0, 1]; got {self.background}")
+        for name in ("background", "occlude"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1]; got {getattr(self, name)}")
         if self.rotation_frame not in ("camera", "ray"):
             raise ValueError(f"rotation_frame must be 'camera' or 'ray'; got {self.rotation_frame!r}")
 
@@ -179,6 +184,30 @@ def _replace_background(images: torch.Tensor, masks: torch.Tensor, p: float, gen
     return torch.where(keep, images.float(), background).clamp(0, 255).round().to(torch.uint8)
 
 
+def _paste_occluders(images: torch.Tensor, masks: torch.Tensor, p: float, gen: torch.Generator) -> torch.Tensor:
+    """With probability ``p`` per crop, paste another crop's object (the pixels of its mask) over it, shifted
+    by a random offset of up to 60% of the side in x and y; uint8 NHWC in and out (``masks`` as in
+    :func:`_replace_background`; donors without a mask paste nothing)."""
+    n, s = images.shape[0], images.shape[1]
+    pick = torch.rand(n, generator=gen) < p
+    if n < 2 or not pick.any():
+        return images
+    shift = int(torch.randint(1, n, (1,), generator=gen))
+    donors, donor_masks = torch.roll(images, shift, dims=0), torch.roll(masks, shift, dims=0) > 0
+    offsets = ((torch.rand(n, 2, generator=gen) * 2 - 1) * 0.6 * s).round().long().tolist()
+    out = images.clone()
+    for i in torch.nonzero(pick).flatten().tolist():
+        dy, dx = offsets[i]
+        # Destination rows/columns [y0, y1) x [x0, x1) receive the donor's [y0 - dy, y1 - dy) x [x0 - dx, x1 - dx).
+        y0, y1, x0, x1 = max(dy, 0), min(s + dy, s), max(dx, 0), min(s + dx, s)
+        if y1 <= y0 or x1 <= x0:
+            continue
+        src = donors[i, y0 - dy : y1 - dy, x0 - dx : x1 - dx]
+        m = donor_masks[i, y0 - dy : y1 - dy, x0 - dx : x1 - dx, None]
+        out[i, y0:y1, x0:x1] = torch.where(m, src, out[i, y0:y1, x0:x1])
+    return out
+
+
 def _augment(images: torch.Tensor, cfg: TrainConfig, gen: torch.Generator) -> torch.Tensor:
     """Colour jitter and a detector-like box jitter on a uint8 NHWC batch; returns uint8 NHWC."""
     n = images.shape[0]
@@ -264,9 +293,10 @@ def train_refiner(
         raise ValueError("the training CropSet is empty")
     if train.input_size != model.input_size:
         raise ValueError(f"crops are {train.input_size} px but the model takes {model.input_size} px")
-    if cfg.background > 0 and train.masks is None:
+    if (cfg.background > 0 or cfg.occlude > 0) and train.masks is None:
+        which = f"background={cfg.background}" if cfg.background > 0 else f"occlude={cfg.occlude}"
         raise ValueError(
-            f"background={cfg.background} needs instance masks, but the training crops have none "
+            f"{which} needs instance masks, but the training crops have none "
             "(BOP mask_visib/ or YCB-Video -label.png files; `refiner-rt render` writes mask_visib/)"
         )
     rank, world = _distributed()
@@ -314,9 +344,12 @@ def train_refiner(
             for g in opt.param_groups:
                 g["lr"] = lr
             images = torch.from_numpy(np.ascontiguousarray(train.crops[idx]))
-            if cfg.background > 0:
+            if cfg.background > 0 or cfg.occlude > 0:
                 masks = torch.from_numpy(np.ascontiguousarray(train.masks[idx]))
-                images = _replace_background(images, masks, cfg.background, gen)
+                if cfg.background > 0:
+                    images = _replace_background(images, masks, cfg.background, gen)
+                if cfg.occlude > 0:
+                    images = _paste_occluders(images, masks, cfg.occlude, gen)
             if cfg.augment:
                 images = _augment(images, cfg, gen)
             q_in = torch.from_numpy(q_in_all[idx].astype(np.float32))

@@ -142,6 +142,9 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--background", default=0.0, show_default=True, type=click.FloatRange(0, 1),
               help="Probability of giving a training crop a new background (another crop or a random colour field) "
                    "outside its instance mask; needs masks (BOP mask_visib/, YCB-Video -label.png).")
+@click.option("--occlude", default=0.0, show_default=True, type=click.FloatRange(0, 1),
+              help="Probability of pasting another training crop's object (its masked pixels, shifted) over a crop; "
+                   "needs masks like --background.")
 @click.option("--rotation-frame", type=click.Choice(["camera", "ray"]), default="camera", show_default=True, help="camera: paper; ray: rotation relative to the viewing ray (needs K at run time).")
 @click.option("--max-steps-per-epoch", default=0, show_default=True, type=click.IntRange(0), help="Cap optimisation steps per epoch (0: full pass).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed of initialisation, noise and shuffling.")
@@ -253,14 +256,16 @@ def run_training(**o) -> dict:
         rotation_frame=o["rotation_frame"],
         augment=o["augment"],
         background=o["background"],
+        occlude=o["occlude"],
         seed=o["seed"],
         max_steps_per_epoch=o["max_steps_per_epoch"],
     )
     log_path = Path(f"{stem}.log.jsonl") if rank == 0 else None
     first = "train_base" if base_model is None else "train_finetune"
-    if o["background"] > 0 and any(parts[p].masks is None for p in parts if p != "val"):
+    masked = [f"--{k} {o[k]}" for k in ("background", "occlude") if o[k] > 0]
+    if masked and any(parts[p].masks is None for p in parts if p != "val"):
         raise click.ClickException(
-            f"--background {o['background']} needs instance masks, but {o['data']} has none for the training crops "
+            f"{' '.join(masked)} needs instance masks, but {o['data']} has none for the training crops "
             "(BOP mask_visib/<im_id>_<gt_idx>.png or YCB-Video <frame>-label.png; "
             "`refiner-rt render` writes mask_visib/)"
         )

@@ -22,7 +22,7 @@ from data_fixtures import write_ycbv_frame
 from models.cropset import CropSet
 from models.data import CropCache, load_bop, load_ycbv
 from models.data.cache import samples_fingerprint
-from models.train import TrainConfig, _replace_background, train_refiner
+from models.train import TrainConfig, _paste_occluders, _replace_background, train_refiner
 from refiner_rt.cli import main
 from refiner_rt.preprocess import crop_to_square
 
@@ -159,6 +159,28 @@ def test_background_comes_from_other_crops_and_from_colour_fields():
     assert kinds == {"crop", "field"}
 
 
+def test_occluders_are_other_crops_objects_pasted_whole():
+    """Flat-coloured crops: every changed pixel of a crop takes the colour of one other crop, and no more pixels
+    change than that crop's mask holds; without masks nothing is pasted."""
+    n, s = 8, 20
+    images = (torch.arange(n, dtype=torch.uint8) * 30 + 5)[:, None, None, None].expand(n, s, s, 3).contiguous()
+    masks = torch.zeros(n, s, s, dtype=torch.uint8)
+    masks[:, 5:15, 6:14] = 1
+    gen = torch.Generator().manual_seed(3)
+    out = _paste_occluders(images, masks, 1.0, gen)
+    pasted = 0
+    for i in range(n):
+        changed = (out[i] != images[i]).any(dim=2)
+        if changed.any():
+            colours = out[i][changed][:, 0].unique()
+            assert len(colours) == 1 and colours.item() != images[i, 0, 0, 0].item()
+            assert changed.sum() <= masks[0].sum()
+            pasted += 1
+    assert pasted >= n // 2
+    assert torch.equal(_paste_occluders(images, masks, 0.0, gen), images)
+    assert torch.equal(_paste_occluders(images, torch.zeros_like(masks), 1.0, gen), images)
+
+
 def test_training_with_background_needs_masks():
     import models
 
@@ -169,6 +191,10 @@ def test_training_with_background_needs_masks():
         train_refiner(model, train, None, TrainConfig(epochs_mse=1, epochs_geodesic=0, background=0.5), progress=False)
     with pytest.raises(ValueError, match=r"background must be a probability in \[0, 1\]"):
         TrainConfig(background=1.5)
+    with pytest.raises(ValueError, match=r"occlude must be a probability in \[0, 1\]"):
+        TrainConfig(occlude=-0.1)
+    with pytest.raises(ValueError, match="occlude=1.0 needs instance masks"):
+        train_refiner(model, train, None, TrainConfig(epochs_mse=1, epochs_geodesic=0, occlude=1.0), progress=False)
 
 
 def test_train_cli_uses_masks_and_names_data_without_them(cubes, tmp_path):
@@ -184,21 +210,30 @@ def test_train_cli_uses_masks_and_names_data_without_them(cubes, tmp_path):
     _, info = models.load_checkpoint(out)
     assert info["train_config"]["background"] == 0.5
     res = CliRunner().invoke(main, ["train", "--data", str(cubes / "plain"), "--out", str(tmp_path / "p.pt"), *common])
-    assert res.exit_code != 0 and "needs instance masks" in res.output
+    assert res.exit_code != 0 and "--background 0.5 needs instance masks" in res.output
+    occlude = [*common[:-2], "--occlude", "0.25"]
+    res = CliRunner().invoke(main, ["train", "--data", str(cubes / "plain"), "--out", str(tmp_path / "p.pt"), *occlude])
+    assert res.exit_code != 0 and "--occlude 0.25 needs instance masks" in res.output
 
 
-def test_data_scaling_adds_a_background_run(cubes, tmp_path):
+def test_data_scaling_adds_background_and_occluder_runs(cubes, tmp_path, capsys):
     study = load_benchmark("data_scaling")
     out = tmp_path / "s.json"
-    argv = ["--data", str(cubes / "masked"), "--object", "003_cracker_box", "--modes", "frames", "--sizes", "8",
-            "--samples", "16", "--epoch-samples", "8", "--val", "4", "--test", "4", "--background", "1",
-            "--config", TINY, "--cache", str(tmp_path / "cache"), "--threads", "1", "--json", str(out), "--quiet"]
+    common = ["--object", "003_cracker_box", "--modes", "frames", "--sizes", "8", "--samples", "16",
+              "--epoch-samples", "8", "--val", "4", "--test", "4", "--config", TINY, "--cache", str(tmp_path / "cache"),
+              "--threads", "1", "--json", str(out), "--quiet"]
+    argv = ["--data", str(cubes / "masked"), *common, "--background", "1", "--occlude", "0.5"]
     assert study.main(argv) == 0
     rows = json.loads(out.read_text())["rows"]
-    assert [(r["augment"], r["background"]) for r in rows] == [(False, 0.0), (False, 1.0)]
-    assert "| background 1 |" in study.markdown(json.loads(out.read_text()))
+    assert [(r["augment"], r["background"], r["occlude"]) for r in rows] == [(False, 0.0, 0.0), (False, 1.0, 0.0),
+                                                                              (False, 0.0, 0.5)]
+    table = study.markdown(json.loads(out.read_text()))
+    assert "| background 1 |" in table and "| occluders 0.5 |" in table
+    capsys.readouterr()
     with pytest.raises(SystemExit):
-        study.main(argv[:-6] + ["--background", "1.5"])
-    plain = [str(cubes / "plain") if a == str(cubes / "masked") else a for a in argv]
+        study.main(["--data", str(cubes / "masked"), *common, "--occlude", "1.5"])
+    assert "--occlude: expected probabilities in (0, 1]" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="--background needs instance masks"):
-        study.main(plain)
+        study.main(["--data", str(cubes / "plain"), *common, "--background", "1"])
+    with pytest.raises(SystemExit, match="--occlude needs instance masks"):
+        study.main(["--data", str(cubes / "plain"), *common, "--occlude", "1"])
