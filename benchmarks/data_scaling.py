@@ -107,7 +107,8 @@ def run(args) -> dict:
                              "(BOP mask_visib/; `refiner-rt render` writes them)")
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
         order = np.random.default_rng(args.seed).permutation(len(train_all))
-        runs = [(n, False, 0.0, 0.0) for n in sizes] + ([(sizes[-1], True, 0.0, 0.0)] if args.augment else [])
+        runs = [] if args.skip_plain else [(n, False, 0.0, 0.0) for n in sizes]
+        runs += [(sizes[-1], True, 0.0, 0.0)] if args.augment else []
         runs += [(sizes[-1], args.augment, p, 0.0) for p in args.background]
         runs += [(sizes[-1], args.augment, 0.0, p) for p in args.occlude]
         for n, augment, background, occlude in runs:
@@ -187,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--occlude", type=_parse_probabilities, default=[], metavar="P[,P...]",
                    help="add a run per probability of pasting another crop's object over a crop at the largest size "
                         "(with the jitter of --augment when given); needs instance masks")
+    p.add_argument("--skip-plain", action="store_true",
+                   help="skip the runs without augmentation (one per size), e.g. when an earlier result has them")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--split-seed", type=int, default=0)
     p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
@@ -200,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.data is None:
         p.error("--data is required (or --table JSON)")
+    if args.skip_plain and not (args.augment or args.background or args.occlude):
+        p.error("--skip-plain leaves no run: add --augment, --background or --occlude")
     for m in args.modes.split(","):
         if m not in ("frames", "scenes"):
             p.error(f"--modes: expected frames and/or scenes; got {m!r}")

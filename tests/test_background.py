@@ -233,6 +233,11 @@ def test_data_scaling_adds_background_and_occluder_runs(cubes, tmp_path, capsys)
     with pytest.raises(SystemExit):
         study.main(["--data", str(cubes / "masked"), *common, "--occlude", "1.5"])
     assert "--occlude: expected probabilities in (0, 1]" in capsys.readouterr().err
+    assert study.main(["--data", str(cubes / "masked"), *common, "--occlude", "0.5", "--skip-plain"]) == 0
+    assert [(r["augment"], r["occlude"]) for r in json.loads(out.read_text())["rows"]] == [(False, 0.5)]
+    with pytest.raises(SystemExit):
+        study.main(["--data", str(cubes / "masked"), *common, "--skip-plain"])
+    assert "--skip-plain leaves no run" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="--background needs instance masks"):
         study.main(["--data", str(cubes / "plain"), *common, "--background", "1"])
     with pytest.raises(SystemExit, match="--occlude needs instance masks"):
