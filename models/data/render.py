@@ -710,7 +710,8 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, objects, frames_
 
     Each scene is one settled tabletop arrangement seen along a smooth camera path, like a
     YCB-Video sequence. Ground truth: cam_R_m2c (object to camera), cam_t_m2c (mm), boxes and
-    visible fractions from the segmentation mask.
+    visible fractions from the segmentation mask, and that mask per instance (mask_visib/, used by
+    `refiner-rt train --background/--occlude`).
     """
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     if out is None and not (preview_png and preview_data):
