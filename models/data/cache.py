@@ -115,8 +115,8 @@ def _init_worker(crops_path: str, size: int, context: float, single_thread: bool
     _worker_size, _worker_context = size, context
 
 
-def read_mask(path: str, value: int, image_size) -> np.ndarray:
-    """An instance's visible pixels as ``H x W`` uint8 0/1 from a mask image (``value`` 0: any non-zero pixel)."""
+def read_mask(path: str, image_size) -> np.ndarray:
+    """A mask image as stored (``H x W``): BOP ``mask_visib`` 0/255, or a YCB-Video label image of class indices."""
     mask = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if mask is None:
         raise ValueError(f"{path}: cannot be decoded as an image (needed as a mask by the crop cache)")
@@ -125,7 +125,7 @@ def read_mask(path: str, value: int, image_size) -> np.ndarray:
             f"{path}: a mask must be one channel of {image_size[0]}x{image_size[1]} (its image's size); "
             f"got shape {mask.shape}"
         )
-    return (mask != 0 if value == 0 else mask == value).astype(np.uint8)
+    return mask
 
 
 def crop_mask(mask: np.ndarray, box_xyxy, size: int, context: float, out=None) -> np.ndarray:
@@ -151,10 +151,14 @@ def _crop_images(tasks) -> int:
                 f"{path}: image is {image.shape[1]}x{image.shape[0]}, but its samples expect "
                 f"{image_size[0]}x{image_size[1]} (width x height)"
             )
+        decoded = {}  # a YCB-Video label image serves every instance of its frame: decode it once
         for i, box, (mask_path, mask_value) in zip(indices, boxes, masks):
             preprocess.crop_to_square(image, box, _worker_size, _worker_context, out=_worker_crops[i])
             if mask_path:
-                mask = read_mask(mask_path, mask_value, image_size)
+                if mask_path not in decoded:
+                    decoded[mask_path] = read_mask(mask_path, image_size)
+                raw = decoded[mask_path]
+                mask = (raw != 0 if mask_value == 0 else raw == mask_value).astype(np.uint8)
                 crop_mask(mask, box, _worker_size, _worker_context, out=_worker_masks[i])
         n += len(indices)
     return n
