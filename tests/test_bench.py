@@ -176,3 +176,34 @@ def test_bench_help_and_bad_options():
     assert res.exit_code != 0 and "ARCH:JSON" in res.output
     res = CliRunner().invoke(main, ["bench", "--archs", ""])
     assert res.exit_code != 0 and "nothing to benchmark" in res.output
+
+
+def _disk_with_free(nbytes):
+    import shutil
+
+    real = shutil.disk_usage
+
+    def usage(path):
+        total, used, _ = real(path)
+        return type(real(path))(total, used, nbytes)
+
+    return usage
+
+
+def test_bench_says_when_the_disk_cannot_hold_the_model_files(monkeypatch):
+    monkeypatch.setattr(bench.shutil, "disk_usage", _disk_with_free(1 << 20))
+    args = ["bench", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}", "--seconds", "0.05"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code != 0 and isinstance(res.exception, SystemExit)
+    assert "not enough free disk space" in res.output and "shallow's ONNX files" in res.output
+    assert "1 MB is free" in res.output
+
+
+def test_a_write_that_fails_on_a_full_disk_is_reported_as_such(tmp_path, monkeypatch):
+    with pytest.raises(bench.click.ClickException, match="not enough free disk space.*DecodeError: Wire format"):
+        with bench._disk_full_is_clear(tmp_path, 1 << 40, "vggm"):
+            raise type("DecodeError", (Exception,), {})("Wire format was corrupt")
+    # With room left, the original error is not hidden.
+    with pytest.raises(RuntimeError, match="unrelated"):
+        with bench._disk_full_is_clear(tmp_path, 1, "vggm"):
+            raise RuntimeError("unrelated")
