@@ -18,7 +18,8 @@ the reported error is on the test part with the inputs of ``refiner-rt eval`` (`
 ``--augment`` adds a run with colour and box jitter at the largest size; ``--background P`` a run that replaces
 the background of a crop with probability ``P``, ``--occlude P`` one that pastes another crop's object over it
 (both with the jitter of ``--augment`` when given; both need instance masks: BOP ``mask_visib/``, which
-``refiner-rt render`` writes). ``--table JSON`` prints the table of a written result again.
+``refiner-rt render`` writes). ``--augment-sizes`` runs those augmented runs at other sizes too, on the same split.
+``--table JSON`` prints the table of a written result again.
 """
 
 from __future__ import annotations
@@ -39,13 +40,13 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 
-def _parse_sizes(text: str) -> list[int]:
+def _parse_sizes(text: str, flag: str = "--sizes") -> list[int]:
     try:
         sizes = sorted({int(s) for s in text.split(",") if s.strip()})
     except ValueError:
-        raise SystemExit(f"--sizes: expected comma-separated integers like 1000,3000; got {text!r}") from None
+        raise SystemExit(f"{flag}: expected comma-separated integers like 1000,3000; got {text!r}") from None
     if not sizes or sizes[0] <= 0:
-        raise SystemExit(f"--sizes: expected positive integers; got {text!r}")
+        raise SystemExit(f"{flag}: expected positive integers; got {text!r}")
     return sizes
 
 
@@ -87,6 +88,7 @@ def run(args) -> dict:
 
     threads = set_threads(args.threads)
     sizes = _parse_sizes(args.sizes)
+    augment_sizes = args.augment_sizes or [sizes[-1]]
     try:
         probe = models.build_refiner(args.arch, **args.config)
     except ValueError as exc:
@@ -108,9 +110,10 @@ def run(args) -> dict:
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
         order = np.random.default_rng(args.seed).permutation(len(train_all))
         runs = [] if args.skip_plain else [(n, False, 0.0, 0.0) for n in sizes]
-        runs += [(sizes[-1], True, 0.0, 0.0)] if args.augment else []
-        runs += [(sizes[-1], args.augment, p, 0.0) for p in args.background]
-        runs += [(sizes[-1], args.augment, 0.0, p) for p in args.occlude]
+        for n in augment_sizes:
+            runs += [(n, True, 0.0, 0.0)] if args.augment else []
+            runs += [(n, args.augment, p, 0.0) for p in args.background]
+            runs += [(n, args.augment, 0.0, p) for p in args.occlude]
         for n, augment, background, occlude in runs:
             if n > len(train_all):
                 print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
@@ -188,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--occlude", type=_parse_probabilities, default=[], metavar="P[,P...]",
                    help="add a run per probability of pasting another crop's object over a crop at the largest size "
                         "(with the jitter of --augment when given); needs instance masks")
+    p.add_argument("--augment-sizes", type=lambda t: _parse_sizes(t, "--augment-sizes"), metavar="N[,N...]",
+                   help="training crops of the --augment/--background/--occlude runs (default: the largest of --sizes;"
+                        " each at most that, since the split is made with it)")
     p.add_argument("--skip-plain", action="store_true",
                    help="skip the runs without augmentation (one per size), e.g. when an earlier result has them")
     p.add_argument("--seed", type=int, default=0)
@@ -205,6 +211,9 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--data is required (or --table JSON)")
     if args.skip_plain and not (args.augment or args.background or args.occlude):
         p.error("--skip-plain leaves no run: add --augment, --background or --occlude")
+    if args.augment_sizes and max(args.augment_sizes) > max(_parse_sizes(args.sizes)):
+        p.error(f"--augment-sizes: each must be at most the largest --sizes ({max(_parse_sizes(args.sizes))}), "
+                f"which makes the split; got {max(args.augment_sizes)}")
     for m in args.modes.split(","):
         if m not in ("frames", "scenes"):
             p.error(f"--modes: expected frames and/or scenes; got {m!r}")

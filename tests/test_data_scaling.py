@@ -66,3 +66,21 @@ def test_bad_config_is_named(capsys):
     assert "--config: expected a JSON object" in capsys.readouterr().err
     with pytest.raises(SystemExit, match=r"--config \{\"fuse_width\": 1024\}: .*must end with fuse_width=1024"):
         study.main(["--data", "x", "--config", '{"fuse_width": 1024}'])
+
+
+def test_augment_sizes_run_the_augmented_runs_at_each_size_on_one_split(tmp_path, capsys):
+    study = _load()
+    make_cube_dataset(tmp_path / "cubes", scenes=6, frames=20)
+    out = tmp_path / "scaling.json"
+    common = ["--data", str(tmp_path / "cubes"), "--object", "003_cracker_box", "--modes", "scenes",
+              "--samples", "64", "--epoch-samples", "32", "--val", "10", "--test", "20", "--cache",
+              str(tmp_path / "cache"), "--threads", "1", "--json", str(out), "--quiet", "--config", json.dumps(WIDE)]
+    assert study.main([*common, "--sizes", "10,40", "--augment", "--skip-plain", "--augment-sizes", "10,40"]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["train_crops"], r["augment"]) for r in rows] == [(10, True), (40, True)]
+    assert len({r["n"] for r in rows}) == 1
+    with pytest.raises(SystemExit):
+        study.main([*common, "--sizes", "10,40", "--augment", "--augment-sizes", "80"])
+    assert "--augment-sizes: each must be at most the largest --sizes (40)" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="--augment-sizes: expected positive integers"):
+        study.main([*common, "--augment", "--augment-sizes", "0"])
