@@ -18,8 +18,9 @@ the reported error is on the test part with the inputs of ``refiner-rt eval`` (`
 ``--augment`` adds a run with colour and box jitter at the largest size; ``--background P`` a run that replaces
 the background of a crop with probability ``P``, ``--occlude P`` one that pastes another crop's object over it
 (both with the jitter of ``--augment`` when given; both need instance masks: BOP ``mask_visib/``, which
-``refiner-rt render`` writes). ``--augment-sizes`` runs those augmented runs at other sizes too, on the same split.
-``--table JSON`` prints the table of a written result again.
+``refiner-rt render`` writes). ``--augment-sizes`` runs those augmented runs at other sizes too, on the same split;
+``--skip-jitter`` drops the run with jitter alone. ``--table JSON`` prints the table of a written result again;
+``--table A.json B.json ...`` (one object each) prints one table of all of them with the mean over the objects.
 """
 
 from __future__ import annotations
@@ -111,7 +112,7 @@ def run(args) -> dict:
         order = np.random.default_rng(args.seed).permutation(len(train_all))
         runs = [] if args.skip_plain else [(n, False, 0.0, 0.0) for n in sizes]
         for n in augment_sizes:
-            runs += [(n, True, 0.0, 0.0)] if args.augment else []
+            runs += [(n, True, 0.0, 0.0)] if args.augment and not args.skip_jitter else []
             runs += [(n, args.augment, p, 0.0) for p in args.background]
             runs += [(n, args.augment, 0.0, p) for p in args.occlude]
         for n, augment, background, occlude in runs:
@@ -168,10 +169,44 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def markdown_objects(docs: list[dict]) -> str:
+    """One table of several objects' results (one written ``--json`` each), with the mean over the objects.
+
+    A mean is printed for each (split, training crops, augmentation) that every object has; objects must share
+    the architecture, rotation frame and sample count per run, or the mean would mix different studies.
+    """
+    keys = {(d["arch"], json.dumps(d.get("config", {}), sort_keys=True), d["rotation_frame"]) for d in docs}
+    if len(keys) != 1:
+        raise SystemExit(f"--table: the files are of different studies (arch, config, rotation frame): {sorted(keys)}")
+    arch = docs[0]["arch"] + (f" {json.dumps(docs[0]['config'])}" if docs[0].get("config") else "")
+    lines = [f"{len(docs)} objects, {arch} ({docs[0]['rotation_frame']} frame):", "",
+             "| object | split | training crops | augment | samples | test mean (deg) | median | under 5 deg | "
+             "input mean | test crops |",
+             "|---|---|---:|---|---:|---:|---:|---:|---:|---:|"]
+    groups: dict[tuple, list[dict]] = {}
+    for d in docs:
+        for r in d["rows"]:
+            key = (r["mode"], r["train_crops"], _augment_label(r), r["samples"])
+            groups.setdefault(key, []).append(r)
+            lines.append(f"| {d['object']} | {r['mode']} | {r['train_crops']} | {key[2]} | {r['samples']} | "
+                         f"{r['mean_deg']:.2f} | {r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% | "
+                         f"{r['input_mean_deg']:.2f} | {r['n']} |")
+    for (mode, crops, label, samples), rows in groups.items():
+        if len(rows) == len(docs):
+            mean = lambda k: sum(r[k] for r in rows) / len(rows)  # noqa: E731
+            lines.append(f"| **mean of {len(rows)}** | {mode} | {crops} | {label} | {samples} | "
+                         f"**{mean('mean_deg'):.2f}** | {mean('median_deg'):.2f} | "
+                         f"{100 * mean('under_5_deg'):.0f}% | {mean('input_mean_deg'):.2f} | "
+                         f"{sum(r['n'] for r in rows)} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, help="rendered or real dataset (BOP or YCB-Video layout)")
-    p.add_argument("--table", type=Path, metavar="JSON", help="print the Markdown table of a written --json and exit")
+    p.add_argument("--table", type=Path, nargs="+", metavar="JSON",
+                   help="print the Markdown table of a written --json and exit; with several files (one object "
+                        "each), one table of all of them with the mean over the objects")
     p.add_argument("--object", default="003_cracker_box", help="YCB id of the object to study")
     p.add_argument("--sizes", default="1000,3000,10000", help="training crops per run, comma-separated")
     p.add_argument("--modes", default="frames,scenes", help="split protocols, comma-separated")
@@ -196,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
                         " each at most that, since the split is made with it)")
     p.add_argument("--skip-plain", action="store_true",
                    help="skip the runs without augmentation (one per size), e.g. when an earlier result has them")
+    p.add_argument("--skip-jitter", action="store_true",
+                   help="skip the run with --augment's jitter alone (keep the jitter in the --background/--occlude "
+                        "runs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--split-seed", type=int, default=0)
     p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
@@ -205,10 +243,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     if args.table:
-        print(markdown(json.loads(args.table.read_text())))
+        docs = [json.loads(t.read_text()) for t in args.table]
+        print(markdown(docs[0]) if len(docs) == 1 else markdown_objects(docs))
         return 0
     if args.data is None:
         p.error("--data is required (or --table JSON)")
+    if args.skip_jitter and not (args.augment and (args.background or args.occlude)):
+        p.error("--skip-jitter needs --augment with --background or --occlude (it skips the run with jitter alone)")
     if args.skip_plain and not (args.augment or args.background or args.occlude):
         p.error("--skip-plain leaves no run: add --augment, --background or --occlude")
     if args.augment_sizes and max(args.augment_sizes) > max(_parse_sizes(args.sizes)):

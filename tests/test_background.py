@@ -238,6 +238,12 @@ def test_data_scaling_adds_background_and_occluder_runs(cubes, tmp_path, capsys)
     with pytest.raises(SystemExit):
         study.main(["--data", str(cubes / "masked"), *common, "--skip-plain"])
     assert "--skip-plain leaves no run" in capsys.readouterr().err
+    argv = ["--data", str(cubes / "masked"), *common, "--augment", "--background", "1", "--skip-plain", "--skip-jitter"]
+    assert study.main(argv) == 0
+    assert [(r["augment"], r["background"]) for r in json.loads(out.read_text())["rows"]] == [(True, 1.0)]
+    with pytest.raises(SystemExit):
+        study.main(["--data", str(cubes / "masked"), *common, "--augment", "--skip-jitter"])
+    assert "--skip-jitter needs --augment with --background or --occlude" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="--background needs instance masks"):
         study.main(["--data", str(cubes / "plain"), *common, "--background", "1"])
     with pytest.raises(SystemExit, match="--occlude needs instance masks"):

@@ -84,3 +84,28 @@ def test_augment_sizes_run_the_augmented_runs_at_each_size_on_one_split(tmp_path
     assert "--augment-sizes: each must be at most the largest --sizes (40)" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="--augment-sizes: expected positive integers"):
         study.main([*common, "--augment", "--augment-sizes", "0"])
+
+
+def test_table_of_several_objects_prints_each_row_and_the_mean(tmp_path, capsys):
+    study = _load()
+    make_cube_dataset(tmp_path / "cubes", scenes=6, frames=20)
+    out = tmp_path / "a.json"
+    argv = ["--data", str(tmp_path / "cubes"), "--object", "003_cracker_box", "--modes", "scenes", "--sizes", "10",
+            "--samples", "32", "--epoch-samples", "32", "--val", "10", "--test", "20", "--cache", str(tmp_path / "c"),
+            "--threads", "1", "--json", str(out), "--quiet"]
+    assert study.main(argv) == 0
+    doc = json.loads(out.read_text())
+    other = {**doc, "object": "005_tomato_soup_can",
+             "rows": [{**r, "mean_deg": r["mean_deg"] + 2.0, "n": 30} for r in doc["rows"]]}
+    (tmp_path / "b.json").write_text(json.dumps(other))
+    capsys.readouterr()
+    assert study.main(["--table", str(out), str(tmp_path / "b.json")]) == 0
+    printed = capsys.readouterr().out
+    first = doc["rows"][0]
+    assert f"| 003_cracker_box | scenes | 10 | no | {first['samples']} | {first['mean_deg']:.2f} |" in printed
+    assert f"| 005_tomato_soup_can | scenes | 10 | no | {first['samples']} | {first['mean_deg'] + 2:.2f} |" in printed
+    assert f"| **mean of 2** | scenes | 10 | no | {first['samples']} | **{first['mean_deg'] + 1:.2f}** |" in printed
+    assert f"| {first['n'] + 30} |" in printed
+    (tmp_path / "c.json").write_text(json.dumps({**doc, "arch": "shallow"}))
+    with pytest.raises(SystemExit, match="--table: the files are of different studies"):
+        study.main(["--table", str(out), str(tmp_path / "c.json")])
