@@ -172,8 +172,8 @@ def markdown(doc: dict) -> str:
 def markdown_objects(docs: list[dict]) -> str:
     """One table of several objects' results (one written ``--json`` each), with the mean over the objects.
 
-    A mean is printed for each (split, training crops, augmentation) that every object has; objects must share
-    the architecture, rotation frame and sample count per run, or the mean would mix different studies.
+    A mean is printed for each (split, training crops, augmentation, samples) that every object has; the files must
+    share the architecture, its config and the rotation frame, or the mean would mix different networks.
     """
     keys = {(d["arch"], json.dumps(d.get("config", {}), sort_keys=True), d["rotation_frame"]) for d in docs}
     if len(keys) != 1:
