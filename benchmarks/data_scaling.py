@@ -219,13 +219,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="JSON object of architecture config overrides, e.g. '{\"fuse_width\": 1024}'")
     p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of the cosine schedule")
     p.add_argument("--rotation-frame", default="ray", choices=("camera", "ray"))
-    p.add_argument("--augment", action="store_true", help="add a run with colour and box jitter at the largest size")
+    p.add_argument("--augment", action="store_true",
+                   help="add a run with colour and box jitter at the largest size (or at each --augment-sizes)")
     p.add_argument("--background", type=_parse_probabilities, default=[], metavar="P[,P...]",
-                   help="add a run per probability of background replacement at the largest size (with the jitter "
-                        "of --augment when given); needs instance masks in the dataset (BOP mask_visib/)")
+                   help="add a run per probability of background replacement at the largest size (or at each "
+                        "--augment-sizes; with the jitter of --augment when given); needs instance masks in the "
+                        "dataset (BOP mask_visib/)")
     p.add_argument("--occlude", type=_parse_probabilities, default=[], metavar="P[,P...]",
                    help="add a run per probability of pasting another crop's object over a crop at the largest size "
-                        "(with the jitter of --augment when given); needs instance masks")
+                        "(or at each --augment-sizes; with the jitter of --augment when given); needs instance masks")
     p.add_argument("--augment-sizes", type=lambda t: _parse_sizes(t, "--augment-sizes"), metavar="N[,N...]",
                    help="training crops of the --augment/--background/--occlude runs (default: the largest of --sizes;"
                         " each at most that, since the split is made with it)")
