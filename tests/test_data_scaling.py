@@ -22,14 +22,24 @@ def _parameters(model) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-def test_study_writes_one_row_per_size_and_mode_on_fixed_test_sets(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def cubes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scaling") / "cubes"
+    make_cube_dataset(root, scenes=6, frames=20)
+    return root
+
+
+def _common(cubes, tmp_path, out) -> list[str]:
+    """The arguments every study run here shares: the cube data, its cracker box, small parts, quiet."""
+    return ["--data", str(cubes), "--object", "003_cracker_box", "--val", "10", "--test", "20",
+            "--cache", str(tmp_path / "cache"), "--threads", "1", "--json", str(out), "--quiet"]
+
+
+def test_study_writes_one_row_per_size_and_mode_on_fixed_test_sets(cubes, tmp_path, capsys):
     study = _load()
-    make_cube_dataset(tmp_path / "cubes", scenes=6, frames=20)
     out = tmp_path / "scaling.json"
-    argv = ["--data", str(tmp_path / "cubes"), "--object", "003_cracker_box", "--sizes", "40,10",
-            "--samples", "128", "--epoch-samples", "64", "--val", "10", "--test", "20", "--augment",
-            "--cache", str(tmp_path / "cache"), "--threads", "1", "--json", str(out), "--quiet",
-            "--config", json.dumps(WIDE)]
+    argv = [*_common(cubes, tmp_path, out), "--sizes", "40,10", "--samples", "128", "--epoch-samples", "64",
+            "--augment", "--config", json.dumps(WIDE)]
     assert study.main(argv) == 0
     doc = json.loads(out.read_text())
     assert doc["config"] == WIDE
@@ -68,13 +78,11 @@ def test_bad_config_is_named(capsys):
         study.main(["--data", "x", "--config", '{"fuse_width": 1024}'])
 
 
-def test_augment_sizes_run_the_augmented_runs_at_each_size_on_one_split(tmp_path, capsys):
+def test_augment_sizes_run_the_augmented_runs_at_each_size_on_one_split(cubes, tmp_path, capsys):
     study = _load()
-    make_cube_dataset(tmp_path / "cubes", scenes=6, frames=20)
     out = tmp_path / "scaling.json"
-    common = ["--data", str(tmp_path / "cubes"), "--object", "003_cracker_box", "--modes", "scenes",
-              "--samples", "64", "--epoch-samples", "32", "--val", "10", "--test", "20", "--cache",
-              str(tmp_path / "cache"), "--threads", "1", "--json", str(out), "--quiet", "--config", json.dumps(WIDE)]
+    common = [*_common(cubes, tmp_path, out), "--modes", "scenes", "--samples", "64", "--epoch-samples", "32",
+              "--config", json.dumps(WIDE)]
     assert study.main([*common, "--sizes", "10,40", "--augment", "--skip-plain", "--augment-sizes", "10,40"]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert [(r["train_crops"], r["augment"]) for r in rows] == [(10, True), (40, True)]
@@ -86,13 +94,11 @@ def test_augment_sizes_run_the_augmented_runs_at_each_size_on_one_split(tmp_path
         study.main([*common, "--augment", "--augment-sizes", "0"])
 
 
-def test_table_of_several_objects_prints_each_row_and_the_mean(tmp_path, capsys):
+def test_table_of_several_objects_prints_each_row_and_the_mean(cubes, tmp_path, capsys):
     study = _load()
-    make_cube_dataset(tmp_path / "cubes", scenes=6, frames=20)
     out = tmp_path / "a.json"
-    argv = ["--data", str(tmp_path / "cubes"), "--object", "003_cracker_box", "--modes", "scenes", "--sizes", "10",
-            "--samples", "32", "--epoch-samples", "32", "--val", "10", "--test", "20", "--cache", str(tmp_path / "c"),
-            "--threads", "1", "--json", str(out), "--quiet"]
+    argv = [*_common(cubes, tmp_path, out), "--modes", "scenes", "--sizes", "10", "--samples", "32",
+            "--epoch-samples", "32"]
     assert study.main(argv) == 0
     doc = json.loads(out.read_text())
     other = {**doc, "object": "005_tomato_soup_can",
