@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +34,10 @@ class DataSpec:
         data: dataset folder (a BOP split folder holding scene folders, or a YCB-Video root).
         fmt: ``"bop"``, ``"ycbv"`` or ``"auto"`` (detected from the layout).
         objects: YCB ids to use, or None for the paper's nine objects.
+        split_objects: the objects the split is drawn over, when that is a larger set than ``objects`` (None:
+            ``objects``). The ``scenes`` split gives each scene to a part by all the objects it holds, so a
+            subset of objects split alone puts other scenes in test than the full set did; evaluating or
+            fine-tuning some objects of a model trained on more names the model's objects here.
         split_mode: ``"frames"`` (paper) or ``"scenes"`` (whole scenes held out).
         split_seed: seed of the split.
         sizes: per-object ``(train_base, train_finetune, val, test)``; the paper's ``(3000, 2000, 3000, 3000)``.
@@ -51,10 +55,13 @@ class DataSpec:
     min_visib: float = 0.3
     min_box_size: float = 16.0
     image_set: str | None = None
+    split_objects: list[str] | None = None
 
     def as_dict(self) -> dict:
         d = asdict(self)
         d["sizes"] = list(self.sizes)
+        if d["split_objects"] is None:
+            del d["split_objects"]  # the key of every spec (and crop cache) from before the field existed
         return d
 
     @classmethod
@@ -84,12 +91,15 @@ def detect_format(data: Path) -> str:
     )
 
 
-def load_samples(spec: DataSpec) -> list:
-    """The samples of ``spec.data`` (filtered by objects, visibility and box size)."""
+def load_samples(spec: DataSpec, objects: list[str] | None = None) -> list:
+    """The samples of ``spec.data`` (filtered by objects, visibility and box size).
+
+    ``objects`` overrides ``spec.objects`` (default: ``spec.objects``, or the paper's nine).
+    """
     from models.data import PAPER_OBJECTS, load_bop, load_ycbv
 
     fmt = detect_format(Path(spec.data)) if spec.fmt == "auto" else spec.fmt
-    objects = list(spec.objects) if spec.objects else list(PAPER_OBJECTS)
+    objects = list(objects or spec.objects or PAPER_OBJECTS)
     if fmt == "bop":
         samples = load_bop(spec.data, objects=objects, min_visib=spec.min_visib, min_box_size=spec.min_box_size)
     elif fmt == "ycbv":
@@ -105,13 +115,26 @@ def load_samples(spec: DataSpec) -> list:
 
 
 def load_splits(spec: DataSpec):
-    """Load and split ``spec.data``; returns :class:`models.data.Splits`."""
-    from models.data import SplitSizes, make_splits
+    """Load and split ``spec.data``; returns :class:`models.data.Splits`.
 
-    samples = load_samples(spec)
+    With ``spec.split_objects`` the split is drawn over those objects and each part then keeps ``spec.objects``.
+    """
+    from models.data import PAPER_OBJECTS, SplitSizes, make_splits
+
+    samples = load_samples(spec, spec.split_objects)
     base, fine, val, test = spec.sizes
     sizes = SplitSizes(train_base=base, train_finetune=fine, val=val, test=test)
-    return make_splits(samples, mode=spec.split_mode, sizes=sizes, seed=spec.split_seed)
+    splits = make_splits(samples, mode=spec.split_mode, sizes=sizes, seed=spec.split_seed)
+    if not spec.split_objects:
+        return splits
+    keep = set(spec.objects or PAPER_OBJECTS)
+    missing = keep - set(spec.split_objects)
+    if missing:
+        raise ValueError(f"objects {sorted(missing)} are not among split_objects {spec.split_objects}; the split "
+                         "must be drawn over every object it is used for")
+    return replace(
+        splits, **{p: [s for s in getattr(splits, p) if s.obj_id in keep] for p in PARTS},
+        sizes_per_object={o: n for o, n in splits.sizes_per_object.items() if o in keep})
 
 
 def _cache_dir(spec: DataSpec, part: str, size: int, context: float, cache_root: Path | None) -> Path:

@@ -166,13 +166,14 @@ def train_cmd(**opts):
 
 
 def load_base(o: dict):
-    """The trained base network of ``--base`` (``o["base_ckpt"]``), checked against the options; None without it."""
+    """``(model, info)`` of the trained base network of ``--base`` (``o["base_ckpt"]``), checked against the
+    options; ``(None, None)`` without it."""
     path = o.get("base_ckpt")
     if path is None:
         if o["base_per_object"] == 0:
             raise click.BadParameter("0 needs --base (a trained base network); without it the base stage trains "
                                      "on these images", param_hint="--base-per-object")
-        return None
+        return None, None
     import models
 
     if not o["per_object"]:
@@ -196,7 +197,84 @@ def load_base(o: dict):
     if o["rotation_frame"] != frame:
         raise click.BadParameter(f"{path} was trained in the {frame!r} rotation frame; pass --rotation-frame {frame} "
                                  f"(got {o['rotation_frame']!r})", param_hint="--base/--rotation-frame")
-    return model
+    return model, info
+
+
+def _base_spec(spec, base_info: dict | None):
+    """The base network's recorded data spec when it was split from the same dataset as ``spec``, else None."""
+    from models.pipeline import DataSpec
+
+    recorded = (base_info or {}).get("data")
+    if not recorded or Path(recorded["data"]).resolve() != Path(spec.data).resolve():
+        return None  # no record (an older checkpoint) or other data: there is no split to share
+    return DataSpec.from_dict(recorded)
+
+
+def split_like_base(spec, base_info: dict | None):
+    """``spec``, drawing a ``scenes`` split over the base network's objects when fine-tuning a subset of them.
+
+    The scenes split gives each scene to test, validation or training by all the objects it holds, so a subset
+    split alone would test on scenes the base network was trained on.
+    """
+    from models.data import PAPER_OBJECTS
+
+    base = _base_spec(spec, base_info)
+    if base is None or spec.split_mode != "scenes" or base.split_mode != "scenes":
+        return spec
+    drawn = list(base.split_objects or base.objects or PAPER_OBJECTS)
+    wanted = set(spec.objects or PAPER_OBJECTS)
+    if wanted < set(drawn):
+        spec.split_objects = drawn
+    return spec
+
+
+def check_base_split(spec, splits, base_info: dict | None, base_path) -> None:
+    """Refuse a fine-tuning split whose validation or test crops come from what the base network trained on.
+
+    Those crops would be seen by the network before it is validated and tested on them. In ``scenes`` mode the
+    unit is the scene (an unseen scene is the point of the split), otherwise the frame. Splits that are the
+    same by construction (same mode, seed, filters, validation and test sizes; in ``scenes`` mode also the same
+    objects and training total) are not recomputed.
+    """
+    from models.data import PAPER_OBJECTS
+    from models.pipeline import load_splits
+
+    base = _base_spec(spec, base_info)
+    if base is None:
+        return
+    same = [getattr(spec, k) == getattr(base, k) for k in ("fmt", "split_mode", "split_seed", "min_visib",
+                                                             "min_box_size", "image_set")]
+    same.append(tuple(spec.sizes[2:]) == tuple(base.sizes[2:]))
+    if spec.split_mode == "scenes":
+        same.append(sum(spec.sizes[:2]) == sum(base.sizes[:2]))
+        same.append(set(spec.split_objects or spec.objects or PAPER_OBJECTS)
+                    == set(base.split_objects or base.objects or PAPER_OBJECTS))
+    if all(same):
+        return
+    unit = "scene" if base.split_mode == "scenes" else "frame"
+
+    def key(s):
+        return s.scene_key if unit == "scene" else (s.scene_key, s.frame_id)
+
+    trained = {key(s) for s in load_splits(base).train_base}
+    held = splits.val + splits.test
+    leaked = sum(key(s) in trained for s in held)
+    if leaked:
+
+        def described(d):
+            text = (f"--split-mode {d.split_mode} --split-seed {d.split_seed} --min-visib {d.min_visib}, "
+                    f"validation/test {d.sizes[2]}/{d.sizes[3]} per object")
+            if d.split_mode == "scenes":
+                drawn = d.split_objects or d.objects or PAPER_OBJECTS
+                text += f", {sum(d.sizes[:2])} training images per object over {len(drawn)} objects"
+            return text
+
+        raise click.ClickException(
+            f"{leaked} of the {len(held)} validation and test crops of this split come from {unit}s the base "
+            f"network {base_path} was trained on, so they would not be held out. The base was split with "
+            f"{described(base)}; this run asks for {described(spec)} (training images: --base-per-object + "
+            "--per-object). Use the base's values."
+        )
 
 
 def run_training(**o) -> dict:
@@ -232,8 +310,10 @@ def run_training(**o) -> dict:
         min_visib=o["min_visib"],
     )
     t_start = time.perf_counter()
-    base_model = load_base(o)
+    base_model, base_info = load_base(o)
+    spec = split_like_base(spec, base_info)
     splits = load_splits(spec)
+    check_base_split(spec, splits, base_info, o.get("base_ckpt"))
     torch.manual_seed(o["seed"])
     model = base_model
     if model is None:
