@@ -19,7 +19,9 @@ the reported error is on the test part with the inputs of ``refiner-rt eval`` (`
 the background of a crop with probability ``P``, ``--occlude P`` one that pastes another crop's object over it
 (both with the jitter of ``--augment`` when given; both need instance masks: BOP ``mask_visib/``, which
 ``refiner-rt render`` writes). ``--augment-sizes`` runs those augmented runs at other sizes too, on the same split;
-``--skip-jitter`` drops the run with jitter alone. ``--table JSON`` prints the table of a written result again;
+``--skip-jitter`` drops the run with jitter alone. ``--split-objects IDS`` draws the split over several objects
+(the scenes split of ``refiner-rt train`` on them) and studies the object's part of it, to compare with such a
+model on the same test scenes. ``--table JSON`` prints the table of a written result again;
 ``--table A.json B.json ...`` (one object each) prints one table of all of them with the mean over the objects.
 """
 
@@ -71,6 +73,18 @@ def _parse_probabilities(text: str) -> list[float]:
     return values
 
 
+def _parse_objects(text: str) -> list[str]:
+    from models.data import PAPER_OBJECTS
+    from models.data.objects import YCBV_CLASSES
+
+    ids = list(PAPER_OBJECTS) if text.strip() == "paper" else [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [i for i in ids if i not in YCBV_CLASSES]
+    if not ids or unknown:
+        raise argparse.ArgumentTypeError(f"expected YCB ids like 002_master_chef_can,003_cracker_box or 'paper'; "
+                                         f"unknown: {unknown or text!r}")
+    return ids
+
+
 def _augment_label(row: dict) -> str:
     extra = [f"{name} {row[key]:g}" for key, name in (("background", "background"), ("occlude", "occluders"))
              if row.get(key)]
@@ -99,7 +113,7 @@ def run(args) -> dict:
     t_all = time.perf_counter()
     for mode in args.modes.split(","):
         spec = DataSpec(data=str(args.data), objects=[args.object], split_mode=mode, split_seed=args.split_seed,
-                        sizes=(sizes[-1], 0, args.val, args.test))
+                        sizes=(sizes[-1], 0, args.val, args.test), split_objects=args.split_objects)
         splits = load_splits(spec)
         parts = {p: cropset_for(splits, p, spec, size, context, cache_root=args.cache, progress=not args.quiet)
                  for p in ("train_base", "val", "test")}
@@ -144,6 +158,7 @@ def run(args) -> dict:
     return {
         "study": "held-out error vs training crops, frames and scenes splits",
         "object": args.object, "arch": args.arch, "config": args.config,
+        **({"split_objects": args.split_objects} if args.split_objects else {}),
         "parameters": sum(p.numel() for p in probe.parameters()), "rotation_frame": args.rotation_frame, "lr": args.lr,
         "lr_schedule": "cosine", "test_noise": "uniform:0:30", "rows": rows,
         "command": shlex.join(["python", "benchmarks/data_scaling.py", *args.argv]),
@@ -238,6 +253,11 @@ def main(argv: list[str] | None = None) -> int:
                         "runs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--split-seed", type=int, default=0)
+    p.add_argument("--split-objects", type=_parse_objects, metavar="IDS",
+                   help="draw the split over these YCB ids (comma-separated, or 'paper' for the paper's nine; they "
+                        "must include --object) and train and test --object on its part of it: the scenes split of "
+                        "`refiner-rt train` on those objects, for a comparison on the same test scenes (default: "
+                        "the split of --object alone)")
     p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--json", type=Path, help="write the rows and the command here")
@@ -250,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.data is None:
         p.error("--data is required (or --table JSON)")
+    if args.split_objects and args.object not in args.split_objects:
+        p.error(f"--split-objects must include --object {args.object}; got {','.join(args.split_objects)}")
     if args.skip_jitter and not (args.augment and (args.background or args.occlude)):
         p.error("--skip-jitter needs --augment with --background or --occlude (it skips the run with jitter alone)")
     if args.skip_plain and not (args.augment or args.background or args.occlude):

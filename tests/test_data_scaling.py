@@ -115,3 +115,25 @@ def test_table_of_several_objects_prints_each_row_and_the_mean(cubes, tmp_path, 
     (tmp_path / "c.json").write_text(json.dumps({**doc, "arch": "shallow"}))
     with pytest.raises(SystemExit, match="--table: the files are of different studies"):
         study.main(["--table", str(out), str(tmp_path / "c.json")])
+
+
+def test_split_objects_trains_and_tests_on_the_objects_part_of_the_larger_split(cubes, tmp_path, capsys):
+    from models.pipeline import DataSpec, load_splits
+
+    study = _load()
+    out = tmp_path / "split.json"
+    both = ["003_cracker_box", "006_mustard_bottle"]
+    argv = [*_common(cubes, tmp_path, out), "--modes", "scenes", "--sizes", "40", "--samples", "64",
+            "--epoch-samples", "64", "--split-objects", ",".join(both)]
+    assert study.main(argv) == 0
+    doc = json.loads(out.read_text())
+    assert doc["split_objects"] == both
+    spec = DataSpec(data=str(cubes), objects=["003_cracker_box"], split_mode="scenes", sizes=(40, 0, 10, 20),
+                    split_objects=both)
+    splits = load_splits(spec)
+    (row,) = doc["rows"]
+    assert row["n"] == len(splits.test)
+    assert row["scenes"]["test"] == len({s.scene_key for s in splits.test})
+    with pytest.raises(SystemExit):
+        study.main([*argv[:-1], "006_mustard_bottle"])
+    assert "--split-objects must include --object 003_cracker_box" in capsys.readouterr().err
