@@ -85,7 +85,6 @@ def run_eval(
     progress: bool = True,
 ) -> dict:
     """Evaluate ``model`` on the test split of ``data``; returns the JSON-ready result (see the module doc)."""
-    from models.data import PAPER_OBJECTS
     from models.evaluate import evaluate_errors
     from models.pipeline import DataSpec, cropset_for, load_splits
 
@@ -101,9 +100,8 @@ def run_eval(
     if test_per_object:
         spec.sizes = (*spec.sizes[:3], test_per_object)
     if objects:
-        drawn = spec.split_objects or spec.objects or list(PAPER_OBJECTS)
-        if spec.split_mode == "scenes" and set(objects) < set(drawn):
-            spec.split_objects = list(drawn)  # the model's scenes split, not one drawn over these objects alone
+        # The model's scenes split, not one drawn over these objects alone (which would hold out other scenes).
+        spec.split_objects = spec.split_objects_for(objects)
         spec.objects = objects
     splits = load_splits(spec)
     test = cropset_for(splits, "test", spec, int(c["input_size"]), float(c["crop_context"]),

@@ -64,6 +64,24 @@ class DataSpec:
             del d["split_objects"]  # the key of every spec (and crop cache) from before the field existed
         return d
 
+    @property
+    def object_ids(self) -> list[str]:
+        """The objects used: ``objects``, or the paper's nine."""
+        from models.data import PAPER_OBJECTS
+
+        return list(self.objects or PAPER_OBJECTS)
+
+    @property
+    def drawn_objects(self) -> list[str]:
+        """The objects the split is drawn over: ``split_objects``, else :attr:`object_ids`."""
+        return list(self.split_objects or self.object_ids)
+
+    def split_objects_for(self, objects: list[str]) -> list[str] | None:
+        """``split_objects`` for using some of this spec's objects on its split: its drawn objects when
+        ``objects`` are fewer of them in ``scenes`` mode, else None (the frames split is drawn per object)."""
+        drawn = self.drawn_objects
+        return drawn if self.split_mode == "scenes" and set(objects) < set(drawn) else None
+
     @classmethod
     def from_dict(cls, d: dict) -> "DataSpec":
         d = dict(d)
@@ -96,10 +114,10 @@ def load_samples(spec: DataSpec, objects: list[str] | None = None) -> list:
 
     ``objects`` overrides ``spec.objects`` (default: ``spec.objects``, or the paper's nine).
     """
-    from models.data import PAPER_OBJECTS, load_bop, load_ycbv
+    from models.data import load_bop, load_ycbv
 
     fmt = detect_format(Path(spec.data)) if spec.fmt == "auto" else spec.fmt
-    objects = list(objects or spec.objects or PAPER_OBJECTS)
+    objects = list(objects or spec.object_ids)
     if fmt == "bop":
         samples = load_bop(spec.data, objects=objects, min_visib=spec.min_visib, min_box_size=spec.min_box_size)
     elif fmt == "ycbv":
@@ -119,7 +137,7 @@ def load_splits(spec: DataSpec):
 
     With ``spec.split_objects`` the split is drawn over those objects and each part then keeps ``spec.objects``.
     """
-    from models.data import PAPER_OBJECTS, SplitSizes, make_splits
+    from models.data import SplitSizes, make_splits
 
     samples = load_samples(spec, spec.split_objects)
     base, fine, val, test = spec.sizes
@@ -127,7 +145,7 @@ def load_splits(spec: DataSpec):
     splits = make_splits(samples, mode=spec.split_mode, sizes=sizes, seed=spec.split_seed)
     if not spec.split_objects:
         return splits
-    keep = set(spec.objects or PAPER_OBJECTS)
+    keep = set(spec.object_ids)
     missing = keep - set(spec.split_objects)
     if missing:
         raise ValueError(f"objects {sorted(missing)} are not among split_objects {spec.split_objects}; the split "

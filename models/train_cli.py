@@ -216,15 +216,9 @@ def split_like_base(spec, base_info: dict | None):
     The scenes split gives each scene to test, validation or training by all the objects it holds, so a subset
     split alone would test on scenes the base network was trained on.
     """
-    from models.data import PAPER_OBJECTS
-
     base = _base_spec(spec, base_info)
-    if base is None or spec.split_mode != "scenes" or base.split_mode != "scenes":
-        return spec
-    drawn = list(base.split_objects or base.objects or PAPER_OBJECTS)
-    wanted = set(spec.objects or PAPER_OBJECTS)
-    if wanted < set(drawn):
-        spec.split_objects = drawn
+    if base is not None and spec.split_mode == "scenes":
+        spec.split_objects = base.split_objects_for(spec.object_ids)
     return spec
 
 
@@ -236,7 +230,6 @@ def check_base_split(spec, splits, base_info: dict | None, base_path) -> None:
     same by construction (same mode, seed, filters, validation and test sizes; in ``scenes`` mode also the same
     objects and training total) are not recomputed.
     """
-    from models.data import PAPER_OBJECTS
     from models.pipeline import load_splits
 
     base = _base_spec(spec, base_info)
@@ -247,8 +240,7 @@ def check_base_split(spec, splits, base_info: dict | None, base_path) -> None:
     same.append(tuple(spec.sizes[2:]) == tuple(base.sizes[2:]))
     if spec.split_mode == "scenes":
         same.append(sum(spec.sizes[:2]) == sum(base.sizes[:2]))
-        same.append(set(spec.split_objects or spec.objects or PAPER_OBJECTS)
-                    == set(base.split_objects or base.objects or PAPER_OBJECTS))
+        same.append(set(spec.drawn_objects) == set(base.drawn_objects))
     if all(same):
         return
     unit = "scene" if base.split_mode == "scenes" else "frame"
@@ -265,8 +257,7 @@ def check_base_split(spec, splits, base_info: dict | None, base_path) -> None:
             text = (f"--split-mode {d.split_mode} --split-seed {d.split_seed} --min-visib {d.min_visib}, "
                     f"validation/test {d.sizes[2]}/{d.sizes[3]} per object")
             if d.split_mode == "scenes":
-                drawn = d.split_objects or d.objects or PAPER_OBJECTS
-                text += f", {sum(d.sizes[:2])} training images per object over {len(drawn)} objects"
+                text += f", {sum(d.sizes[:2])} training images per object over {len(d.drawn_objects)} objects"
             return text
 
         raise click.ClickException(
