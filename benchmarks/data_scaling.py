@@ -22,7 +22,9 @@ the background of a crop with probability ``P``, ``--occlude P`` one that pastes
 ``--skip-jitter`` drops the run with jitter alone. ``--split-objects IDS`` draws the split over several objects
 (the scenes split of ``refiner-rt train`` on them) and studies the object's part of it, to compare with such a
 model on the same test scenes. ``--table JSON`` prints the table of a written result again;
-``--table A.json B.json ...`` (one object each) prints one table of all of them with the mean over the objects.
+``--table A.json B.json ...`` (one object each) prints one table of all of them with the mean over the objects;
+files of different studies (architecture, config, rotation frame, split) get a table each and a table comparing
+them object by object, and ``--plot PNG`` draws that comparison (per-object mean and standard deviation).
 """
 
 from __future__ import annotations
@@ -184,15 +186,23 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _study_key(doc: dict) -> tuple:
+    """What makes two result files one study: the network, its config, the rotation frame and the split's objects."""
+    return (doc["arch"], json.dumps(doc.get("config", {}), sort_keys=True), doc["rotation_frame"],
+            ",".join(doc.get("split_objects") or []))
+
+
 def markdown_objects(docs: list[dict]) -> str:
     """One table of several objects' results (one written ``--json`` each), with the mean over the objects.
 
     A mean is printed for each (split, training crops, augmentation, samples) that every object has; the files must
-    share the architecture, its config and the rotation frame, or the mean would mix different networks.
+    share the architecture, its config, the rotation frame and the split's objects, or the mean would mix different
+    networks or test crops (:func:`markdown_studies` takes files of several studies).
     """
-    keys = {(d["arch"], json.dumps(d.get("config", {}), sort_keys=True), d["rotation_frame"]) for d in docs}
+    keys = {_study_key(d) for d in docs}
     if len(keys) != 1:
-        raise SystemExit(f"--table: the files are of different studies (arch, config, rotation frame): {sorted(keys)}")
+        raise SystemExit(f"--table: the files are of different studies (arch, config, rotation frame, split objects): "
+                         f"{sorted(keys)}")
     arch = docs[0]["arch"] + (f" {json.dumps(docs[0]['config'])}" if docs[0].get("config") else "")
     lines = [f"{len(docs)} objects, {arch} ({docs[0]['rotation_frame']} frame):", "",
              "| object | split | training crops | augment | samples | test mean (deg) | median | under 5 deg | "
@@ -216,12 +226,89 @@ def markdown_objects(docs: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def comparison_series(docs: list[dict]) -> dict[str, dict[str, dict]]:
+    """The rows of several result files as series to compare: ``{label: {object: row}}``.
+
+    A series is one (study, split, training crops, augmentation, samples); its label names only what differs between
+    the series, so a table or plot of two networks on the same data reads "fusion (default config)" against "fusion {...}". Two rows
+    of one object in one series are refused: they could not be told apart.
+    """
+    parts: list[tuple[tuple, str, dict]] = []
+    for d in docs:
+        net = d["arch"] + (f" {json.dumps(d['config'])}" if d.get("config") else " (default config)")
+        split = f"split over {len(d['split_objects'])} objects" if d.get("split_objects") else "own split"
+        for r in d["rows"]:
+            fields = (net, f"{d['rotation_frame']} frame", split, r["mode"], f"{r['train_crops']} crops",
+                      _augment_label(r), f"{r['samples']} samples")
+            parts.append((fields, d["object"], r))
+    varying = [i for i in range(7) if len({f[i] for f, _, _ in parts}) > 1]
+    series: dict[str, dict[str, dict]] = {}
+    for fields, obj, row in parts:
+        label = ", ".join(fields[i] for i in varying) or fields[0]
+        if obj in series.setdefault(label, {}):
+            raise SystemExit(f"--table: two results for {obj} in the series {label!r}; pass one file per object "
+                             "and study")
+        series[label][obj] = row
+    return series
+
+
+def markdown_studies(docs: list[dict]) -> str:
+    """Files of several studies: a table per study (:func:`markdown_objects`), then one comparing them per object.
+
+    The comparison's mean row is over the objects every series has, so each column's mean is over the same objects.
+    """
+    groups: dict[tuple, list[dict]] = {}
+    for d in docs:
+        groups.setdefault(_study_key(d), []).append(d)
+    tables = [markdown_objects(g) if len(g) > 1 else markdown(g[0]) for g in groups.values()]
+    series = comparison_series(docs)
+    objects = sorted({o for rows in series.values() for o in rows})
+    common = [o for o in objects if all(o in rows for rows in series.values())]
+    lines = ["Test mean (deg) per object:", "", "| object | " + " | ".join(series) + " |",
+             "|---|" + "---:|" * len(series)]
+    for o in objects:
+        cells = [f"{rows[o]['mean_deg']:.2f}" if o in rows else "-" for rows in series.values()]
+        lines.append(f"| {o} | " + " | ".join(cells) + " |")
+    if common:
+        means = [sum(rows[o]["mean_deg"] for o in common) / len(common) for rows in series.values()]
+        lines.append(f"| **mean of {len(common)}** | " + " | ".join(f"**{m:.2f}**" for m in means) + " |")
+    return "\n\n".join([*tables, "\n".join(lines)])
+
+
+def plot_comparison(docs: list[dict], path: Path) -> None:
+    """Per-object test mean with the standard deviation as error bars, one bar per series (like the paper's figures)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series = comparison_series(docs)
+    objects = sorted({o for rows in series.values() for o in rows})
+    x = np.arange(len(objects))
+    width = 0.8 / len(series)
+    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(objects) + 2), 4))
+    for k, (label, rows) in enumerate(series.items()):
+        means = [rows[o]["mean_deg"] if o in rows else np.nan for o in objects]
+        stds = [rows[o]["std_deg"] if o in rows else 0.0 for o in objects]
+        ax.bar(x + (k - (len(series) - 1) / 2) * width, means, width, yerr=stds, capsize=3, label=label)
+    ax.set_xticks(x, objects, rotation=30, ha="right", fontsize=8)
+    ax.set(ylabel="geodesic error (deg), mean ± std", title="held-out error per object")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))  # beside the axes, never over a bar
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, help="rendered or real dataset (BOP or YCB-Video layout)")
     p.add_argument("--table", type=Path, nargs="+", metavar="JSON",
                    help="print the Markdown table of a written --json and exit; with several files (one object "
-                        "each), one table of all of them with the mean over the objects")
+                        "each), one table of all of them with the mean over the objects; files of several "
+                        "studies (arch, config, frame, split objects) get a table each and a comparison table")
+    p.add_argument("--plot", type=Path, metavar="PNG",
+                   help="with --table: draw the per-object comparison of the files (mean and standard deviation)")
     p.add_argument("--object", default="003_cracker_box", help="YCB id of the object to study")
     p.add_argument("--sizes", default="1000,3000,10000", help="training crops per run, comma-separated")
     p.add_argument("--modes", default="frames,scenes", help="split protocols, comma-separated")
@@ -264,9 +351,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
+    if args.plot and not args.table:
+        p.error("--plot draws the results of --table JSON ...: give the files to compare with --table")
     if args.table:
         docs = [json.loads(t.read_text()) for t in args.table]
-        print(markdown(docs[0]) if len(docs) == 1 else markdown_objects(docs))
+        if len({_study_key(d) for d in docs}) > 1:
+            print(markdown_studies(docs))
+        else:
+            print(markdown(docs[0]) if len(docs) == 1 else markdown_objects(docs))
+        if args.plot:
+            plot_comparison(docs, args.plot)
+            print(f"\nwrote {args.plot}")
         return 0
     if args.data is None:
         p.error("--data is required (or --table JSON)")

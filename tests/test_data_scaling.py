@@ -112,9 +112,38 @@ def test_table_of_several_objects_prints_each_row_and_the_mean(cubes, tmp_path, 
     assert f"| 005_tomato_soup_can | scenes | 10 | no | {first['samples']} | {first['mean_deg'] + 2:.2f} |" in printed
     assert f"| **mean of 2** | scenes | 10 | no | {first['samples']} | **{first['mean_deg'] + 1:.2f}** |" in printed
     assert f"| {first['n'] + 30} |" in printed
-    (tmp_path / "c.json").write_text(json.dumps({**doc, "arch": "shallow"}))
+    shallow = {**doc, "arch": "shallow", "rows": [{**r, "mean_deg": 9.5, "std_deg": 1.0} for r in doc["rows"]]}
     with pytest.raises(SystemExit, match="--table: the files are of different studies"):
-        study.main(["--table", str(out), str(tmp_path / "c.json")])
+        study.markdown_objects([doc, shallow])
+
+
+def test_table_of_several_studies_compares_them_per_object_and_plots(cubes, tmp_path, capsys):
+    study = _load()
+    out = tmp_path / "a.json"
+    argv = [*_common(cubes, tmp_path, out), "--modes", "scenes", "--sizes", "10", "--samples", "32",
+            "--epoch-samples", "32"]
+    assert study.main(argv) == 0
+    doc = json.loads(out.read_text())
+    (tmp_path / "b.json").write_text(json.dumps({**doc, "object": "005_tomato_soup_can"}))
+    shallow = {**doc, "arch": "shallow", "rows": [{**r, "mean_deg": 9.5, "std_deg": 1.0} for r in doc["rows"]]}
+    (tmp_path / "c.json").write_text(json.dumps(shallow))
+    png = tmp_path / "compare.png"
+    capsys.readouterr()
+    files = [str(out), str(tmp_path / "b.json"), str(tmp_path / "c.json")]
+    assert study.main(["--table", *files, "--plot", str(png)]) == 0
+    printed = capsys.readouterr().out
+    mean = doc["rows"][0]["mean_deg"]
+    assert "| object | fusion (default config) | shallow (default config) |" in printed  # only what differs between the series names them
+    assert f"| 003_cracker_box | {mean:.2f} | 9.50 |" in printed
+    assert f"| 005_tomato_soup_can | {mean:.2f} | - |" in printed
+    assert f"| **mean of 1** | **{mean:.2f}** | **9.50** |" in printed  # the objects every series has
+    assert "2 objects, fusion" in printed  # the fusion study's own table with its mean
+    assert png.stat().st_size > 0 and png.read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit, match="two results for 003_cracker_box"):
+        study.main(["--table", str(out), str(out), str(tmp_path / "c.json")])
+    with pytest.raises(SystemExit):
+        study.main(["--plot", str(png)])
+    assert "--plot draws the results of --table" in capsys.readouterr().err
 
 
 def test_split_objects_trains_and_tests_on_the_objects_part_of_the_larger_split(cubes, tmp_path, capsys):
