@@ -230,8 +230,8 @@ def comparison_series(docs: list[dict]) -> dict[str, dict[str, dict]]:
     """The rows of several result files as series to compare: ``{label: {object: row}}``.
 
     A series is one (study, split, training crops, augmentation, samples); its label names only what differs between
-    the series, so a table or plot of two networks on the same data reads "fusion (default config)" against "fusion {...}". Two rows
-    of one object in one series are refused: they could not be told apart.
+    the series, so a table or plot of two networks on the same data reads "fusion (default config)" against
+    "fusion {...}". Two rows of one object in one series are refused: they could not be told apart.
     """
     parts: list[tuple[tuple, str, dict]] = []
     for d in docs:

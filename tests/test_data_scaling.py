@@ -133,7 +133,8 @@ def test_table_of_several_studies_compares_them_per_object_and_plots(cubes, tmp_
     assert study.main(["--table", *files, "--plot", str(png)]) == 0
     printed = capsys.readouterr().out
     mean = doc["rows"][0]["mean_deg"]
-    assert "| object | fusion (default config) | shallow (default config) |" in printed  # only what differs between the series names them
+    # only what differs between the series names them
+    assert "| object | fusion (default config) | shallow (default config) |" in printed
     assert f"| 003_cracker_box | {mean:.2f} | 9.50 |" in printed
     assert f"| 005_tomato_soup_can | {mean:.2f} | - |" in printed
     assert f"| **mean of 1** | **{mean:.2f}** | **9.50** |" in printed  # the objects every series has
