@@ -94,13 +94,26 @@ def test_augment_sizes_run_the_augmented_runs_at_each_size_on_one_split(cubes, t
         study.main([*common, "--augment", "--augment-sizes", "0"])
 
 
-def test_table_of_several_objects_prints_each_row_and_the_mean(cubes, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def small_result(cubes, tmp_path_factory):
+    """The JSON of one tiny scenes run of the study, for the tests of ``--table``."""
+    tmp = tmp_path_factory.mktemp("small_result")
+    out = tmp / "a.json"
+    argv = [*_common(cubes, tmp, out), "--modes", "scenes", "--sizes", "10", "--samples", "32", "--epoch-samples", "32"]
+    assert _load().main(argv) == 0
+    return json.loads(out.read_text())
+
+
+def _as_shallow(doc: dict) -> dict:
+    """The same result as if another network (the paper's) had made it, with its own errors."""
+    return {**doc, "arch": "shallow", "rows": [{**r, "mean_deg": 9.5, "std_deg": 1.0} for r in doc["rows"]]}
+
+
+def test_table_of_several_objects_prints_each_row_and_the_mean(small_result, tmp_path, capsys):
     study = _load()
+    doc = small_result
     out = tmp_path / "a.json"
-    argv = [*_common(cubes, tmp_path, out), "--modes", "scenes", "--sizes", "10", "--samples", "32",
-            "--epoch-samples", "32"]
-    assert study.main(argv) == 0
-    doc = json.loads(out.read_text())
+    out.write_text(json.dumps(doc))
     other = {**doc, "object": "005_tomato_soup_can",
              "rows": [{**r, "mean_deg": r["mean_deg"] + 2.0, "n": 30} for r in doc["rows"]]}
     (tmp_path / "b.json").write_text(json.dumps(other))
@@ -112,21 +125,17 @@ def test_table_of_several_objects_prints_each_row_and_the_mean(cubes, tmp_path, 
     assert f"| 005_tomato_soup_can | scenes | 10 | no | {first['samples']} | {first['mean_deg'] + 2:.2f} |" in printed
     assert f"| **mean of 2** | scenes | 10 | no | {first['samples']} | **{first['mean_deg'] + 1:.2f}** |" in printed
     assert f"| {first['n'] + 30} |" in printed
-    shallow = {**doc, "arch": "shallow", "rows": [{**r, "mean_deg": 9.5, "std_deg": 1.0} for r in doc["rows"]]}
     with pytest.raises(SystemExit, match="--table: the files are of different studies"):
-        study.markdown_objects([doc, shallow])
+        study.markdown_objects([doc, _as_shallow(doc)])
 
 
-def test_table_of_several_studies_compares_them_per_object_and_plots(cubes, tmp_path, capsys):
+def test_table_of_several_studies_compares_them_per_object_and_plots(small_result, tmp_path, capsys):
     study = _load()
+    doc = small_result
     out = tmp_path / "a.json"
-    argv = [*_common(cubes, tmp_path, out), "--modes", "scenes", "--sizes", "10", "--samples", "32",
-            "--epoch-samples", "32"]
-    assert study.main(argv) == 0
-    doc = json.loads(out.read_text())
+    out.write_text(json.dumps(doc))
     (tmp_path / "b.json").write_text(json.dumps({**doc, "object": "005_tomato_soup_can"}))
-    shallow = {**doc, "arch": "shallow", "rows": [{**r, "mean_deg": 9.5, "std_deg": 1.0} for r in doc["rows"]]}
-    (tmp_path / "c.json").write_text(json.dumps(shallow))
+    (tmp_path / "c.json").write_text(json.dumps(_as_shallow(doc)))
     png = tmp_path / "compare.png"
     capsys.readouterr()
     files = [str(out), str(tmp_path / "b.json"), str(tmp_path / "c.json")]
