@@ -170,8 +170,13 @@ def run(args) -> dict:
     }
 
 
+def _net_label(doc: dict, default: str = "") -> str:
+    """The network of a result file: its architecture and config overrides (``default`` when it has none)."""
+    return doc["arch"] + (f" {json.dumps(doc['config'])}" if doc.get("config") else default)
+
+
 def markdown(doc: dict) -> str:
-    arch = doc["arch"] + (f" {json.dumps(doc['config'])}" if doc.get("config") else "")
+    arch = _net_label(doc)
     if "parameters" in doc:
         arch += f", {doc['parameters'] / 1e6:.1f} M parameters"
     lines = [f"{doc['object']}, {arch} ({doc['rotation_frame']} frame), same number of samples per run:", "",
@@ -203,7 +208,7 @@ def markdown_objects(docs: list[dict]) -> str:
     if len(keys) != 1:
         raise SystemExit(f"--table: the files are of different studies (arch, config, rotation frame, split objects): "
                          f"{sorted(keys)}")
-    arch = docs[0]["arch"] + (f" {json.dumps(docs[0]['config'])}" if docs[0].get("config") else "")
+    arch = _net_label(docs[0])
     lines = [f"{len(docs)} objects, {arch} ({docs[0]['rotation_frame']} frame):", "",
              "| object | split | training crops | augment | samples | test mean (deg) | median | under 5 deg | "
              "input mean | test crops |",
@@ -235,7 +240,7 @@ def comparison_series(docs: list[dict]) -> dict[str, dict[str, dict]]:
     """
     parts: list[tuple[tuple, str, dict]] = []
     for d in docs:
-        net = d["arch"] + (f" {json.dumps(d['config'])}" if d.get("config") else " (default config)")
+        net = _net_label(d, default=" (default config)")
         split = f"split over {len(d['split_objects'])} objects" if d.get("split_objects") else "own split"
         for r in d["rows"]:
             fields = (net, f"{d['rotation_frame']} frame", split, r["mode"], f"{r['train_crops']} crops",
