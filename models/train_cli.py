@@ -395,5 +395,8 @@ def run_training(**o) -> dict:
         write_logs(history, stem)
         click.echo(f"Done in {time.perf_counter() - t_start:.0f} s. Logs: {stem}.log.csv, plot: {stem}.png", err=True)
     if world > 1:
+        # Every rank reaches teardown before any destroys the group: a rank that tears gloo down while another
+        # still talks to it can abort at exit ("terminate called without an active exception").
+        torch.distributed.barrier()
         torch.distributed.destroy_process_group()
     return outputs

@@ -25,6 +25,7 @@ def main(out_dir: str) -> None:
     train_refiner(model, data, None, cfg, progress=False)
     torch.save(model.state_dict(), f"{out_dir}/rank{rank}.pt")
     assert world == 2, world
+    torch.distributed.barrier()  # as train_cli does: no rank tears gloo down while the other still uses it
     torch.distributed.destroy_process_group()
 
 
