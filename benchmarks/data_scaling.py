@@ -25,6 +25,8 @@ model on the same test scenes. ``--table JSON`` prints the table of a written re
 ``--table A.json B.json ...`` (one object each) prints one table of all of them with the mean over the objects;
 files of different studies (architecture, config, rotation frame, split) get a table each and a table comparing
 them object by object, and ``--plot PNG`` draws that comparison (per-object mean and standard deviation).
+``--iterations N`` also measures each model after 2..N refinement passes (the same test crops and coarse poses);
+``--save DIR`` keeps each run's model as a checkpoint that ``refiner-rt eval`` and ``refiner-rt export`` take.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import argparse
 import json
 import math
 import platform
+import re
 import shlex
 import sys
 import time
@@ -95,6 +98,17 @@ def _augment_label(row: dict) -> str:
     return " + ".join((["jitter"] if row["augment"] else []) + extra)
 
 
+def _passes(rows: list[dict]) -> list[str]:
+    """The numbers of refinement passes beyond one that every row measured (``--iterations``), ascending."""
+    common = set.intersection(*(set(r.get("iterations", {})) for r in rows)) if rows else set()
+    return sorted(common, key=int)
+
+
+def _passes_cell(row: dict) -> str:
+    return ", ".join(f"{k}: {v['mean_deg']:.2f}" for k, v in sorted(row.get("iterations", {}).items(),
+                                                                     key=lambda kv: int(kv[0]))) or "-"
+
+
 def run(args) -> dict:
     import torch
 
@@ -146,12 +160,30 @@ def run(args) -> dict:
             model = models.build_refiner(args.arch, **args.config)
             t0 = time.perf_counter()
             res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
-            errors = evaluate_errors(torch_predictor(res.model.eval()), test, rotation_frame=args.rotation_frame)
+            wall = round(time.perf_counter() - t0, 1)
+            predictor = torch_predictor(res.model.eval())
+            errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
             row = {"mode": mode, "train_crops": n, "augment": augment, "background": background, "occlude": occlude,
                    "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
                    "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
-                   "scenes": scenes, "wall_s": round(time.perf_counter() - t0, 1)}
+                   "scenes": scenes, "wall_s": wall}
+            if args.iterations > 1:
+                # The same test crops and coarse poses, refined again from each pass's output (RefinerSession's
+                # ``iterations``); one pass is the row's own error.
+                row["iterations"] = {
+                    str(k): evaluate_errors(predictor, test, iterations=k,
+                                            rotation_frame=args.rotation_frame).summary()["pooled"]
+                    for k in range(2, args.iterations + 1)}
+            if args.save:
+                slug = re.sub(r"[^A-Za-z0-9.]+", "-", _augment_label(row))
+                path = args.save / f"{args.object}_{mode}_n{n}_{slug}.pt"
+                models.save_checkpoint(res.model, path, objects=[args.object], stage="data_scaling",
+                                       train_config=vars(cfg), best_epoch=res.best_epoch,
+                                       val_mean_deg=res.best_val_deg, train_noise=cfg.noise,
+                                       rotation_frame=args.rotation_frame, data=spec.as_dict(),
+                                       split=splits.summary(), train_crops=n)
+                row["checkpoint"] = str(path)
             rows.append(row)
             print(f"{mode:6s} n={n:6d} augment={augment!s:5s} background={background:.2f} occlude={occlude:.2f}: "
                   f"test {row['mean_deg']:.2f} deg "
@@ -183,11 +215,16 @@ def markdown(doc: dict) -> str:
              "| split | training crops | augment | test mean (deg) | median | under 5 deg | input mean | best epoch | "
              "train/val/test scenes |",
              "|---|---:|---|---:|---:|---:|---:|---:|---|"]
+    more = any("iterations" in r for r in doc["rows"])
+    if more:  # a column of the means after more passes (--iterations)
+        lines[2] += " mean after more passes (passes: deg) |"
+        lines[3] += "---|"
     for r in doc["rows"]:
         s = r["scenes"]
         lines.append(f"| {r['mode']} | {r['train_crops']} | {_augment_label(r)} | {r['mean_deg']:.2f} | "
                      f"{r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% | {r['input_mean_deg']:.2f} | "
-                     f"{r['best_epoch']} of {r['epochs']} | {s['train_base']}/{s['val']}/{s['test']} |")
+                     f"{r['best_epoch']} of {r['epochs']} | {s['train_base']}/{s['val']}/{s['test']} |"
+                     + (f" {_passes_cell(r)} |" if more else ""))
     return "\n".join(lines)
 
 
@@ -214,20 +251,26 @@ def markdown_objects(docs: list[dict]) -> str:
              "input mean | test crops |",
              "|---|---|---:|---|---:|---:|---:|---:|---:|---:|"]
     groups: dict[tuple, list[dict]] = {}
+    more = any("iterations" in r for d in docs for r in d["rows"])
+    if more:  # a column of the means after more passes (--iterations)
+        lines[2] += " mean after more passes (passes: deg) |"
+        lines[3] += "---|"
     for d in docs:
         for r in d["rows"]:
             key = (r["mode"], r["train_crops"], _augment_label(r), r["samples"])
             groups.setdefault(key, []).append(r)
             lines.append(f"| {d['object']} | {r['mode']} | {r['train_crops']} | {key[2]} | {r['samples']} | "
                          f"{r['mean_deg']:.2f} | {r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% | "
-                         f"{r['input_mean_deg']:.2f} | {r['n']} |")
+                         f"{r['input_mean_deg']:.2f} | {r['n']} |" + (f" {_passes_cell(r)} |" if more else ""))
     for (mode, crops, label, samples), rows in groups.items():
         if len(rows) == len(docs):
             mean = lambda k: sum(r[k] for r in rows) / len(rows)  # noqa: E731
+            passes = ", ".join(f"{k}: **{sum(r['iterations'][k]['mean_deg'] for r in rows) / len(rows):.2f}**"
+                               for k in _passes(rows)) or "-"
             lines.append(f"| **mean of {len(rows)}** | {mode} | {crops} | {label} | {samples} | "
                          f"**{mean('mean_deg'):.2f}** | {mean('median_deg'):.2f} | "
                          f"{100 * mean('under_5_deg'):.0f}% | {mean('input_mean_deg'):.2f} | "
-                         f"{sum(r['n'] for r in rows)} |")
+                         f"{sum(r['n'] for r in rows)} |" + (f" {passes} |" if more else ""))
     return "\n".join(lines)
 
 
@@ -352,6 +395,10 @@ def main(argv: list[str] | None = None) -> int:
                         "the split of --object alone)")
     p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
     p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--iterations", type=int, default=1, metavar="N",
+                   help="also measure the test error after 2..N refinement passes (default: one pass only)")
+    p.add_argument("--save", type=Path, metavar="DIR",
+                   help="write each run's model here as a checkpoint (`refiner-rt eval` and `export` take it)")
     p.add_argument("--json", type=Path, help="write the rows and the command here")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -370,6 +417,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.data is None:
         p.error("--data is required (or --table JSON)")
+    if args.iterations < 1:
+        p.error(f"--iterations: expected a number of refinement passes >= 1; got {args.iterations}")
+    if args.save:
+        args.save.mkdir(parents=True, exist_ok=True)
     if args.split_objects and args.object not in args.split_objects:
         p.error(f"--split-objects must include --object {args.object}; got {','.join(args.split_objects)}")
     if args.skip_jitter and not (args.augment and (args.background or args.occlude)):

@@ -4,12 +4,15 @@ Runs are capped at a few steps: this checks the study's plumbing and bookkeeping
 """
 
 import json
+from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
 import models
 from bench_scripts import load_benchmark
 from cube_dataset import make_cube_dataset
+from refiner_rt.cli import main
 
 WIDE = {"fuse_width": 1024, "pose_widths": [64, 1024]}
 
@@ -96,10 +99,11 @@ def test_augment_sizes_run_the_augmented_runs_at_each_size_on_one_split(cubes, t
 
 @pytest.fixture(scope="module")
 def small_result(cubes, tmp_path_factory):
-    """The JSON of one tiny scenes run of the study, for the tests of ``--table``."""
+    """The JSON of one tiny scenes run of the study (two passes measured, model kept), for the tests of ``--table``."""
     tmp = tmp_path_factory.mktemp("small_result")
     out = tmp / "a.json"
-    argv = [*_common(cubes, tmp, out), "--modes", "scenes", "--sizes", "10", "--samples", "32", "--epoch-samples", "32"]
+    argv = [*_common(cubes, tmp, out), "--modes", "scenes", "--sizes", "10", "--samples", "32", "--epoch-samples", "32",
+            "--iterations", "2", "--save", str(tmp / "models")]
     assert _load().main(argv) == 0
     return json.loads(out.read_text())
 
@@ -107,6 +111,36 @@ def small_result(cubes, tmp_path_factory):
 def _as_shallow(doc: dict) -> dict:
     """The same result as if another network (the paper's) had made it, with its own errors."""
     return {**doc, "arch": "shallow", "rows": [{**r, "mean_deg": 9.5, "std_deg": 1.0} for r in doc["rows"]]}
+
+
+def test_more_passes_and_the_saved_model_agree_with_refiner_rt_eval(small_result, cubes, tmp_path, capsys):
+    # The kept checkpoint records the split, so `refiner-rt eval` rebuilds the same test crops and coarse poses on
+    # its own: its one- and two-pass errors must be the study's.
+    row = small_result["rows"][0]
+    ckpt = Path(row["checkpoint"])
+    assert ckpt.name == "003_cracker_box_scenes_n10_no.pt" and set(row["iterations"]) == {"2"}
+    for passes, expected in ((1, row), (2, row["iterations"]["2"])):
+        out = tmp_path / f"eval{passes}.json"
+        res = CliRunner().invoke(main, ["eval", str(ckpt), "--data", str(cubes), "--iterations", str(passes),
+                                        "--json", str(out), "--cache", str(tmp_path / "cache"), "--threads", "1",
+                                        "--quiet"], catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+        measured = json.loads(out.read_text())["objects"]["003_cracker_box"]
+        assert measured["n"] == expected["n"] == row["n"]
+        assert measured["mean_deg"] == pytest.approx(expected["mean_deg"], abs=1e-4)
+        assert measured["input_mean_deg"] == pytest.approx(row["input_mean_deg"], abs=1e-9)
+    assert row["iterations"]["2"]["mean_deg"] != pytest.approx(row["mean_deg"], abs=1e-6)  # a second pass ran
+    doc_path = tmp_path / "a.json"
+    doc_path.write_text(json.dumps(small_result))
+    capsys.readouterr()
+    assert _load().main(["--table", str(doc_path)]) == 0
+    assert f"| 2: {row['iterations']['2']['mean_deg']:.2f} |" in capsys.readouterr().out
+
+
+def test_bad_iterations_are_named(capsys):
+    with pytest.raises(SystemExit):
+        _load().main(["--data", "x", "--iterations", "0"])
+    assert "--iterations: expected a number of refinement passes >= 1; got 0" in capsys.readouterr().err
 
 
 def test_table_of_several_objects_prints_each_row_and_the_mean(small_result, tmp_path, capsys):
@@ -124,7 +158,7 @@ def test_table_of_several_objects_prints_each_row_and_the_mean(small_result, tmp
     assert f"| 003_cracker_box | scenes | 10 | no | {first['samples']} | {first['mean_deg']:.2f} |" in printed
     assert f"| 005_tomato_soup_can | scenes | 10 | no | {first['samples']} | {first['mean_deg'] + 2:.2f} |" in printed
     assert f"| **mean of 2** | scenes | 10 | no | {first['samples']} | **{first['mean_deg'] + 1:.2f}** |" in printed
-    assert f"| {first['n'] + 30} |" in printed
+    assert f"| {first['n'] + 30} | 2: **{first['iterations']['2']['mean_deg']:.2f}** |" in printed  # both 2-pass
     with pytest.raises(SystemExit, match="--table: the files are of different studies"):
         study.markdown_objects([doc, _as_shallow(doc)])
 
