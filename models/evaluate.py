@@ -31,6 +31,11 @@ class EvalErrors:
     obj_ids: np.ndarray
     err_in_deg: np.ndarray
     err_out_deg: np.ndarray
+    #: ``(N, 4)`` ground truth, coarse inputs and refined rotations in the evaluated rotation frame (for analyses
+    #: beyond the angle, e.g. ``benchmarks/error_breakdown.py``).
+    q_true: np.ndarray | None = None
+    q_in: np.ndarray | None = None
+    q_refined: np.ndarray | None = None
 
     def summary(self) -> dict:
         return summarize_errors(self.obj_ids, self.err_out_deg, self.err_in_deg)
@@ -70,7 +75,7 @@ def evaluate_errors(
         missing = sorted(set(data.objects) - set(predictor))
         if missing:
             raise ValueError(f"no model for object(s) {missing}; models given for {sorted(predictor)}")
-    ids, e_in, e_out = [], [], []
+    ids, e_in, e_out, qs_in, qs_out = [], [], [], [], []
     for _ in range(resample):
         q_in, _ = perturb(q_gt, noise, rng)
         q = q_in
@@ -87,7 +92,11 @@ def evaluate_errors(
         ids.append(data.obj_ids)
         e_in.append(rq.geodesic_angle(q_in, q_gt))
         e_out.append(rq.geodesic_angle(q, q_gt))
-    return EvalErrors(np.concatenate(ids), np.concatenate(e_in), np.concatenate(e_out))
+        qs_in.append(q_in)
+        qs_out.append(q)
+    return EvalErrors(np.concatenate(ids), np.concatenate(e_in), np.concatenate(e_out),
+                      q_true=np.concatenate([q_gt] * resample), q_in=np.concatenate(qs_in),
+                      q_refined=np.concatenate(qs_out))
 
 
 def onnx_predictor(model: str | Path | bytes, threads: int = 0, batch_size: int = 256) -> Predictor:

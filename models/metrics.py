@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["summarize_errors", "format_table", "format_markdown"]
+from refiner_rt import quaternion as rq
+
+__all__ = ["summarize_errors", "format_table", "format_markdown", "swing_twist_deg"]
 
 
 def _stats(err: np.ndarray, err_in: np.ndarray) -> dict:
@@ -81,3 +83,33 @@ def format_markdown(summary: dict) -> str:
             f"{100 * s['under_5_deg']:.1f}% | {100 * s['under_10_deg']:.1f}% | {s['n']} |"
         )
     return "\n".join(lines)
+
+
+def swing_twist_deg(q, axis=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Split rotations into a twist about ``axis`` and a swing about an axis perpendicular to it.
+
+    ``q = swing * twist``: the twist (about ``axis``) is applied first, then the swing. For the error rotation of a
+    refiner in the viewing-ray frame (``q_refined * q_true^-1``, ``axis`` the ray), the twist is the part in the
+    image plane and the swing the part out of it, which the crop's appearance shows far less directly.
+
+    Args:
+        q: ``(..., 4)`` unit quaternions, ``wxyz``.
+        axis: the twist axis (3 numbers, normalised here).
+
+    Returns:
+        ``(swing_deg, twist_deg)``, each ``(...)`` in ``[0, 180]``.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    a = np.asarray(axis, dtype=np.float64)
+    norm = np.linalg.norm(a)
+    if a.shape != (3,) or not np.isfinite(norm) or norm == 0:
+        raise ValueError(f"axis must be 3 finite numbers, not all zero; got {axis!r}")
+    a = a / norm
+    w, v = q[..., 0], q[..., 1:]
+    along = v @ a  # the vector part projected on the axis: the twist is (w, along * a), normalised
+    t = np.hypot(w, along)[..., None]
+    twist_q = np.where(t > 0, np.concatenate([w[..., None], along[..., None] * a], axis=-1) / np.where(t > 0, t, 1.0),
+                       np.array([1.0, 0.0, 0.0, 0.0]))
+    swing_q = rq.multiply(q, twist_q * np.array([1.0, -1.0, -1.0, -1.0]))  # q * twist^-1
+    angle = lambda u: np.degrees(2.0 * np.arctan2(np.linalg.norm(u[..., 1:], axis=-1), np.abs(u[..., 0])))  # noqa: E731
+    return angle(swing_q), angle(twist_q)

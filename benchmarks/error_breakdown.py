@@ -1,0 +1,138 @@
+"""Where a refiner's error is: on crops it trained on against held-out ones, and in the image plane against out of it.
+
+Two questions decide what lowers a held-out error. Does the model fit its own training crops much better than new
+ones (then more varied data or regularisation, not capacity, is the lever)? And is the remaining error a rotation
+about the line of sight, which the crop shows directly, or a tilt out of the image plane, which only shading and
+foreshortening reveal?
+
+Usage (from the repository root)::
+
+    python benchmarks/error_breakdown.py CKPT [CKPT ...] [--cache DIR] [--data DIR] [--json OUT]
+
+Each checkpoint (``refiner-rt train`` or ``data_scaling.py --save``; base network only) is evaluated on the training,
+validation and test parts of its recorded split, with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed
+2024, one pass, no augmentation). The test error rotation ``q_refined * q_true^-1``, taken in the viewing-ray frame,
+is split into its twist about the ray (in the image plane) and the swing perpendicular to it (out of the plane),
+and the coarse inputs' error the same way for reference (:func:`models.metrics.swing_twist_deg`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+PARTS = ("train_base", "val", "test")
+
+
+def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
+    """One checkpoint's errors on each part of its split and its test error split about the viewing ray."""
+    import models
+    from models.evaluate import evaluate_errors, torch_predictor
+    from models.metrics import swing_twist_deg
+    from models.pipeline import DataSpec, cropset_for, load_splits
+    from refiner_rt import quaternion as rq
+
+    net, info = models.load_checkpoint(path)
+    if not info.get("data"):
+        raise SystemExit(f"{path}: the checkpoint records no split (info['data']); train it with refiner-rt train "
+                         "or data_scaling.py --save")
+    spec = DataSpec.from_dict({**info["data"], **({"data": str(data)} if data is not None else {})})
+    splits = load_splits(spec)
+    frame = info.get("rotation_frame", "camera")
+    predictor = torch_predictor(net.eval())
+    result = {"checkpoint": str(path), "objects": info.get("objects", []), "rotation_frame": frame,
+              "split_mode": spec.split_mode, "train_crops": info.get("train_crops"), "parts": {}}
+    for part in PARTS:
+        crops = cropset_for(splits, part, spec, net.input_size, net.config["crop_context"], cache_root=cache)
+        errors = evaluate_errors(predictor, crops, rotation_frame=frame)
+        result["parts"][part] = {**errors.summary()["pooled"],
+                                 "scenes": len(set(crops.scene_ids.tolist())) if crops.scene_ids is not None else None}
+        if part == "test":
+            test, test_errors = crops, errors
+    # The test error rotations about the viewing ray (about the optical axis when the crops have no intrinsics K).
+    if test.q_ray is None:
+        to_ray, axis = (lambda q: q), "optical axis (no intrinsics)"
+    elif frame == "ray":
+        to_ray, axis = (lambda q: q), "viewing ray"
+    else:
+        to_ray, axis = (lambda q: rq.multiply(rq.inverse(test.q_ray), q)), "viewing ray"
+    true = to_ray(test_errors.q_true)
+    for name, q in (("refined", test_errors.q_refined), ("input", test_errors.q_in)):
+        swing, twist = swing_twist_deg(rq.multiply(to_ray(q), rq.inverse(true)))
+        result[f"test_{name}"] = {"in_plane_mean_deg": float(twist.mean()),
+                                  "in_plane_median_deg": float(np.median(twist)),
+                                  "out_of_plane_mean_deg": float(swing.mean()),
+                                  "out_of_plane_median_deg": float(np.median(swing))}
+    result["twist_axis"] = axis
+    return result
+
+
+def markdown(results: list[dict]) -> str:
+    lines = ["Mean geodesic error (deg), inputs U(0, 30); test error split about the viewing ray (mean / median):", "",
+             "| checkpoint | split | train | val | test | test median | test in-plane | test out-of-plane | "
+             "input in-plane | input out-of-plane |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        p, ref, inp = r["parts"], r["test_refined"], r["test_input"]
+        lines.append(f"| {Path(r['checkpoint']).name} | {r['split_mode']} | {p['train_base']['mean_deg']:.2f} | "
+                     f"{p['val']['mean_deg']:.2f} | {p['test']['mean_deg']:.2f} | {p['test']['median_deg']:.2f} | "
+                     f"{ref['in_plane_mean_deg']:.2f} / {ref['in_plane_median_deg']:.2f} | "
+                     f"{ref['out_of_plane_mean_deg']:.2f} / {ref['out_of_plane_median_deg']:.2f} | "
+                     f"{inp['in_plane_mean_deg']:.2f} | {inp['out_of_plane_mean_deg']:.2f} |")
+    if len(results) > 1:
+        m = lambda f: float(np.mean([f(r) for r in results]))  # noqa: E731
+        lines.append(f"| **mean of {len(results)}** | | {m(lambda r: r['parts']['train_base']['mean_deg']):.2f} | "
+                     f"{m(lambda r: r['parts']['val']['mean_deg']):.2f} | "
+                     f"**{m(lambda r: r['parts']['test']['mean_deg']):.2f}** | "
+                     f"{m(lambda r: r['parts']['test']['median_deg']):.2f} | "
+                     f"{m(lambda r: r['test_refined']['in_plane_mean_deg']):.2f} | "
+                     f"{m(lambda r: r['test_refined']['out_of_plane_mean_deg']):.2f} | "
+                     f"{m(lambda r: r['test_input']['in_plane_mean_deg']):.2f} | "
+                     f"{m(lambda r: r['test_input']['out_of_plane_mean_deg']):.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("checkpoints", type=Path, nargs="+", metavar="CKPT")
+    p.add_argument("--data", type=Path,
+                   help="the dataset folder if it moved since training (default: the recorded one)")
+    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--json", type=Path, help="write the results and the command here")
+    args = p.parse_args(argv)
+    missing = [str(c) for c in args.checkpoints if not c.is_file()]
+    if missing:
+        p.error(f"no such checkpoint file(s): {', '.join(missing)}")
+
+    import torch
+
+    from models.train import set_threads
+
+    threads = set_threads(args.threads)
+    results = [breakdown(c, args.data, args.cache) for c in args.checkpoints]
+    print(markdown(results))
+    if args.json:
+        doc = {"study": "error on train/val/test parts, test error in and out of the image plane", "results": results,
+               "test_noise": "uniform:0:30",
+               "command": shlex.join(["python", "benchmarks/error_breakdown.py",
+                                      *(sys.argv[1:] if argv is None else argv)]),
+               "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
+                           "threads": threads, "torch": torch.__version__}}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
