@@ -9,11 +9,12 @@ Usage (from the repository root)::
 
     python benchmarks/error_breakdown.py CKPT [CKPT ...] [--cache DIR] [--data DIR] [--json OUT]
 
-Each checkpoint (``refiner-rt train`` or ``data_scaling.py --save``; base network only) is evaluated on the training,
-validation and test parts of its recorded split, with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed
-2024, one pass, no augmentation). The test error rotation ``q_refined * q_true^-1``, taken in the viewing-ray frame,
-is split into its twist about the ray (in the image plane) and the swing perpendicular to it (out of the plane),
-and the coarse inputs' error the same way for reference (:func:`models.metrics.swing_twist_deg`).
+Each checkpoint (``refiner-rt train``, its per-object fine-tuned models, or ``data_scaling.py --save``) is evaluated
+on its own objects' crops in the training (base and fine-tuning), validation and test parts of its recorded split,
+with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024, one pass, no augmentation). The test error
+rotation ``q_refined * q_true^-1``, taken in the viewing-ray frame, is split into its twist about the ray (in the
+image plane) and the swing perpendicular to it (out of the plane), and the coarse inputs' error the same way for
+reference (:func:`models.metrics.swing_twist_deg`).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-PARTS = ("train_base", "val", "test")
+PARTS = ("train_base", "train_finetune", "val", "test")
 
 
 def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
@@ -52,8 +53,14 @@ def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
     predictor = torch_predictor(net.eval())
     result = {"checkpoint": str(path), "objects": info.get("objects", []), "rotation_frame": frame,
               "split_mode": spec.split_mode, "train_crops": info.get("train_crops"), "parts": {}}
+    objects = info.get("objects") or None
     for part in PARTS:
-        crops = cropset_for(splits, part, spec, net.input_size, net.config["crop_context"], cache_root=cache)
+        if not getattr(splits, part):  # e.g. no fine-tuning part
+            continue
+        crops = cropset_for(splits, part, spec, net.input_size, net.config["crop_context"], cache_root=cache,
+                            progress=False)
+        if objects:  # a per-object model of a split over more objects: its own object's crops only
+            crops = crops.subset(np.isin(crops.obj_ids, objects))
         errors = evaluate_errors(predictor, crops, rotation_frame=frame)
         result["parts"][part] = {**errors.summary()["pooled"],
                                  "scenes": len(set(crops.scene_ids.tolist())) if crops.scene_ids is not None else None}
@@ -79,19 +86,22 @@ def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
 
 def markdown(results: list[dict]) -> str:
     lines = ["Mean geodesic error (deg), inputs U(0, 30); test error split about the viewing ray (mean / median):", "",
-             "| checkpoint | split | train | val | test | test median | test in-plane | test out-of-plane | "
-             "input in-plane | input out-of-plane |",
+             "| checkpoint | split | train (base / fine-tune part) | val | test | test median | test in-plane | "
+             "test out-of-plane | input in-plane | input out-of-plane |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         p, ref, inp = r["parts"], r["test_refined"], r["test_input"]
-        lines.append(f"| {Path(r['checkpoint']).name} | {r['split_mode']} | {p['train_base']['mean_deg']:.2f} | "
+        train = " / ".join(f"{p[k]['mean_deg']:.2f}" if k in p else "-" for k in ("train_base", "train_finetune")
+                           if k in p or "train_finetune" in p)
+        lines.append(f"| {Path(r['checkpoint']).name} | {r['split_mode']} | {train} | "
                      f"{p['val']['mean_deg']:.2f} | {p['test']['mean_deg']:.2f} | {p['test']['median_deg']:.2f} | "
                      f"{ref['in_plane_mean_deg']:.2f} / {ref['in_plane_median_deg']:.2f} | "
                      f"{ref['out_of_plane_mean_deg']:.2f} / {ref['out_of_plane_median_deg']:.2f} | "
                      f"{inp['in_plane_mean_deg']:.2f} | {inp['out_of_plane_mean_deg']:.2f} |")
     if len(results) > 1:
         m = lambda f: float(np.mean([f(r) for r in results]))  # noqa: E731
-        lines.append(f"| **mean of {len(results)}** | | {m(lambda r: r['parts']['train_base']['mean_deg']):.2f} | "
+        train = lambda r: r["parts"].get("train_finetune", r["parts"].get("train_base"))["mean_deg"]  # noqa: E731
+        lines.append(f"| **mean of {len(results)}** | | {m(train):.2f} | "
                      f"{m(lambda r: r['parts']['val']['mean_deg']):.2f} | "
                      f"**{m(lambda r: r['parts']['test']['mean_deg']):.2f}** | "
                      f"{m(lambda r: r['parts']['test']['median_deg']):.2f} | "
