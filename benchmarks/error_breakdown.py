@@ -61,11 +61,15 @@ def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
                             progress=False)
         if objects:  # a per-object model of a split over more objects: its own object's crops only
             crops = crops.subset(np.isin(crops.obj_ids, objects))
+            if len(crops) == 0:
+                raise SystemExit(f"{path}: the {part} part of its split has no crops of its objects {objects}")
         errors = evaluate_errors(predictor, crops, rotation_frame=frame)
         result["parts"][part] = {**errors.summary()["pooled"],
                                  "scenes": len(set(crops.scene_ids.tolist())) if crops.scene_ids is not None else None}
         if part == "test":
             test, test_errors = crops, errors
+    if "test" not in result["parts"]:
+        raise SystemExit(f"{path}: its recorded split has no test part (sizes {spec.sizes})")
     # The test error rotations about the viewing ray (about the optical axis when the crops have no intrinsics K).
     if test.q_ray is None:
         to_ray, axis = (lambda q: q), "optical axis (no intrinsics)"
