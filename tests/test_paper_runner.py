@@ -172,3 +172,24 @@ def test_every_experiments_training_options_are_train_options(runner, tmp_path):
             cont = opts.pop("ft_continue", None) or {}
             assert set(opts) | set(cont) <= known, (name, model, (set(opts) | set(cont)) - known)
             models.get_refiner_class(opts["arch"])
+
+
+def test_an_experiment_of_one_model_trains_only_that_model(runner, tmp_path, monkeypatch, capsys):
+    # models=("improved",): asked for both, the runner trains and reports only the improved refiner; asked for the
+    # paper net alone, it trains nothing and writes no JSON.
+    make_cube_dataset(tmp_path / "cubes", scenes=4, frames=30)
+    exp = runner.Experiment("one model only", train={**runner.BASELINE_DATA, "per_object": 0},
+                            recipe={"improved": runner.DEEP5}, models=("improved",))
+    monkeypatch.setitem(runner.EXPERIMENTS, "one_model", exp)
+    argv = ["--data", str(tmp_path / "cubes"), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"),
+            "--cache", str(tmp_path / "cache"), "--threads", "1", "--max-epochs", "1", "--max-steps-per-epoch", "1",
+            "--only", "one_model"]
+    assert runner.main(argv + ["--models", "paper"]) == 0
+    assert "none of --models paper is one of one_model's models" in capsys.readouterr().out
+    assert not (tmp_path / "results" / "one_model.json").exists() and not (tmp_path / "runs").exists()
+    assert runner.main(argv) == 0
+    doc = json.loads((tmp_path / "results" / "one_model.json").read_text())
+    assert "paper" not in doc and "average" in doc["improved"]
+    assert doc["budget"]["improved"]["arch_config"] == runner.DEEP5["arch_config"]
+    assert not (tmp_path / "runs" / "one_model" / "paper").exists()
+    assert runner.finished("one_model", runner.parse_args(argv))  # the paper net is not waited for
