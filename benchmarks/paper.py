@@ -90,6 +90,10 @@ ANGLE_BINS = tuple(range(0, 50, 5))  # input-angle bin edges (degrees) of input_
 DEEP5 = {"arch_config": {"conv_channels": [16, 32, 64, 128, 128]}}
 BASELINE_DATA = dict(split_mode="frames", base_per_object=3000, per_object=2000, val_per_object=3000, test_per_object=3000,
                      noise="uniform:0:30")
+# The ft_10000* experiments' data: no base stage of their own, all 10,000 training images per object fine-tuned on.
+ALL_10000 = {**BASELINE_DATA, "base_per_object": 0, "per_object": 10000}
+# ft_10000_lr's fine-tuning of the improved refiner: 1e-3 (its base rate), one 45-epoch cosine schedule.
+FT_LR_IMPROVED = {"ft_epochs_mse": 1, "ft_epochs_geodesic": 44, "ft_lr": 1e-3, "ft_continue": None}
 
 
 @dataclass(frozen=True)
@@ -149,7 +153,7 @@ EXPERIMENTS: dict[str, Experiment] = {
     # samples per object as size_5000's paper-net fine-tuning (60 x 5000), slightly fewer than fusion's (70 x 5000).
     "ft_10000": Experiment("beyond the paper: size_5000's base networks fine-tuned on all 10,000 training images per "
                            "object (its 5000 base + 5000 fine-tune)",
-                           train={**BASELINE_DATA, "base_per_object": 0, "per_object": 10000}, base_from="size_5000",
+                           train=ALL_10000, base_from="size_5000",
                            recipe={"paper": {"ft_epochs_mse": 2, "ft_epochs_geodesic": 23,
                                              "ft_continue": {"ft_epochs_geodesic": 28, "ft_lr": 2e-5}},
                                    "improved": {"ft_epochs_mse": 2, "ft_epochs_geodesic": 28, "ft_continue": None}}),
@@ -158,24 +162,23 @@ EXPERIMENTS: dict[str, Experiment] = {
     # The paper net's entry: 3x its constant rate, on a cosine schedule.
     "ft_10000_lr": Experiment("beyond the paper: ft_10000 with a higher fine-tuning rate (fusion 1e-3, paper net "
                               "3e-4), cosine, 45 epochs",
-                              train={**BASELINE_DATA, "base_per_object": 0, "per_object": 10000},
+                              train=ALL_10000,
                               base_from="size_5000",
                               recipe={"paper": {"ft_epochs_mse": 1, "ft_epochs_geodesic": 44, "ft_lr": 3e-4,
                                                 "lr_schedule": "cosine", "ft_continue": None},
-                                      "improved": {"ft_epochs_mse": 1, "ft_epochs_geodesic": 44, "ft_lr": 1e-3,
-                                                   "ft_continue": None}}),
+                                      "improved": FT_LR_IMPROVED}),
     # Beyond the paper: ft_10000_lr's fine-tuning resumed with its cosine stretched from 45 to 75 epochs (a warm
     # restart from the rate at epoch 45 of the longer schedule), since fusion's validation error was still falling
     # when the rate reached its floor. Its first 45 epochs are ft_10000_lr's: a copy of that experiment's model
     # folder (with --keep-state's .state, without the .done marker) starts it from there.
     "ft_10000_lr_long": Experiment("beyond the paper: ft_10000_lr's fine-tuning continued to 75 epochs (the cosine "
                                    "stretched: a warm restart)",
-                                   train={**BASELINE_DATA, "base_per_object": 0, "per_object": 10000},
+                                   train=ALL_10000,
                                    base_from="size_5000",
                                    recipe={"paper": {"ft_epochs_mse": 1, "ft_epochs_geodesic": 44, "ft_lr": 3e-4,
                                                      "lr_schedule": "cosine",
                                                      "ft_continue": {"ft_epochs_geodesic": 74}},
-                                           "improved": {"ft_epochs_mse": 1, "ft_epochs_geodesic": 44, "ft_lr": 1e-3,
+                                           "improved": {**FT_LR_IMPROVED,
                                                         "ft_continue": {"ft_epochs_geodesic": 74}}}),
     # Beyond the paper: ft_10000_lr's recipe for the improved refiner with five conv blocks in its image stage
     # (the configuration that took held-out scenes from 7.08 to 5.57 degrees) instead of two. Its own base network
@@ -187,10 +190,9 @@ EXPERIMENTS: dict[str, Experiment] = {
                                   recipe={"improved": DEEP5}, models=("improved",)),
     "ft_10000_deep5": Experiment("beyond the paper: ft_10000_lr's recipe (10,000 images per object, 1e-3, cosine, "
                                  "45 epochs) with five conv blocks in the improved refiner",
-                                 train={**BASELINE_DATA, "base_per_object": 0, "per_object": 10000},
+                                 train=ALL_10000,
                                  base_from="base_5000_deep5", models=("improved",),
-                                 recipe={"improved": {**DEEP5, "ft_epochs_mse": 1, "ft_epochs_geodesic": 44,
-                                                      "ft_lr": 1e-3, "ft_continue": None}}),
+                                 recipe={"improved": {**DEEP5, **FT_LR_IMPROVED}}),
     "noise_train_n30": Experiment("trained and tested on inputs N(30,5)", _ref(10.75),
                                   train={**BASELINE_DATA, "noise": "normal:30:5"},
                                   settings={"": {"noise": "normal:30:5"}}),
