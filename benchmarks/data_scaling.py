@@ -19,10 +19,12 @@ the reported error is on the test part with the inputs of ``refiner-rt eval`` (`
 the background of a crop with probability ``P``, ``--occlude P`` one that pastes another crop's object over it
 (both with the jitter of ``--augment`` when given; both need instance masks: BOP ``mask_visib/``, which
 ``refiner-rt render`` writes). ``--augment-sizes`` runs those augmented runs at other sizes too, on the same split;
-``--skip-jitter`` drops the run with jitter alone. ``--split-objects IDS`` draws the split over several objects
-(the scenes split of ``refiner-rt train`` on them) and studies the object's part of it, to compare with such a
-model on the same test scenes. ``--table JSON`` prints the table of a written result again;
-``--table A.json B.json ...`` (one object each) prints one table of all of them with the mean over the objects;
+``--skip-jitter`` drops the run with jitter alone. ``--train-scenes S,...`` makes the runs take every crop of the first
+S training scenes instead of the first N crops (more scenes against fewer, with the same split and test crops).
+``--split-objects IDS`` draws the split over several objects (the scenes split of ``refiner-rt train`` on them) and
+studies the object's part of it, to compare with such a model on the same test scenes. ``--table JSON`` prints
+the table of a written result again; ``--table A.json B.json ...`` (one object each) prints one table of all of
+them with the mean over the objects;
 files of different studies (architecture, config, rotation frame, split) get a table each and a table comparing
 them object by object, and ``--plot PNG`` draws that comparison (per-object mean and standard deviation).
 ``--iterations N`` also measures each model after 2..N refinement passes (the same test crops and coarse poses);
@@ -98,6 +100,12 @@ def _augment_label(row: dict) -> str:
     return " + ".join((["jitter"] if row["augment"] else []) + extra)
 
 
+def _crops_label(row: dict) -> str:
+    """A row's training crops, and the training scenes they came from when the run took whole scenes."""
+    crops = str(row["train_crops"])
+    return f"{crops} from {row['train_scenes']} scenes" if row.get("train_scenes") else crops
+
+
 def _passes(rows: list[dict]) -> list[str]:
     """The numbers of refinement passes beyond one that every row measured (``--iterations``), ascending."""
     common = set.intersection(*(set(r.get("iterations", {})) for r in rows)) if rows else set()
@@ -140,16 +148,33 @@ def run(args) -> dict:
                              "(BOP mask_visib/; `refiner-rt render` writes them)")
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
         order = np.random.default_rng(args.seed).permutation(len(train_all))
-        runs = [] if args.skip_plain else [(n, False, 0.0, 0.0) for n in sizes]
-        for n in augment_sizes:
-            runs += [(n, True, 0.0, 0.0)] if args.augment and not args.skip_jitter else []
-            runs += [(n, args.augment, p, 0.0) for p in args.background]
-            runs += [(n, args.augment, 0.0, p) for p in args.occlude]
-        for n, augment, background, occlude in runs:
+        kinds = [] if args.skip_plain else [(False, 0.0, 0.0)]
+        kinds += [(True, 0.0, 0.0)] if args.augment and not args.skip_jitter else []
+        kinds += [(args.augment, p, 0.0) for p in args.background]
+        kinds += [(args.augment, 0.0, p) for p in args.occlude]
+        if args.train_scenes:
+            # Every crop of the first S training scenes of a seeded permutation: more scenes, not more crops
+            # of the same scenes; the split (made with the one --sizes) and the test crops stay the same.
+            if train_all.scene_ids is None:
+                raise SystemExit(f"--train-scenes: {args.data} gives its crops no scene ids")
+            scene_ids = train_all.scene_ids.astype(str)
+            scene_order = np.random.default_rng(args.seed).permutation(np.unique(scene_ids))
+            runs = []
+            for s in args.train_scenes:
+                if s > len(scene_order):
+                    print(f"{mode}: only {len(scene_order)} training scenes, skipping --train-scenes {s}",
+                          file=sys.stderr)
+                    continue
+                index = np.flatnonzero(np.isin(scene_ids, scene_order[:s]))
+                runs += [(len(index), s, index, *kind) for kind in kinds]
+        else:
+            runs = [] if args.skip_plain else [(n, None, None, False, 0.0, 0.0) for n in sizes]
+            runs += [(n, None, None, *kind) for n in augment_sizes for kind in kinds if kind != (False, 0.0, 0.0)]
+        for n, train_scenes, index, augment, background, occlude in runs:
             if n > len(train_all):
                 print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
                 continue
-            train = train_all.subset(np.sort(order[:n]))
+            train = train_all.subset(np.sort(order[:n]) if index is None else index)
             per_epoch = min(n, args.epoch_samples)
             epochs = max(2, math.ceil(args.samples / per_epoch))
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
@@ -163,8 +188,8 @@ def run(args) -> dict:
             wall = round(time.perf_counter() - t0, 1)
             predictor = torch_predictor(res.model.eval())
             errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
-            row = {"mode": mode, "train_crops": n, "augment": augment, "background": background, "occlude": occlude,
-                   "epochs": epochs,
+            row = {"mode": mode, "train_crops": n, **({"train_scenes": train_scenes} if train_scenes else {}),
+                   "augment": augment, "background": background, "occlude": occlude, "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
                    "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
                    "scenes": scenes, "wall_s": wall}
@@ -177,15 +202,20 @@ def run(args) -> dict:
                     for k in range(2, args.iterations + 1)}
             if args.save:
                 slug = re.sub(r"[^A-Za-z0-9.]+", "-", _augment_label(row))
-                path = args.save / f"{args.object}_{mode}_n{n}_{slug}.pt"
+                within = f"_s{train_scenes}" if train_scenes else ""
+                path = args.save / f"{args.object}_{mode}_n{n}{within}_{slug}.pt"
                 models.save_checkpoint(res.model, path, objects=[args.object], stage="data_scaling",
                                        train_config=vars(cfg), best_epoch=res.best_epoch,
                                        val_mean_deg=res.best_val_deg, train_noise=cfg.noise,
                                        rotation_frame=args.rotation_frame, data=spec.as_dict(),
-                                       split=splits.summary(), train_crops=n)
+                                       split=splits.summary(), train_crops=n,
+                                       **({"train_scene_ids": sorted(set(train.scene_ids.astype(str).tolist()))}
+                                          if train_scenes else {}))
                 row["checkpoint"] = str(path)
             rows.append(row)
-            print(f"{mode:6s} n={n:6d} augment={augment!s:5s} background={background:.2f} occlude={occlude:.2f}: "
+            within = f" scenes={train_scenes}" if train_scenes else ""
+            print(f"{mode:6s} n={n:6d}{within} augment={augment!s:5s} background={background:.2f} "
+                  f"occlude={occlude:.2f}: "
                   f"test {row['mean_deg']:.2f} deg "
                   f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
                   f"{row['wall_s']:.0f} s", file=sys.stderr)
@@ -221,7 +251,7 @@ def markdown(doc: dict) -> str:
         lines[3] += "---|"
     for r in doc["rows"]:
         s = r["scenes"]
-        lines.append(f"| {r['mode']} | {r['train_crops']} | {_augment_label(r)} | {r['mean_deg']:.2f} | "
+        lines.append(f"| {r['mode']} | {_crops_label(r)} | {_augment_label(r)} | {r['mean_deg']:.2f} | "
                      f"{r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% | {r['input_mean_deg']:.2f} | "
                      f"{r['best_epoch']} of {r['epochs']} | {s['train_base']}/{s['val']}/{s['test']} |"
                      + (f" {_passes_cell(r)} |" if more else ""))
@@ -257,9 +287,9 @@ def markdown_objects(docs: list[dict]) -> str:
         lines[3] += "---|"
     for d in docs:
         for r in d["rows"]:
-            key = (r["mode"], r["train_crops"], _augment_label(r), r["samples"])
+            key = (r["mode"], _crops_label(r), _augment_label(r), r["samples"])
             groups.setdefault(key, []).append(r)
-            lines.append(f"| {d['object']} | {r['mode']} | {r['train_crops']} | {key[2]} | {r['samples']} | "
+            lines.append(f"| {d['object']} | {r['mode']} | {key[1]} | {key[2]} | {r['samples']} | "
                          f"{r['mean_deg']:.2f} | {r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% | "
                          f"{r['input_mean_deg']:.2f} | {r['n']} |" + (f" {_passes_cell(r)} |" if more else ""))
     for (mode, crops, label, samples), rows in groups.items():
@@ -286,7 +316,7 @@ def comparison_series(docs: list[dict]) -> dict[str, dict[str, dict]]:
         net = _net_label(d, default=" (default config)")
         split = f"split over {len(d['split_objects'])} objects" if d.get("split_objects") else "own split"
         for r in d["rows"]:
-            fields = (net, f"{d['rotation_frame']} frame", split, r["mode"], f"{r['train_crops']} crops",
+            fields = (net, f"{d['rotation_frame']} frame", split, r["mode"], f"{_crops_label(r)} crops",
                       _augment_label(r), f"{r['samples']} samples")
             parts.append((fields, d["object"], r))
     varying = [i for i in range(7) if len({f[i] for f, _, _ in parts}) > 1]
@@ -381,6 +411,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--augment-sizes", type=lambda t: _parse_sizes(t, "--augment-sizes"), metavar="N[,N...]",
                    help="training crops of the --augment/--background/--occlude runs (default: the largest of --sizes;"
                         " each at most that, since the split is made with it)")
+    p.add_argument("--train-scenes", type=lambda t: _parse_sizes(t, "--train-scenes"), metavar="S[,S...]",
+                   help="train each run on every crop of the first S training scenes (a seeded permutation of the "
+                        "split's training scenes) instead of the first N crops: more scenes against fewer, on one "
+                        "split made with the one --sizes")
     p.add_argument("--skip-plain", action="store_true",
                    help="skip the runs without augmentation (one per size), e.g. when an earlier result has them")
     p.add_argument("--skip-jitter", action="store_true",
@@ -430,6 +464,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.augment_sizes and max(args.augment_sizes) > max(_parse_sizes(args.sizes)):
         p.error(f"--augment-sizes: each must be at most the largest --sizes ({max(_parse_sizes(args.sizes))}), "
                 f"which makes the split; got {max(args.augment_sizes)}")
+    if args.train_scenes and (len(_parse_sizes(args.sizes)) > 1 or args.augment_sizes):
+        p.error(f"--train-scenes takes the runs' crops from whole scenes: give one --sizes (the split's training "
+                f"crops) and no --augment-sizes; got --sizes {args.sizes}")
     for m in args.modes.split(","):
         if m not in ("frames", "scenes"):
             p.error(f"--modes: expected frames and/or scenes; got {m!r}")

@@ -210,3 +210,33 @@ def test_split_objects_trains_and_tests_on_the_objects_part_of_the_larger_split(
     with pytest.raises(SystemExit):
         study.main([*argv[:-1], "006_mustard_bottle"])
     assert "--split-objects must include --object 003_cracker_box" in capsys.readouterr().err
+
+
+def test_train_scenes_trains_on_every_crop_of_the_first_scenes_on_one_split(cubes, tmp_path, capsys):
+    from models.pipeline import DataSpec, load_splits
+
+    study = _load()
+    out = tmp_path / "scenes.json"
+    argv = [*_common(cubes, tmp_path, out), "--modes", "scenes", "--sizes", "40", "--samples", "32",
+            "--epoch-samples", "32", "--train-scenes", "1,2,99", "--save", str(tmp_path / "models")]
+    assert study.main(argv) == 0
+    printed = capsys.readouterr()
+    assert "only 3 training scenes, skipping --train-scenes 99" in printed.err
+    doc = json.loads(out.read_text())
+    # The crops of the split's training part (made with --sizes 40), by scene: each run takes all crops of its scenes.
+    spec = DataSpec(data=str(cubes), objects=["003_cracker_box"], split_mode="scenes", sizes=(40, 0, 10, 20))
+    train = [s.scene_id for s in load_splits(spec).train_base]
+    per_scene = {s: train.count(s) for s in set(train)}
+    assert len(per_scene) == 3
+    assert [r["train_scenes"] for r in doc["rows"]] == [1, 2]
+    assert len({r["n"] for r in doc["rows"]}) == 1
+    first, second = doc["rows"]
+    saved = [models.load_checkpoint(r["checkpoint"])[1] for r in doc["rows"]]
+    chosen = [s["train_scene_ids"] for s in saved]
+    assert len(chosen[0]) == 1 and len(chosen[1]) == 2 and set(chosen[0]) < set(chosen[1])
+    assert first["train_crops"] == sum(per_scene[s] for s in chosen[0])
+    assert second["train_crops"] == sum(per_scene[s] for s in chosen[1])
+    assert f"| scenes | {second['train_crops']} from 2 scenes |" in printed.out
+    with pytest.raises(SystemExit):
+        study.main([*argv[:-2], "--sizes", "20,40"])
+    assert "--train-scenes takes the runs' crops from whole scenes: give one --sizes" in capsys.readouterr().err
