@@ -10,7 +10,8 @@ Usage (from the repository root)::
     python benchmarks/error_breakdown.py CKPT [CKPT ...] [--cache DIR] [--data DIR] [--json OUT]
 
 Each checkpoint (``refiner-rt train``, its per-object fine-tuned models, or ``data_scaling.py --save``) is evaluated
-on its own objects' crops in the training (base and fine-tuning), validation and test parts of its recorded split,
+on its own objects' crops in the training (base and fine-tuning; for a ``--train-scenes`` run of ``data_scaling.py``,
+the training crops of its scenes only), validation and test parts of its recorded split,
 with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024, one pass, no augmentation). The test error
 rotation ``q_refined * q_true^-1``, taken in the viewing-ray frame, is split into its twist about the ray (in the
 image plane) and the swing perpendicular to it (out of the plane), and the coarse inputs' error the same way for
@@ -63,6 +64,8 @@ def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
             crops = crops.subset(np.isin(crops.obj_ids, objects))
             if len(crops) == 0:
                 raise SystemExit(f"{path}: the {part} part of its split has no crops of its objects {objects}")
+        if part == "train_base" and info.get("train_scene_ids"):  # data_scaling.py --train-scenes: its scenes only
+            crops = crops.subset(np.isin(crops.scene_ids.astype(str), info["train_scene_ids"]))
         errors = evaluate_errors(predictor, crops, rotation_frame=frame)
         result["parts"][part] = {**errors.summary()["pooled"],
                                  "scenes": len(set(crops.scene_ids.tolist())) if crops.scene_ids is not None else None}

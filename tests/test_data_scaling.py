@@ -237,6 +237,13 @@ def test_train_scenes_trains_on_every_crop_of_the_first_scenes_on_one_split(cube
     assert first["train_crops"] == sum(per_scene[s] for s in chosen[0])
     assert second["train_crops"] == sum(per_scene[s] for s in chosen[1])
     assert f"| scenes | {second['train_crops']} from 2 scenes |" in printed.out
+    # error_breakdown.py measures such a model's training error on the crops of its own scenes only.
+    out = tmp_path / "breakdown.json"
+    assert load_benchmark("error_breakdown").main([first["checkpoint"], "--cache", str(tmp_path / "cache"),
+                                                   "--threads", "1", "--json", str(out)]) == 0
+    parts = json.loads(out.read_text())["results"][0]["parts"]
+    assert parts["train_base"]["n"] == first["train_crops"] and parts["train_base"]["scenes"] == 1
+    assert parts["test"]["n"] == first["n"]
     with pytest.raises(SystemExit):
         study.main([*argv[:-2], "--sizes", "20,40"])
     assert "--train-scenes takes the runs' crops from whole scenes: give one --sizes" in capsys.readouterr().err
