@@ -276,7 +276,8 @@ def markdown_objects(docs: list[dict]) -> str:
         raise SystemExit(f"--table: the files are of different studies (arch, config, rotation frame, split objects): "
                          f"{sorted(keys)}")
     arch = _net_label(docs[0])
-    lines = [f"{len(docs)} objects, {arch} ({docs[0]['rotation_frame']} frame):", "",
+    n_objects = len({d["object"] for d in docs})  # files of one object (other runs of it) count once
+    lines = [f"{n_objects} object{'s' if n_objects > 1 else ''}, {arch} ({docs[0]['rotation_frame']} frame):", "",
              "| object | split | training crops | augment | samples | test mean (deg) | median | under 5 deg | "
              "input mean | test crops |",
              "|---|---|---:|---|---:|---:|---:|---:|---:|---:|"]
