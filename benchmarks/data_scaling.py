@@ -117,6 +117,41 @@ def _passes_cell(row: dict) -> str:
                                                                      key=lambda kv: int(kv[0]))) or "-"
 
 
+def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]) -> list[tuple]:
+    """The runs of one split: ``(training crop indices, training scenes or None, augment, background, occlude)``.
+
+    Without ``--train-scenes`` a run takes the first N crops of a seeded permutation of the training part (plain
+    runs at each ``--sizes``, augmented ones at each ``--augment-sizes``); with it, every crop of the first S
+    training scenes of a seeded permutation of the scenes, for every kind of run.
+    """
+    plain = [] if args.skip_plain else [(False, 0.0, 0.0)]
+    augmented = [(True, 0.0, 0.0)] if args.augment and not args.skip_jitter else []
+    augmented += [(args.augment, p, 0.0) for p in args.background]
+    augmented += [(args.augment, 0.0, p) for p in args.occlude]
+    runs = []
+    if args.train_scenes:
+        # More scenes, not more crops of the same scenes; the split (made with the one --sizes) and the test
+        # crops stay the same.
+        scene_ids = train_all.scene_ids.astype(str)
+        scene_order = np.random.default_rng(args.seed).permutation(np.unique(scene_ids))
+        for s in args.train_scenes:
+            if s > len(scene_order):
+                print(f"{mode}: only {len(scene_order)} training scenes, skipping --train-scenes {s}", file=sys.stderr)
+                continue
+            index = np.flatnonzero(np.isin(scene_ids, scene_order[:s]))
+            runs += [(index, s, *kind) for kind in plain + augmented]
+        return runs
+    order = np.random.default_rng(args.seed).permutation(len(train_all))
+    for n, kinds in [(n, plain) for n in sizes] + [(n, augmented) for n in augment_sizes]:
+        if not kinds:
+            continue
+        if n > len(train_all):
+            print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
+            continue
+        runs += [(np.sort(order[:n]), None, *kind) for kind in kinds]
+    return runs
+
+
 def run(args) -> dict:
     import torch
 
@@ -147,34 +182,9 @@ def run(args) -> dict:
             raise SystemExit(f"{flag} needs instance masks, but {args.data} has none "
                              "(BOP mask_visib/; `refiner-rt render` writes them)")
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
-        order = np.random.default_rng(args.seed).permutation(len(train_all))
-        kinds = [] if args.skip_plain else [(False, 0.0, 0.0)]
-        kinds += [(True, 0.0, 0.0)] if args.augment and not args.skip_jitter else []
-        kinds += [(args.augment, p, 0.0) for p in args.background]
-        kinds += [(args.augment, 0.0, p) for p in args.occlude]
-        if args.train_scenes:
-            # Every crop of the first S training scenes of a seeded permutation: more scenes, not more crops
-            # of the same scenes; the split (made with the one --sizes) and the test crops stay the same.
-            if train_all.scene_ids is None:
-                raise SystemExit(f"--train-scenes: {args.data} gives its crops no scene ids")
-            scene_ids = train_all.scene_ids.astype(str)
-            scene_order = np.random.default_rng(args.seed).permutation(np.unique(scene_ids))
-            runs = []
-            for s in args.train_scenes:
-                if s > len(scene_order):
-                    print(f"{mode}: only {len(scene_order)} training scenes, skipping --train-scenes {s}",
-                          file=sys.stderr)
-                    continue
-                index = np.flatnonzero(np.isin(scene_ids, scene_order[:s]))
-                runs += [(len(index), s, index, *kind) for kind in kinds]
-        else:
-            runs = [] if args.skip_plain else [(n, None, None, False, 0.0, 0.0) for n in sizes]
-            runs += [(n, None, None, *kind) for n in augment_sizes for kind in kinds if kind != (False, 0.0, 0.0)]
-        for n, train_scenes, index, augment, background, occlude in runs:
-            if n > len(train_all):
-                print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
-                continue
-            train = train_all.subset(np.sort(order[:n]) if index is None else index)
+        for index, train_scenes, augment, background, occlude in _runs(args, mode, train_all, sizes, augment_sizes):
+            n = len(index)
+            train = train_all.subset(index)
             per_epoch = min(n, args.epoch_samples)
             epochs = max(2, math.ceil(args.samples / per_epoch))
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
@@ -202,8 +212,8 @@ def run(args) -> dict:
                     for k in range(2, args.iterations + 1)}
             if args.save:
                 slug = re.sub(r"[^A-Za-z0-9.]+", "-", _augment_label(row))
-                within = f"_s{train_scenes}" if train_scenes else ""
-                path = args.save / f"{args.object}_{mode}_n{n}{within}_{slug}.pt"
+                scenes_tag = f"_s{train_scenes}" if train_scenes else ""
+                path = args.save / f"{args.object}_{mode}_n{n}{scenes_tag}_{slug}.pt"
                 models.save_checkpoint(res.model, path, objects=[args.object], stage="data_scaling",
                                        train_config=vars(cfg), best_epoch=res.best_epoch,
                                        val_mean_deg=res.best_val_deg, train_noise=cfg.noise,
@@ -213,8 +223,8 @@ def run(args) -> dict:
                                           if train_scenes else {}))
                 row["checkpoint"] = str(path)
             rows.append(row)
-            within = f" scenes={train_scenes}" if train_scenes else ""
-            print(f"{mode:6s} n={n:6d}{within} augment={augment!s:5s} background={background:.2f} "
+            scenes_note = f" scenes={train_scenes}" if train_scenes else ""
+            print(f"{mode:6s} n={n:6d}{scenes_note} augment={augment!s:5s} background={background:.2f} "
                   f"occlude={occlude:.2f}: "
                   f"test {row['mean_deg']:.2f} deg "
                   f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
