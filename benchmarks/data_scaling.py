@@ -19,7 +19,8 @@ the reported error is on the test part with the inputs of ``refiner-rt eval`` (`
 the background of a crop with probability ``P``, ``--occlude P`` one that pastes another crop's object over it
 (both with the jitter of ``--augment`` when given; both need instance masks: BOP ``mask_visib/``, which
 ``refiner-rt render`` writes). ``--augment-sizes`` runs those augmented runs at other sizes too, on the same split;
-``--skip-jitter`` drops the run with jitter alone. ``--train-scenes S,...`` makes the runs take every crop of the first
+``--skip-jitter`` drops the run with jitter alone. ``--relight P`` gives every augmented run another scene's light and
+camera on a crop with probability ``P`` (a smooth shading field, light colour, gamma, blur, noise). ``--train-scenes S,...`` makes the runs take every crop of the first
 S training scenes instead of the first N crops (more scenes against fewer, with the same split and test crops).
 ``--split-objects IDS`` draws the split over several objects (the scenes split of ``refiner-rt train`` on them) and
 studies the object's part of it, to compare with such a model on the same test scenes. ``--table JSON`` prints
@@ -93,8 +94,8 @@ def _parse_objects(text: str) -> list[str]:
 
 
 def _augment_label(row: dict) -> str:
-    extra = [f"{name} {row[key]:g}" for key, name in (("background", "background"), ("occlude", "occluders"))
-             if row.get(key)]
+    extra = [f"{name} {row[key]:g}" for key, name in
+             (("background", "background"), ("occlude", "occluders"), ("relight", "relight")) if row.get(key)]
     if not extra:
         return "yes" if row["augment"] else "no"
     return " + ".join((["jitter"] if row["augment"] else []) + extra)
@@ -118,16 +119,17 @@ def _passes_cell(row: dict) -> str:
 
 
 def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]) -> list[tuple]:
-    """The runs of one split: ``(training crop indices, training scenes or None, augment, background, occlude)``.
+    """The runs of one split: ``(training crop indices, training scenes or None, augment, background, occlude,
+    relight)``.
 
     Without ``--train-scenes`` a run takes the first N crops of a seeded permutation of the training part (plain
     runs at each ``--sizes``, augmented ones at each ``--augment-sizes``); with it, every crop of the first S
     training scenes of a seeded permutation of the scenes, for every kind of run.
     """
-    plain = [] if args.skip_plain else [(False, 0.0, 0.0)]
-    augmented = [(True, 0.0, 0.0)] if args.augment and not args.skip_jitter else []
-    augmented += [(args.augment, p, 0.0) for p in args.background]
-    augmented += [(args.augment, 0.0, p) for p in args.occlude]
+    plain = [] if args.skip_plain else [(False, 0.0, 0.0, 0.0)]
+    augmented = [(True, 0.0, 0.0, args.relight)] if args.augment and not args.skip_jitter else []
+    augmented += [(args.augment, p, 0.0, args.relight) for p in args.background]
+    augmented += [(args.augment, 0.0, p, args.relight) for p in args.occlude]
     runs = []
     if args.train_scenes:
         # More scenes, not more crops of the same scenes; the split (made with the one --sizes) and the test
@@ -182,14 +184,15 @@ def run(args) -> dict:
             raise SystemExit(f"{flag} needs instance masks, but {args.data} has none "
                              "(BOP mask_visib/; `refiner-rt render` writes them)")
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
-        for index, train_scenes, augment, background, occlude in _runs(args, mode, train_all, sizes, augment_sizes):
+        for index, train_scenes, augment, background, occlude, relight in _runs(args, mode, train_all, sizes,
+                                                                                 augment_sizes):
             n = len(index)
             train = train_all.subset(index)
             per_epoch = min(n, args.epoch_samples)
             epochs = max(2, math.ceil(args.samples / per_epoch))
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
                               rotation_frame=args.rotation_frame, augment=augment, background=background,
-                              occlude=occlude, seed=args.seed,
+                              occlude=occlude, relight=relight, seed=args.seed,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
             model = models.build_refiner(args.arch, **args.config)
@@ -199,7 +202,8 @@ def run(args) -> dict:
             predictor = torch_predictor(res.model.eval())
             errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
             row = {"mode": mode, "train_crops": n, **({"train_scenes": train_scenes} if train_scenes else {}),
-                   "augment": augment, "background": background, "occlude": occlude, "epochs": epochs,
+                   "augment": augment, "background": background, "occlude": occlude,
+                   **({"relight": relight} if relight else {}), "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
                    "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
                    "scenes": scenes, "wall_s": wall}
@@ -225,7 +229,7 @@ def run(args) -> dict:
             rows.append(row)
             scenes_note = f" scenes={train_scenes}" if train_scenes else ""
             print(f"{mode:6s} n={n:6d}{scenes_note} augment={augment!s:5s} background={background:.2f} "
-                  f"occlude={occlude:.2f}: "
+                  f"occlude={occlude:.2f}{f' relight={relight:.2f}' if relight else ''}: "
                   f"test {row['mean_deg']:.2f} deg "
                   f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
                   f"{row['wall_s']:.0f} s", file=sys.stderr)
@@ -419,6 +423,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--occlude", type=_parse_probabilities, default=[], metavar="P[,P...]",
                    help="add a run per probability of pasting another crop's object over a crop at the largest size "
                         "(or at each --augment-sizes; with the jitter of --augment when given); needs instance masks")
+    p.add_argument("--relight", type=float, default=0.0, metavar="P",
+                   help="with probability P, give a crop of every augmented run (--augment, --background, --occlude) "
+                        "another scene's light and camera: a smooth shading field, light colour, gamma, blur and "
+                        "sensor noise")
     p.add_argument("--augment-sizes", type=lambda t: _parse_sizes(t, "--augment-sizes"), metavar="N[,N...]",
                    help="training crops of the --augment/--background/--occlude runs (default: the largest of --sizes;"
                         " each at most that, since the split is made with it)")
@@ -472,6 +480,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--skip-jitter needs --augment with --background or --occlude (it skips the run with jitter alone)")
     if args.skip_plain and not (args.augment or args.background or args.occlude):
         p.error("--skip-plain leaves no run: add --augment, --background or --occlude")
+    if not 0.0 <= args.relight <= 1.0:
+        p.error(f"--relight: expected a probability in [0, 1]; got {args.relight}")
+    if args.relight and not (args.augment or args.background or args.occlude):
+        p.error("--relight applies to the augmented runs: add --augment, --background or --occlude")
     if args.augment_sizes and max(args.augment_sizes) > max(_parse_sizes(args.sizes)):
         p.error(f"--augment-sizes: each must be at most the largest --sizes ({max(_parse_sizes(args.sizes))}), "
                 f"which makes the split; got {max(args.augment_sizes)}")

@@ -59,6 +59,8 @@ class TrainConfig:
         occlude: probability that a training crop gets an occluder: another crop's object (its masked
             pixels), shifted by up to 60% of the side, pasted over it, after ``background`` and before
             ``augment``; needs masks.
+        relight: probability that a training crop gets another scene's light and camera (a smooth shading field,
+            light colour, gamma, blur and sensor noise; see ``_relight``), after ``occlude`` and before ``augment``.
         seed: seed of the noise, shuffling and augmentation.
         val_seed: seed of the fixed validation noise (the same inputs every epoch).
         max_steps_per_epoch: cap on optimisation steps per epoch (0 = one full pass).
@@ -78,6 +80,7 @@ class TrainConfig:
     box_jitter: float = 0.05
     background: float = 0.0
     occlude: float = 0.0
+    relight: float = 0.0
     seed: int = 0
     val_seed: int = 12345
     max_steps_per_epoch: int = 0
@@ -94,7 +97,7 @@ class TrainConfig:
             raise ValueError(f"lr must be > 0; got {self.lr}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine'; got {self.lr_schedule!r}")
-        for name in ("background", "occlude"):
+        for name in ("background", "occlude", "relight"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be a probability in [0, 1]; got {getattr(self, name)}")
         if self.rotation_frame not in ("camera", "ray"):
@@ -206,6 +209,39 @@ def _paste_occluders(images: torch.Tensor, masks: torch.Tensor, p: float, gen: t
         m = donor_masks[i, y0 - dy : y1 - dy, x0 - dx : x1 - dx, None]
         out[i, y0:y1, x0:x1] = torch.where(m, src, out[i, y0:y1, x0:x1])
     return out
+
+
+def _relight(images: torch.Tensor, p: float, gen: torch.Generator) -> torch.Tensor:
+    """With probability ``p`` per crop, the light and camera of another scene: uint8 NHWC in and out.
+
+    What the renderer draws anew for every scene, beyond the backdrop, redrawn on the crop: a smooth shading field
+    across it (another light direction and ambient/diffuse balance: a 3x3 grid of gains in [0.6, 1.4], bicubic
+    upsampled), a light colour (per-channel gains in [0.8, 1.2]), a gamma in [0.7, 1.4], a Gaussian blur (sigma in
+    [0, 0.6] px of the crop: the renderer's blur of up to 1 px, shrunk with the object to the crop) and sensor noise
+    (std in [0, 4] grey levels). The other crops are returned unchanged.
+    """
+    n, s = images.shape[0], images.shape[1]
+    pick = torch.rand(n, generator=gen) < p
+    if n == 0 or not pick.any():
+        return images
+    x = images.permute(0, 3, 1, 2).float() / 255.0
+    grid = 0.6 + 0.8 * torch.rand(n, 1, 3, 3, generator=gen)
+    shading = F.interpolate(grid, size=(s, s), mode="bicubic", align_corners=True).clamp(0.5, 1.5)
+    colour = 0.8 + 0.4 * torch.rand(n, 3, 1, 1, generator=gen)
+    gamma = torch.exp(torch.empty(n, 1, 1, 1).uniform_(math.log(0.7), math.log(1.4), generator=gen))
+    x = (x * shading * colour).clamp(0, 1) ** gamma
+    # Per-crop Gaussian blur: one separable 7-tap kernel per crop, applied as a grouped convolution.
+    sigma = (0.6 * torch.rand(n, generator=gen)).clamp_min(1e-3)
+    taps = torch.arange(-3, 4, dtype=torch.float32)
+    kernel = torch.exp(-0.5 * (taps[None] / sigma[:, None]) ** 2)
+    kernel = (kernel / kernel.sum(dim=1, keepdim=True)).repeat_interleave(3, dim=0)  # (n * 3, 7)
+    flat = F.pad(x.reshape(1, n * 3, s, s), (3, 3, 3, 3), mode="replicate")
+    flat = F.conv2d(flat, kernel[:, None, None, :], groups=n * 3)
+    flat = F.conv2d(flat, kernel[:, None, :, None], groups=n * 3)
+    x = flat.reshape(n, 3, s, s) * 255.0
+    x = x + torch.randn(x.shape, generator=gen) * (4.0 * torch.rand(n, 1, 1, 1, generator=gen))
+    out = x.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1)
+    return torch.where(pick[:, None, None, None], out, images).contiguous()
 
 
 def _augment(images: torch.Tensor, cfg: TrainConfig, gen: torch.Generator) -> torch.Tensor:
@@ -350,6 +386,8 @@ def train_refiner(
                     images = _replace_background(images, masks, cfg.background, gen)
                 if cfg.occlude > 0:
                     images = _paste_occluders(images, masks, cfg.occlude, gen)
+            if cfg.relight > 0:
+                images = _relight(images, cfg.relight, gen)
             if cfg.augment:
                 images = _augment(images, cfg, gen)
             q_in = torch.from_numpy(q_in_all[idx].astype(np.float32))

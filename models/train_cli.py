@@ -145,6 +145,9 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--occlude", default=0.0, show_default=True, type=click.FloatRange(0, 1),
               help="Probability of pasting another training crop's object (its masked pixels, shifted) over a crop; "
                    "needs masks like --background.")
+@click.option("--relight", default=0.0, show_default=True, type=click.FloatRange(0, 1),
+              help="Probability of giving a training crop another scene's light and camera: a smooth shading field, "
+                   "light colour, gamma, blur and sensor noise (no masks needed).")
 @click.option("--rotation-frame", type=click.Choice(["camera", "ray"]), default="camera", show_default=True, help="camera: paper; ray: rotation relative to the viewing ray (needs K at run time).")
 @click.option("--max-steps-per-epoch", default=0, show_default=True, type=click.IntRange(0), help="Cap optimisation steps per epoch (0: full pass).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed of initialisation, noise and shuffling.")
@@ -328,6 +331,7 @@ def run_training(**o) -> dict:
         augment=o["augment"],
         background=o["background"],
         occlude=o["occlude"],
+        relight=o["relight"],
         seed=o["seed"],
         max_steps_per_epoch=o["max_steps_per_epoch"],
     )
