@@ -27,6 +27,7 @@ __all__ = [
     "inverse",
     "geodesic_angle",
     "geodesic_angle_rad",
+    "mean",
     "from_axis_angle",
     "to_axis_angle",
     "to_matrix",
@@ -180,6 +181,32 @@ def geodesic_angle(a, b) -> np.ndarray:
         ``(...)`` float64 angles in degrees.
     """
     return np.degrees(geodesic_angle_rad(a, b))
+
+
+def mean(q, axis: int = 0) -> np.ndarray:
+    """The rotation that averages unit quaternions along ``axis`` (the chordal L2 mean, as SciPy's
+    ``Rotation.mean``): the eigenvector of the largest eigenvalue of ``sum q q^T``, so ``q`` and ``-q`` count the
+    same.
+
+    Args:
+        q: ``(..., 4)`` unit quaternions, ``wxyz``, with at least one along ``axis``.
+        axis: the axis to average over (not the last one, which holds the four components).
+
+    Returns:
+        The quaternions with ``axis`` removed, float64, ``wxyz``, ``w >= 0``.
+    """
+    q = as_quaternion(q)
+    if q.ndim < 2:
+        raise ValueError(f"q must have an axis to average over besides the last (4 components); got shape {q.shape}")
+    axis = axis % q.ndim
+    if axis == q.ndim - 1:
+        raise ValueError("axis must not be the last axis: it holds the quaternion components wxyz")
+    if q.shape[axis] == 0:
+        raise ValueError(f"nothing to average: q has no quaternions along axis {axis} (shape {q.shape})")
+    q = np.moveaxis(q, axis, -2)
+    outer = np.einsum("...ki,...kj->...ij", q, q)
+    _, vectors = np.linalg.eigh(outer)  # eigenvalues ascending
+    return canonical(vectors[..., :, -1])
 
 
 def from_axis_angle(axis, angle_deg) -> np.ndarray:

@@ -212,3 +212,32 @@ def test_invalid_quaternions_are_rejected_with_clear_errors():
 def test_normalize_and_canonical():
     q = rq.normalize([[-2.0, 0, 0, 0], [0, -1.0, 0, 0]])
     np.testing.assert_array_equal(q, [[1, 0, 0, 0], [0, 1, 0, 0]])
+
+
+def test_mean_matches_scipy_and_ignores_signs():
+    for spread in (5.0, 40.0, 180.0):
+        centre = random_q(1)[0]
+        q = rq.multiply(centre, rq.sample_rotation_noise(7, "uniform", 0.0, spread, np.random.default_rng(int(spread))))
+        q = rq.normalize(q)
+        ref = rq.from_xyzw(Rotation.from_quat(rq.to_xyzw(q)).mean().as_quat())
+        assert same_rotation(rq.mean(q), ref, atol=1e-9)
+        flipped = q * np.array([1, -1, 1, -1, 1, -1, 1])[:, None]  # q and -q are one rotation
+        assert same_rotation(rq.mean(flipped), ref, atol=1e-9)
+    # Batched over other axes: (views, N, 4) averaged over the views, and over axis 1 of (N, views, 4).
+    q = random_q(12).reshape(3, 4, 4)
+    by_view = rq.mean(q, axis=0)
+    assert by_view.shape == (4, 4) and np.all(by_view[:, 0] >= 0)
+    for i in range(4):
+        ref = rq.from_xyzw(Rotation.from_quat(rq.to_xyzw(q[:, i])).mean().as_quat())
+        assert same_rotation(by_view[i], ref)
+    assert np.allclose(rq.mean(np.swapaxes(q, 0, 1), axis=1), by_view)
+    assert same_rotation(rq.mean(q[:1], axis=0), rq.canonical(q[0]))
+
+
+def test_mean_rejects_what_it_cannot_average():
+    with pytest.raises(ValueError, match="axis to average over"):
+        rq.mean(np.array([1.0, 0, 0, 0]))
+    with pytest.raises(ValueError, match="must not be the last axis"):
+        rq.mean(random_q(3), axis=-1)
+    with pytest.raises(ValueError, match="nothing to average"):
+        rq.mean(np.zeros((0, 4)))

@@ -1,0 +1,167 @@
+"""Averaging a refiner's corrections on held-out crops: box-jittered views of each crop, and ensembles of models.
+
+A refiner's correction ``q_out`` is noisy. Two ways to average it cost network passes, not training or data:
+*views* refine each test crop and ``K - 1`` box-jittered copies of it (the training's box jitter: the centre shifted
+and the side scaled by up to 5% of the side, one affine resample of the cached crop, a fixed seed) and average the
+``K`` corrections; an *ensemble* averages the corrections of several models (trained on the same split), with one
+view or ``K``. The average is the chordal mean of the rotations (``refiner_rt.quaternion.mean``, SciPy's
+``Rotation.mean``), composed as ``q_in * q_out`` like one pass.
+
+Usage (from the repository root)::
+
+    python benchmarks/averaging.py CKPT [CKPT ...] [--views 4,8] [--cache DIR] [--data DIR] [--json OUT]
+
+Every checkpoint must record the same split (``refiner-rt train`` or ``data_scaling.py --save``); they are tested
+on its test crops of their objects with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024), so every
+row sees the same crops and coarse poses. Each row states its network passes per object (views x models): the
+averaging's price in speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+
+def jittered_views(crops: np.ndarray, views: int, jitter: float = 0.05, seed: int = 0) -> list[np.ndarray]:
+    """``crops`` (uint8 NHWC) and ``views - 1`` box-jittered copies of them (``models.train.box_jitter``)."""
+    import torch
+
+    from models.train import box_jitter
+
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.from_numpy(np.array(crops)).permute(0, 3, 1, 2).float()
+    out = [np.asarray(crops)]
+    for _ in range(views - 1):
+        y = box_jitter(x, jitter, gen).clamp(0, 255).round().to(torch.uint8)
+        out.append(y.permute(0, 2, 3, 1).contiguous().numpy())
+    return out
+
+
+def averaged_predictor(nets: list, views: int):
+    """A predictor (``models.evaluate``) that averages the corrections of ``nets`` over ``views`` views."""
+    from models.train import predict
+    from refiner_rt import quaternion as rq
+
+    def run(crops, q_in):
+        outs = [predict(net, v, q_in) for v in jittered_views(crops, views) for net in nets]
+        return rq.mean(np.stack(outs), axis=0)
+
+    return run
+
+
+def load_models(paths: list[Path], data: Path | None, cache: Path | None):
+    """The nets, their shared test crops (of their objects) and rotation frame; refuses checkpoints of other splits."""
+    import models
+    from models.pipeline import checkpoint_test_set
+
+    loaded = [models.load_checkpoint(p) for p in paths]
+    first = loaded[0][1]
+    for p, (_, info) in zip(paths, loaded):
+        if not info.get("data"):
+            raise SystemExit(f"{p}: the checkpoint records no split (info['data']); train it with refiner-rt train "
+                             "or data_scaling.py --save")
+        for key, what in (("data", "split"), ("rotation_frame", "rotation frame"), ("objects", "objects")):
+            if info.get(key) != first.get(key):
+                raise SystemExit(f"{p}: its {what} ({info.get(key)}) is not that of {paths[0]} ({first.get(key)}); "
+                                 "averaging compares models on the same test crops: give checkpoints of one split, "
+                                 "frame and object set")
+        if loaded[0][0].input_size != loaded[-1][0].input_size or \
+                loaded[0][0].config["crop_context"] != loaded[-1][0].config["crop_context"]:
+            raise SystemExit(f"{p}: its crops (input size, context) differ from those of {paths[0]}")
+    try:
+        test, _ = checkpoint_test_set(loaded[0][0], first, data=data, cache_root=cache)
+    except ValueError as exc:
+        raise SystemExit(f"{paths[0]}: {exc}") from None
+    objects = first.get("objects") or None
+    if objects:
+        test = test.subset(np.isin(test.obj_ids, objects))
+    if len(test) == 0:
+        raise SystemExit(f"{paths[0]}: its recorded split has no test crops of its objects {objects}")
+    return [m.eval() for m, _ in loaded], test, first.get("rotation_frame", "camera")
+
+
+def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | None) -> list[dict]:
+    from models.evaluate import evaluate_errors
+
+    nets, test, frame = load_models(paths, data, cache)
+    names = [p.name for p in paths]
+    if len(set(names)) < len(names):  # e.g. data_scaling.py --save of two seeds in two folders
+        names = [str(p) for p in paths]
+    rows = []
+    groups = [[i] for i in range(len(nets))] + ([list(range(len(nets)))] if len(nets) > 1 else [])
+    for group in groups:
+        for k in [1, *views]:
+            errors = evaluate_errors(averaged_predictor([nets[i] for i in group], k), test, rotation_frame=frame)
+            row = {"models": [names[i] for i in group], "views": k, "passes": k * len(group),
+                   **errors.summary()["pooled"]}
+            rows.append(row)
+            print(f"{' + '.join(row['models'])}, {k} view(s): {row['mean_deg']:.2f} deg (median {row['median_deg']:.2f})",
+                  file=sys.stderr)
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["Mean geodesic error (deg) on the test crops, inputs U(0, 30):", "",
+             "| models | views | network passes | mean | median | under 5 deg |", "|---|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {' + '.join(r['models'])} | {r['views']} | {r['passes']} | {r['mean_deg']:.2f} | "
+                     f"{r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% |")
+    return "\n".join(lines)
+
+
+def _parse_views(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or any(v < 2 for v in values):
+        raise argparse.ArgumentTypeError(f"expected view counts >= 2, comma-separated (one view is always measured); "
+                                         f"got {text!r}")
+    return sorted(set(values))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("checkpoints", type=Path, nargs="+", metavar="CKPT")
+    p.add_argument("--views", type=_parse_views, default=[4, 8], metavar="K[,K...]",
+                   help="view counts to measure besides one (default: 4,8)")
+    p.add_argument("--data", type=Path, help="the dataset folder if it moved since training (default: the recorded one)")
+    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--json", type=Path, help="write the rows and the command here")
+    args = p.parse_args(argv)
+    missing = [str(c) for c in args.checkpoints if not c.is_file()]
+    if missing:
+        p.error(f"no such checkpoint file(s): {', '.join(missing)}")
+
+    import torch
+
+    from models.train import set_threads
+
+    threads = set_threads(args.threads)
+    rows = run(args.checkpoints, args.views, args.data, args.cache)
+    print(markdown(rows))
+    if args.json:
+        doc = {"study": "corrections averaged over box-jittered views and over models", "rows": rows,
+               "test_noise": "uniform:0:30", "checkpoints": [str(c) for c in args.checkpoints],
+               "command": shlex.join(["python", "benchmarks/averaging.py", *(sys.argv[1:] if argv is None else argv)]),
+               "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
+                           "threads": threads, "torch": torch.__version__}}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,70 @@
+"""benchmarks/averaging.py: corrections averaged over box-jittered views and over models, on the tiny cube dataset."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench_scripts import load_benchmark
+from cube_dataset import make_cube_dataset
+from models.evaluate import evaluate_errors, torch_predictor
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """Two tiny models of one split (seeds 0 and 1) and one of another split, kept by data_scaling.py --save."""
+    tmp = tmp_path_factory.mktemp("averaging")
+    data = tmp / "cubes"
+    make_cube_dataset(data, scenes=6, frames=20)
+    study = load_benchmark("data_scaling")
+    paths = []
+    for seed, split_seed in ((0, 0), (1, 0), (0, 1)):
+        out = tmp / f"s{seed}_{split_seed}.json"
+        argv = ["--data", str(data), "--object", "003_cracker_box", "--modes", "scenes", "--sizes", "30", "--val",
+                "10", "--test", "20", "--samples", "64", "--epoch-samples", "32", "--cache", str(tmp / "cache"),
+                "--threads", "1", "--seed", str(seed), "--split-seed", str(split_seed),
+                "--save", str(tmp / f"models_{seed}_{split_seed}"), "--json", str(out), "--quiet"]
+        assert study.main(argv) == 0
+        paths.append(json.loads(out.read_text())["rows"][0]["checkpoint"])
+    return tmp, paths
+
+
+def test_views_and_ensembles_on_the_same_test_crops(saved, capsys):
+    tmp, (a, b, _) = saved
+    out = tmp / "avg.json"
+    bench = load_benchmark("averaging")
+    assert bench.main([a, b, "--views", "3", "--cache", str(tmp / "cache"), "--threads", "1", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    rows = {(tuple(r["models"]), r["views"]): r for r in doc["rows"]}
+    name_a, name_b = (Path(a).name, Path(b).name) if Path(a).name != Path(b).name else (a, b)
+    assert set(rows) == {((name_a,), 1), ((name_a,), 3), ((name_b,), 1), ((name_b,), 3),
+                         ((name_a, name_b), 1), ((name_a, name_b), 3)}
+    assert rows[((name_a, name_b), 3)]["passes"] == 6
+    # One view of one model is that model's own error, as data_scaling.py measured it on the same test crops.
+    own = json.loads((tmp / "s0_0.json").read_text())["rows"][0]
+    assert rows[((name_a,), 1)]["mean_deg"] == pytest.approx(own["mean_deg"], abs=1e-9)
+    # Averages of a model with itself change nothing: the mean of identical rotations is that rotation.
+    nets, test, frame = bench.load_models([Path(a)] * 2, None, tmp / "cache")
+    one = evaluate_errors(torch_predictor(nets[0]), test, rotation_frame=frame)
+    twice = evaluate_errors(bench.averaged_predictor(nets, 1), test, rotation_frame=frame)
+    np.testing.assert_allclose(twice.err_out_deg, one.err_out_deg, atol=1e-3)
+    # Jittered views are the crop itself first, then changed copies of the same size.
+    views = bench.jittered_views(test.crops[:4], 3)
+    assert len(views) == 3 and np.array_equal(views[0], test.crops[:4])
+    assert all(v.shape == test.crops[:4].shape and v.dtype == np.uint8 and not np.array_equal(v, views[0])
+               for v in views[1:])
+    assert "| " + name_a + " + " + name_b + " | 3 | 6 |" in capsys.readouterr().out
+
+
+def test_models_of_other_splits_and_bad_views_are_refused(saved, capsys):
+    tmp, (a, _, other) = saved
+    bench = load_benchmark("averaging")
+    with pytest.raises(SystemExit, match="its split .* is not that of"):
+        bench.main([a, other, "--cache", str(tmp / "cache"), "--threads", "1"])
+    with pytest.raises(SystemExit):
+        bench.main([a, "--views", "1"])
+    assert "expected view counts >= 2" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bench.main([str(tmp / "missing.pt")])
+    assert "no such checkpoint file(s)" in capsys.readouterr().err
