@@ -1,9 +1,9 @@
 """Averaging a refiner's corrections on held-out crops: box-jittered views of each crop, and ensembles of models.
 
 A refiner's correction ``q_out`` is noisy. Two ways to average it cost network passes, not training or data:
-*views* refine each test crop and ``K - 1`` box-jittered copies of it (the training's box jitter: the centre shifted
-and the side scaled by up to 5% of the side, one affine resample of the cached crop, a fixed seed) and average the
-``K`` corrections; an *ensemble* averages the corrections of several models (trained on the same split), with one
+*views* refine each test crop and ``K - 1`` box-jittered copies of it (the windows of
+``RefinerSession.refine(views=K)``: the centre shifted and the side scaled by up to 5% of the window, a fixed pattern,
+as the training's box jitter; here one affine resample of the cached crop) and average the ``K`` corrections; an *ensemble* averages the corrections of several models (trained on the same split), with one
 view or ``K``. The average is the chordal mean of the rotations (``refiner_rt.quaternion.mean``, SciPy's
 ``Rotation.mean``), composed as ``q_in * q_out`` like one pass.
 
@@ -33,18 +33,23 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 
-def jittered_views(crops: np.ndarray, views: int, jitter: float = 0.05, seed: int = 0) -> list[np.ndarray]:
-    """``crops`` (uint8 NHWC) and ``views - 1`` box-jittered copies of them (``models.train.box_jitter``)."""
+def jittered_views(crops: np.ndarray, views: int) -> list[np.ndarray]:
+    """``crops`` (uint8 NHWC, each the crop window of its box) and ``views - 1`` copies of them seen through the
+    windows of ``RefinerSession.refine(views=...)`` (``refiner_rt.session.view_offsets``): one affine resample of the
+    cached crop each, zeros where the window leaves the crop (the runtime re-crops the image there)."""
     import torch
+    import torch.nn.functional as F
 
-    from models.train import box_jitter
+    from refiner_rt.session import view_offsets
 
-    gen = torch.Generator().manual_seed(seed)
     x = torch.from_numpy(np.array(crops)).permute(0, 3, 1, 2).float()
     out = [np.asarray(crops)]
-    for _ in range(views - 1):
-        y = box_jitter(x, jitter, gen).clamp(0, 255).round().to(torch.uint8)
-        out.append(y.permute(0, 2, 3, 1).contiguous().numpy())
+    for dx, dy, ds in view_offsets(views)[1:]:
+        # affine_grid units: the window spans [-1, 1], so a shift of dx windows is 2 * dx.
+        theta = torch.tensor([[1 + ds, 0.0, 2 * dx], [0.0, 1 + ds, 2 * dy]], dtype=torch.float32).expand(len(x), 2, 3)
+        grid = F.affine_grid(theta, list(x.shape), align_corners=False)
+        y = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        out.append(y.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).contiguous().numpy())
     return out
 
 

@@ -244,10 +244,12 @@ def _relight(images: torch.Tensor, p: float, gen: torch.Generator) -> torch.Tens
     return torch.where(pick[:, None, None, None], out, images).contiguous()
 
 
-def box_jitter(x: torch.Tensor, j: float, gen: torch.Generator) -> torch.Tensor:
-    """A detector-like box jitter on a float NCHW batch: each crop's centre shifted and its side scaled by up to
-    ``j`` of the side (one affine resample, zeros outside the crop)."""
-    n = x.shape[0]
+def _augment(images: torch.Tensor, cfg: TrainConfig, gen: torch.Generator) -> torch.Tensor:
+    """Colour jitter and a detector-like box jitter on a uint8 NHWC batch; returns uint8 NHWC."""
+    n = images.shape[0]
+    x = images.permute(0, 3, 1, 2).float()
+    # Box jitter: shift the crop centre and scale its side by up to box_jitter (one affine resample).
+    j = cfg.box_jitter
     scale = 1 + (torch.rand(n, generator=gen) * 2 - 1) * j
     shift = (torch.rand(n, 2, generator=gen) * 2 - 1) * j * 2  # affine_grid units: the side is 2
     theta = torch.zeros(n, 2, 3)
@@ -255,13 +257,7 @@ def box_jitter(x: torch.Tensor, j: float, gen: torch.Generator) -> torch.Tensor:
     theta[:, 1, 1] = scale
     theta[:, :, 2] = shift
     grid = F.affine_grid(theta, list(x.shape), align_corners=False)
-    return F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-
-
-def _augment(images: torch.Tensor, cfg: TrainConfig, gen: torch.Generator) -> torch.Tensor:
-    """Colour jitter and a detector-like box jitter on a uint8 NHWC batch; returns uint8 NHWC."""
-    n = images.shape[0]
-    x = box_jitter(images.permute(0, 3, 1, 2).float(), cfg.box_jitter, gen)
+    x = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     # Colour: brightness, contrast and per-channel gain.
     brightness = (torch.rand(n, 1, 1, 1, generator=gen) * 2 - 1) * 25
     contrast = 1 + (torch.rand(n, 1, 1, 1, generator=gen) * 2 - 1) * 0.2

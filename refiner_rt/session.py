@@ -38,7 +38,8 @@ from refiner_rt.metadata import (
 )
 from refiner_rt.preprocess import crop_to_square, resize_crop, validate_boxes, validate_image
 
-__all__ = ["RefinerSession", "RefineResult", "SMALL_BATCH", "available_cores", "ray_quaternions"]
+__all__ = ["RefinerSession", "RefineResult", "SMALL_BATCH", "MAX_VIEWS", "available_cores", "ray_quaternions", "view_boxes",
+           "view_offsets"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,43 @@ log = logging.getLogger(__name__)
 # 90 us for the numpy path at any N up to 64, so the crossover is near 50 boxes.
 SMALL_BATCH = 32
 _MIN_NORM = 1e-12  # as refiner_rt.quaternion.as_quaternion: a smaller norm is a zero quaternion
+# refine(views=K): the largest K, and the box jitter of the extra views as a fraction of the crop window (the
+# training's --augment box jitter, models.train.TrainConfig.box_jitter).
+MAX_VIEWS = 16
+VIEW_JITTER = 0.05
+
+
+def _halton(index: int, base: int) -> float:
+    """The ``index``-th element (from 1) of the van der Corput sequence in ``base``: in (0, 1), evenly spread."""
+    f, r = 1.0, 0.0
+    while index > 0:
+        f /= base
+        r += f * (index % base)
+        index //= base
+    return r
+
+
+# View v >= 1 shifts the window's centre by (dx, dy) and scales it by (1 + ds), each in [-1, 1] x VIEW_JITTER:
+# a fixed 3-D Halton pattern, so every call and every box get the same views. View 0 is the box itself.
+_VIEW_OFFSETS = np.array([[2 * _halton(v, b) - 1 for b in (2, 3, 5)] for v in range(1, MAX_VIEWS)])
+
+
+def view_offsets(views: int) -> np.ndarray:
+    """``(views, 3)``: each view's window shift ``(dx, dy)`` as a fraction of the window side and its scale change
+    ``ds`` (side ``* (1 + ds)``); view 0 is the box itself (zeros)."""
+    return np.vstack([np.zeros((1, 3)), _VIEW_OFFSETS[: views - 1]]) * VIEW_JITTER
+
+
+def view_boxes(boxes_xyxy: np.ndarray, views: int, context: float) -> np.ndarray:
+    """``(N * views, 4)`` boxes, object-major: each box, then ``views - 1`` fixed jitters of it (see ``refine``)."""
+    b = np.asarray(boxes_xyxy, dtype=np.float64)
+    centre = 0.5 * (b[:, :2] + b[:, 2:])
+    half = 0.5 * (b[:, 2:] - b[:, :2])
+    window = context * 2 * half.max(axis=1)
+    offsets = view_offsets(views)
+    c = centre[:, None, :] + offsets[None, :, :2] * window[:, None, None]
+    h = half[:, None, :] * (1 + offsets[None, :, 2:])
+    return np.concatenate([c - h, c + h], axis=2).reshape(-1, 4)
 
 
 def available_cores() -> int:
@@ -340,7 +378,7 @@ class RefinerSession:
         return self._session.get_outputs()
 
     # ------------------------------------------------------------------ public API
-    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, iterations: int = 1, K=None) -> RefineResult:
+    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, iterations: int = 1, K=None, views: int = 1) -> RefineResult:
         """Refine the rotations of ``N`` objects seen in one image.
 
         Args:
@@ -352,6 +390,11 @@ class RefinerSession:
             iterations: feed the refined rotation back this many times (``>= 1``; the paper does 1).
             K: ``(3, 3)`` camera intrinsics. Required by models trained in the viewing-ray frame
                 (metadata ``rotation_frame == "ray"``), unused by ``"camera"`` models.
+            views: refine each object from this many crops and average the corrections (chordal mean,
+                :func:`refiner_rt.quaternion.mean`): the box itself and ``views - 1`` fixed jitters of it (window
+                centre shifted and side scaled by up to 5%, as the training's ``--augment`` box jitter), in one
+                batch of ``N * views`` crops. Costs ``views`` network passes per object; it suits models trained
+                with ``--augment`` (``benchmarks/averaging.py`` measures it). ``1`` to :data:`MAX_VIEWS`.
 
         Returns:
             :class:`RefineResult` with ``q_refined`` ``(N, 4)`` float64 ``wxyz``, ``w >= 0``.
@@ -369,6 +412,9 @@ class RefinerSession:
         q_in, q_rows = self._q_in(q_in_wxyz, len(boxes), "boxes_xyxy")
         if type(iterations) is not int or iterations < 1:
             iterations = self._validate_iterations(iterations)
+        if type(views) is not int or views != 1:
+            views = self._validate_views(views)
+            q_rows, small = None, None  # the averaged path runs on numpy arrays
         q_frame = None
         if self._ray:
             if K is None:
@@ -383,11 +429,13 @@ class RefinerSession:
                 q_frame = ray_quaternions(K, boxes)
         elif K is not None:
             _validate_K(K)
-        crops = self._crops(len(boxes))
         size, context = self.contract.input_size, self.contract.crop_context
+        if views > 1:
+            rows = view_boxes(boxes, views, context)
+        crops = self._crops(len(rows))
         for i, box in enumerate(rows):
             crop_to_square(image, box, size, context, out=crops[i])
-        return self._run(crops, q_in, q_rows, iterations, q_frame)
+        return self._run(crops, q_in, q_rows, iterations, q_frame, views)
 
     def refine_crops(self, crops_bgr, q_in_wxyz, iterations: int = 1) -> RefineResult:
         """Refine rotations from crops that are already cut out (the crop window, any size).
@@ -456,6 +504,12 @@ class RefinerSession:
             raise ValueError(f"iterations must be an integer >= 1; got {iterations!r}")
         return int(iterations)
 
+    @staticmethod
+    def _validate_views(views) -> int:
+        if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or not 1 <= views <= MAX_VIEWS:
+            raise ValueError(f"views must be an integer from 1 to {MAX_VIEWS}; got {views!r}")
+        return int(views)
+
     def _crops(self, n: int) -> np.ndarray:
         """A view of ``n`` crops in the reusable uint8 batch buffer (grown when needed)."""
         if len(self._buffer) < n:
@@ -469,15 +523,18 @@ class RefinerSession:
             self._q32 = np.zeros((max(n, 2 * len(self._q32)), 4), dtype=np.float32)
         return self._q32[:n]
 
-    def _run(self, crops: np.ndarray, q_in: np.ndarray, q_rows: list | None, iterations: int, q_frame) -> RefineResult:
-        """Run the network ``iterations`` times and compose; Python floats when ``q_rows`` is given, else numpy."""
+    def _run(self, crops: np.ndarray, q_in: np.ndarray, q_rows: list | None, iterations: int, q_frame,
+             views: int = 1) -> RefineResult:
+        """Run the network ``iterations`` times and compose; Python floats when ``q_rows`` is given, else numpy.
+        With ``views > 1`` (numpy only) ``crops`` holds ``views`` crops per object, object-major, and each pass
+        averages their corrections."""
         n = len(q_in)
         if n == 0:
             empty = np.zeros((0, 4))
             return RefineResult(q_refined=empty, q_out=empty.copy(), q_in=empty.copy())
         if self._rgb:
             crops = np.ascontiguousarray(crops[..., ::-1])
-        q_net = self._q_net(n)
+        q_net = self._q_net(n * views)
         feed = {INPUT_IMAGE: crops, INPUT_QUATERNION: q_net}
         # The network sees rotations in its own frame; for "ray" models q_net = q_ray^-1 * q.
         # q_refined = q_prev * q_out holds in either frame (q_ray * (q_ray^-1 q) * q_out = q * q_out).
@@ -491,11 +548,15 @@ class RefinerSession:
                 frame_inv = _conjugate_rows(q_frame if isinstance(q_frame, list) else q_frame.tolist())
         for _ in range(iterations):
             if frame_inv is None:
-                q_net[...] = q
+                q_cur = q
             else:
-                q_net[...] = rq.multiply(frame_inv, q) if q_rows is None else _multiply_rows(frame_inv, q)
+                q_cur = rq.multiply(frame_inv, q) if q_rows is None else _multiply_rows(frame_inv, q)
+            q_net[...] = q_cur if views == 1 else np.repeat(q_cur, views, axis=0)
             out = self._session.run(self._output_names, feed)[0]
-            if q_rows is not None:
+            if views > 1:
+                q_out = rq.mean(rq.normalize(out.astype(np.float64)).reshape(n, views, 4), axis=1)
+                q = rq.normalize(rq.multiply(q, q_out))
+            elif q_rows is not None:
                 q_out = _unit_rows(out.tolist())
                 if q_out is None:  # a non-finite or zero model output: rq.normalize raises the detailed error
                     rq.normalize(out.astype(np.float64))

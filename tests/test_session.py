@@ -12,7 +12,7 @@ import onnx_fixtures as fx
 from refiner_rt import RefinerSession
 from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import crop_to_square, resize_crop
-from refiner_rt.session import ray_quaternions
+from refiner_rt.session import MAX_VIEWS, VIEW_JITTER, ray_quaternions, view_boxes
 
 RNG = np.random.default_rng(0)
 IMG = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)
@@ -39,6 +39,51 @@ def test_iterations_apply_the_correction_k_times():
     q_out = rq.from_axis_angle([0, 0, 1], 10.0)
     sess = RefinerSession(fx.constant_model(q_out))
     res = sess.refine(IMG, BOXES[:1], rq.identity((1,)), iterations=3)
+    np.testing.assert_allclose(rq.geodesic_angle(res.q_refined, rq.from_axis_angle([0, 0, 1], 30.0)), 0, atol=1e-4)
+
+
+def test_view_boxes_are_the_box_then_fixed_small_jitters_of_it():
+    views = view_boxes(BOXES, MAX_VIEWS, 1.2).reshape(len(BOXES), MAX_VIEWS, 4)
+    np.testing.assert_array_equal(views[:, 0], BOXES)
+    np.testing.assert_array_equal(view_boxes(BOXES, 3, 1.2).reshape(3, 3, 4), views[:, :3])  # a prefix, every call
+    for box, v in zip(BOXES, views):
+        size, centre = box[2:] - box[:2], 0.5 * (box[:2] + box[2:])
+        window = 1.2 * size.max()
+        shift = np.abs(0.5 * (v[:, :2] + v[:, 2:]) - centre) / window
+        scale = (v[:, 2:] - v[:, :2]) / size
+        assert shift.max() <= VIEW_JITTER + 1e-12 and np.abs(scale - 1).max() <= VIEW_JITTER + 1e-12
+        np.testing.assert_allclose(scale[:, 0], scale[:, 1])  # the aspect ratio is kept
+        assert len({tuple(np.round(b, 9)) for b in v}) == MAX_VIEWS  # all different
+        assert shift[1:].max() > 0.6 * VIEW_JITTER  # and spread over the range, not bunched at the box
+
+
+def test_views_average_the_corrections_of_the_jittered_crops():
+    # The channel-mean model's correction depends on the crop, so each view gives its own; the result is their
+    # chordal mean (SciPy's Rotation.mean), composed as q_in * q_out.
+    sess = RefinerSession(fx.channel_mean_model(size=8))
+    q_in = rq.from_xyzw(Rotation.random(3, random_state=4).as_quat())
+    res = sess.refine(IMG, BOXES, q_in, views=5)
+    per_view = sess.refine(IMG, view_boxes(BOXES, 5, 1.2), np.repeat(q_in, 5, axis=0)).q_out.reshape(3, 5, 4)
+    assert rq.geodesic_angle(per_view[:, 0], per_view[:, 1]).max() > 0.1  # the views really differ
+    for i in range(3):
+        ref = rq.from_xyzw(scipy_q(per_view[i]).mean().as_quat())
+        assert rq.geodesic_angle(res.q_out[i], ref) < 1e-4
+    np.testing.assert_allclose(rq.geodesic_angle(res.q_refined, rq.multiply(q_in, res.q_out)), 0, atol=1e-6)
+    # One view is the plain refine, on both the small-batch and the numpy path.
+    np.testing.assert_array_equal(sess.refine(IMG, BOXES, q_in, views=1).q_out, sess.refine(IMG, BOXES, q_in).q_out)
+
+
+def test_views_keep_the_ray_frame_and_iterations():
+    K = np.array([[500.0, 0, 31.5], [0, 500.0, 23.5], [0, 0, 1]])
+    sess = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
+    q_in = rq.from_xyzw(Rotation.random(3, random_state=2).as_quat())
+    # Every view of a box gets the rotation in the frame of the box's own ray (the training's box jitter keeps the
+    # label): the echo model returns it from each view, so the average is exactly that.
+    res = sess.refine(IMG, BOXES, q_in, K=K, views=4)
+    np.testing.assert_allclose(rq.geodesic_angle(res.q_out, sess.refine(IMG, BOXES, q_in, K=K).q_out), 0, atol=1e-4)
+    q_out = rq.from_axis_angle([0, 0, 1], 10.0)
+    const = RefinerSession(fx.constant_model(q_out))
+    res = const.refine(IMG, BOXES[:1], rq.identity((1,)), iterations=3, views=3)
     np.testing.assert_allclose(rq.geodesic_angle(res.q_refined, rq.from_axis_angle([0, 0, 1], 30.0)), 0, atol=1e-4)
 
 
@@ -131,6 +176,10 @@ def test_empty_batch_returns_empty_result():
         (dict(q_in_wxyz=np.full((3, 4), np.nan)), "finite"),
         (dict(q_in_wxyz=np.ones((3, 3))), r"shape \(\.\.\., 4\)"),
         (dict(iterations=0), "iterations must be an integer >= 1"),
+        (dict(views=0), "views must be an integer from 1 to 16"),
+        (dict(views=17), "views must be an integer from 1 to 16"),
+        (dict(views=2.0), "views must be an integer from 1 to 16"),
+        (dict(views=True), "views must be an integer from 1 to 16"),
         (dict(K=np.eye(2)), r"K must be a \(3, 3\)"),
         (dict(K=np.diag([500.0, 500.0, np.inf])), "K must be finite"),
         (dict(K=np.diag([-500.0, 500.0, 1.0])), "fx > 0 and fy > 0"),
