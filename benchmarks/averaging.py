@@ -101,7 +101,9 @@ def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | No
 
     nets, test, frame = load_models(paths, data, cache)
     names = [p.name for p in paths]
-    if len(set(names)) < len(names):  # e.g. data_scaling.py --save of two seeds in two folders
+    if len(set(names)) < len(names):  # e.g. data_scaling.py --save of two runs in two folders: add the folder
+        names = [f"{p.parent.name}/{p.name}" for p in paths]
+    if len(set(names)) < len(names):
         names = [str(p) for p in paths]
     rows = []
     groups = [[i] for i in range(len(nets))] + ([list(range(len(nets)))] if len(nets) > 1 else [])

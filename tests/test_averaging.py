@@ -37,7 +37,7 @@ def test_views_and_ensembles_on_the_same_test_crops(saved, capsys):
     assert bench.main([a, b, "--views", "3", "--cache", str(tmp / "cache"), "--threads", "1", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     rows = {(tuple(r["models"]), r["views"]): r for r in doc["rows"]}
-    name_a, name_b = (Path(a).name, Path(b).name) if Path(a).name != Path(b).name else (a, b)
+    name_a, name_b = (f"{Path(x).parent.name}/{Path(x).name}" for x in (a, b))  # one file name in two folders
     assert set(rows) == {((name_a,), 1), ((name_a,), 3), ((name_b,), 1), ((name_b,), 3),
                          ((name_a, name_b), 1), ((name_a, name_b), 3)}
     assert rows[((name_a, name_b), 3)]["passes"] == 6
