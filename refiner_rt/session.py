@@ -38,8 +38,8 @@ from refiner_rt.metadata import (
 )
 from refiner_rt.preprocess import crop_to_square, resize_crop, validate_boxes, validate_image
 
-__all__ = ["RefinerSession", "RefineResult", "SMALL_BATCH", "MAX_VIEWS", "available_cores", "ray_quaternions", "view_boxes",
-           "view_offsets"]
+__all__ = ["RefinerSession", "RefineResult", "SMALL_BATCH", "MAX_VIEWS", "available_cores", "ray_quaternions",
+           "view_boxes", "view_offsets"]
 
 log = logging.getLogger(__name__)
 

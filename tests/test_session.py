@@ -69,7 +69,8 @@ def test_views_average_the_corrections_of_the_jittered_crops():
         ref = rq.from_xyzw(scipy_q(per_view[i]).mean().as_quat())
         assert rq.geodesic_angle(res.q_out[i], ref) < 1e-4
     np.testing.assert_allclose(rq.geodesic_angle(res.q_refined, rq.multiply(q_in, res.q_out)), 0, atol=1e-6)
-    # One view is the plain refine, on both the small-batch and the numpy path.
+    assert sess.refine(IMG, np.zeros((0, 4)), np.zeros((0, 4)), views=3).q_refined.shape == (0, 4)
+    # views=1 is the plain refine.
     np.testing.assert_array_equal(sess.refine(IMG, BOXES, q_in, views=1).q_out, sess.refine(IMG, BOXES, q_in).q_out)
 
 
