@@ -20,8 +20,9 @@ the background of a crop with probability ``P``, ``--occlude P`` one that pastes
 (both with the jitter of ``--augment`` when given; both need instance masks: BOP ``mask_visib/``, which
 ``refiner-rt render`` writes). ``--augment-sizes`` runs those augmented runs at other sizes too, on the same split;
 ``--skip-jitter`` drops the run with jitter alone. ``--relight P`` gives every augmented run another scene's light and
-camera on a crop with probability ``P`` (a smooth shading field, light colour, gamma, blur, noise). ``--train-scenes S,...`` makes the runs take every crop of the first
-S training scenes instead of the first N crops (more scenes against fewer, with the same split and test crops).
+camera on a crop with probability ``P`` (a smooth shading field, light colour, gamma, blur, noise).
+``--train-scenes S,...`` makes the runs take every crop of the first S training scenes instead of the first N crops
+(more scenes against fewer, with the same split and test crops).
 ``--split-objects IDS`` draws the split over several objects (the scenes split of ``refiner-rt train`` on them) and
 studies the object's part of it, to compare with such a model on the same test scenes. ``--table JSON`` prints
 the table of a written result again; ``--table A.json B.json ...`` (one object each) prints one table of all of
