@@ -9,7 +9,12 @@ view or ``K``. The average is the chordal mean of the rotations (``refiner_rt.qu
 
 Usage (from the repository root)::
 
-    python benchmarks/averaging.py CKPT [CKPT ...] [--views 4,8] [--cache DIR] [--data DIR] [--json OUT]
+    python benchmarks/averaging.py CKPT [CKPT ...] [--views 4,8] [--runtime] [--cache DIR] [--data DIR] [--json OUT]
+
+``--runtime`` also measures each model's views end to end, the way robot code runs them: the checkpoint exported to
+ONNX (``refiner-rt export``, parity-checked) and ``RefinerSession.refine(image, box, q_in, K=K, views=K)`` on the full
+frames of the test crops, with the same coarse poses (so one view there is the exported model on the runtime's own
+crops, and the views see real pixels where a window leaves the cached crop).
 
 Every checkpoint must record the same split (``refiner-rt train`` or ``data_scaling.py --save``); they are tested
 on its test crops of their objects with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024), so every
@@ -68,7 +73,7 @@ def averaged_predictor(nets: list, views: int):
 def load_models(paths: list[Path], data: Path | None, cache: Path | None):
     """The nets, their shared test crops (of their objects) and rotation frame; refuses checkpoints of other splits."""
     import models
-    from models.pipeline import checkpoint_test_set
+    from models.pipeline import DataSpec, cropset_for, load_splits
 
     loaded = [models.load_checkpoint(p) for p in paths]
     first = loaded[0][1]
@@ -84,22 +89,65 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
         if loaded[0][0].input_size != loaded[-1][0].input_size or \
                 loaded[0][0].config["crop_context"] != loaded[-1][0].config["crop_context"]:
             raise SystemExit(f"{p}: its crops (input size, context) differ from those of {paths[0]}")
-    try:
-        test, _ = checkpoint_test_set(loaded[0][0], first, data=data, cache_root=cache)
-    except ValueError as exc:
-        raise SystemExit(f"{paths[0]}: {exc}") from None
+    # The split is drawn from the dataset's contents: one load gives both the crops and their samples (frames, boxes).
+    spec = DataSpec.from_dict({**first["data"], **({"data": str(data)} if data is not None else {})})
+    splits = load_splits(spec)
+    if not splits.test:
+        raise SystemExit(f"{paths[0]}: its recorded split has no test part (sizes {spec.sizes})")
+    net = loaded[0][0]
+    test = cropset_for(splits, "test", spec, net.input_size, net.config["crop_context"], cache_root=cache,
+                       progress=False)
     objects = first.get("objects") or None
-    if objects:
-        test = test.subset(np.isin(test.obj_ids, objects))
+    keep = np.flatnonzero(np.isin(test.obj_ids, objects)) if objects else np.arange(len(test))
+    test = test.subset(keep)
     if len(test) == 0:
         raise SystemExit(f"{paths[0]}: its recorded split has no test crops of its objects {objects}")
-    return [m.eval() for m, _ in loaded], test, first.get("rotation_frame", "camera")
+    samples = [splits.test[i] for i in keep]
+    return [m.eval() for m, _ in loaded], test, first.get("rotation_frame", "camera"), samples
 
 
-def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | None) -> list[dict]:
+def runtime_errors(ckpt: Path, test, frame: str, samples: list, views: list[int], workdir: Path) -> dict[int, dict]:
+    """``{K: pooled summary}`` of ``RefinerSession.refine(views=K)`` on the full frames of ``test`` (``samples``: its
+    frames and boxes), with the coarse poses of ``models.evaluate.evaluate_errors`` (seed 2024, ``uniform:0:30``),
+    for the checkpoint exported to ONNX."""
+    import cv2
+
+    from export.onnx_export import export_checkpoint
+    from models.metrics import summarize_errors
+    from models.noise import NoiseSpec, perturb
+    from refiner_rt import RefinerSession
+    from refiner_rt import quaternion as rq
+
+    q_gt = np.array([rq.from_matrix(s.R) for s in samples])
+    assert rq.geodesic_angle(q_gt, test.q_gt).max() < 1e-6, "the crops and samples of one split load disagree"
+    onnx = workdir / f"{ckpt.stem}.onnx"
+    export_checkpoint(ckpt, onnx)
+    sess = RefinerSession(onnx, threads=1)
+    rng = np.random.default_rng(2024)  # evaluate_errors' coarse poses: the same inputs as the other rows
+    q_in, _ = perturb(test.q_gt_in(frame), NoiseSpec.parse("uniform:0:30"), rng)
+    if frame == "ray":
+        q_in = rq.multiply(test.q_ray, q_in)  # the ray frame's input back in the camera frame refine() takes
+    err_in = rq.geodesic_angle(q_in, q_gt)
+    out = {}
+    images = {}
+    for k in [1, *views]:
+        refined = np.zeros_like(q_gt)
+        for i, s in enumerate(samples):
+            if s.image_path not in images:
+                images[s.image_path] = cv2.imread(s.image_path, cv2.IMREAD_COLOR)
+            res = sess.refine(images[s.image_path], s.box_xyxy[None], q_in[i : i + 1],
+                              K=s.K if frame == "ray" else None, views=k)
+            refined[i] = res.q_refined[0]
+        out[k] = summarize_errors(test.obj_ids, rq.geodesic_angle(refined, q_gt), err_in)["pooled"]
+    return out
+
+
+def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | None, runtime: bool = False) -> list[dict]:
+    import tempfile
+
     from models.evaluate import evaluate_errors
 
-    nets, test, frame = load_models(paths, data, cache)
+    nets, test, frame, samples = load_models(paths, data, cache)
     names = [p.name for p in paths]
     if len(set(names)) < len(names):  # e.g. data_scaling.py --save of two runs in two folders: add the folder
         names = [f"{p.parent.name}/{p.name}" for p in paths]
@@ -115,15 +163,24 @@ def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | No
             rows.append(row)
             print(f"{' + '.join(row['models'])}, {k} view(s): {row['mean_deg']:.2f} deg (median {row['median_deg']:.2f})",
                   file=sys.stderr)
+    if runtime:
+        with tempfile.TemporaryDirectory() as tmp:
+            for path, name in zip(paths, names):
+                for k, summary in runtime_errors(path, test, frame, samples, views, Path(tmp)).items():
+                    rows.append({"models": [name], "views": k, "passes": k, "path": "runtime", **summary})
+                    print(f"{name}, {k} view(s), RefinerSession on the full frames: {summary['mean_deg']:.2f} deg "
+                          f"(median {summary['median_deg']:.2f})", file=sys.stderr)
     return rows
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["Mean geodesic error (deg) on the test crops, inputs U(0, 30):", "",
-             "| models | views | network passes | mean | median | under 5 deg |", "|---|---:|---:|---:|---:|---:|"]
+    lines = ["Mean geodesic error (deg) on the test crops, inputs U(0, 30); path: the cached crops in PyTorch, or the "
+             "exported model in RefinerSession on the full frames (runtime):", "",
+             "| models | views | network passes | path | mean | median | under 5 deg |",
+             "|---|---:|---:|---|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {' + '.join(r['models'])} | {r['views']} | {r['passes']} | {r['mean_deg']:.2f} | "
-                     f"{r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% |")
+        lines.append(f"| {' + '.join(r['models'])} | {r['views']} | {r['passes']} | {r.get('path', 'crops')} | "
+                     f"{r['mean_deg']:.2f} | {r['median_deg']:.2f} | {100 * r['under_5_deg']:.0f}% |")
     return "\n".join(lines)
 
 
@@ -143,6 +200,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("checkpoints", type=Path, nargs="+", metavar="CKPT")
     p.add_argument("--views", type=_parse_views, default=[4, 8], metavar="K[,K...]",
                    help="view counts to measure besides one (default: 4,8)")
+    p.add_argument("--runtime", action="store_true",
+                   help="also measure each model's views end to end: exported to ONNX and run by "
+                        "RefinerSession.refine(views=K) on the full frames, with the same coarse poses")
     p.add_argument("--data", type=Path, help="the dataset folder if it moved since training (default: the recorded one)")
     p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
     p.add_argument("--threads", type=int, default=0)
@@ -157,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     from models.train import set_threads
 
     threads = set_threads(args.threads)
-    rows = run(args.checkpoints, args.views, args.data, args.cache)
+    rows = run(args.checkpoints, args.views, args.data, args.cache, runtime=args.runtime)
     print(markdown(rows))
     if args.json:
         doc = {"study": "corrections averaged over box-jittered views and over models", "rows": rows,

@@ -45,7 +45,7 @@ def test_views_and_ensembles_on_the_same_test_crops(saved, capsys):
     own = json.loads((tmp / "s0_0.json").read_text())["rows"][0]
     assert rows[((name_a,), 1)]["mean_deg"] == pytest.approx(own["mean_deg"], abs=1e-9)
     # Averages of a model with itself change nothing: the mean of identical rotations is that rotation.
-    nets, test, frame = bench.load_models([Path(a)] * 2, None, tmp / "cache")
+    nets, test, frame, _ = bench.load_models([Path(a)] * 2, None, tmp / "cache")
     one = evaluate_errors(torch_predictor(nets[0]), test, rotation_frame=frame)
     twice = evaluate_errors(bench.averaged_predictor(nets, 1), test, rotation_frame=frame)
     np.testing.assert_allclose(twice.err_out_deg, one.err_out_deg, atol=1e-3)
@@ -68,3 +68,22 @@ def test_models_of_other_splits_and_bad_views_are_refused(saved, capsys):
     with pytest.raises(SystemExit):
         bench.main([str(tmp / "missing.pt")])
     assert "no such checkpoint file(s)" in capsys.readouterr().err
+
+
+def test_runtime_views_run_the_exported_model_on_the_full_frames(saved, capsys):
+    """--runtime: the checkpoint exported to ONNX and run by RefinerSession.refine(views=K) on the frames, with the
+    coarse poses of the crop rows; one view there is the same model on the runtime's own crops of the same boxes."""
+    tmp, (a, _, _) = saved
+    out = tmp / "runtime.json"
+    bench = load_benchmark("averaging")
+    argv = [a, "--views", "3", "--runtime", "--cache", str(tmp / "cache"), "--threads", "1", "--json", str(out)]
+    assert bench.main(argv) == 0
+    rows = json.loads(out.read_text())["rows"]
+    crops = {r["views"]: r for r in rows if r.get("path", "crops") == "crops"}
+    runtime = {r["views"]: r for r in rows if r.get("path") == "runtime"}
+    assert set(crops) == set(runtime) == {1, 3}
+    # The same network (ONNX parity), crops and inputs: the same errors up to float32 and resampling rounding.
+    assert runtime[1]["mean_deg"] == pytest.approx(crops[1]["mean_deg"], abs=0.05)
+    assert runtime[1]["input_mean_deg"] == pytest.approx(crops[1]["input_mean_deg"], abs=1e-9)
+    assert runtime[3]["passes"] == 3 and runtime[3]["mean_deg"] != runtime[1]["mean_deg"]
+    assert "| runtime |" in capsys.readouterr().out
