@@ -73,7 +73,7 @@ def averaged_predictor(nets: list, views: int):
 def load_models(paths: list[Path], data: Path | None, cache: Path | None):
     """The nets, their shared test crops (of their objects) and rotation frame; refuses checkpoints of other splits."""
     import models
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.pipeline import checkpoint_spec, cropset_for, load_splits
 
     loaded = [models.load_checkpoint(p) for p in paths]
     first = loaded[0][1]
@@ -90,7 +90,7 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
                 loaded[0][0].config["crop_context"] != loaded[-1][0].config["crop_context"]:
             raise SystemExit(f"{p}: its crops (input size, context) differ from those of {paths[0]}")
     # The split is drawn from the dataset's contents: one load gives both the crops and their samples (frames, boxes).
-    spec = DataSpec.from_dict({**first["data"], **({"data": str(data)} if data is not None else {})})
+    spec = checkpoint_spec(first, data)
     splits = load_splits(spec)
     if not splits.test:
         raise SystemExit(f"{paths[0]}: its recorded split has no test part (sizes {spec.sizes})")
@@ -128,18 +128,16 @@ def runtime_errors(ckpt: Path, test, frame: str, samples: list, views: list[int]
     if frame == "ray":
         q_in = rq.multiply(test.q_ray, q_in)  # the ray frame's input back in the camera frame refine() takes
     err_in = rq.geodesic_angle(q_in, q_gt)
-    out = {}
-    images = {}
-    for k in [1, *views]:
-        refined = np.zeros_like(q_gt)
-        for i, s in enumerate(samples):
-            if s.image_path not in images:
-                images[s.image_path] = cv2.imread(s.image_path, cv2.IMREAD_COLOR)
-            res = sess.refine(images[s.image_path], s.box_xyxy[None], q_in[i : i + 1],
-                              K=s.K if frame == "ray" else None, views=k)
-            refined[i] = res.q_refined[0]
-        out[k] = summarize_errors(test.obj_ids, rq.geodesic_angle(refined, q_gt), err_in)["pooled"]
-    return out
+    counts = [1, *views]
+    refined = {k: np.zeros_like(q_gt) for k in counts}
+    for i, s in enumerate(samples):  # each frame read once, for all the view counts
+        image = cv2.imread(s.image_path, cv2.IMREAD_COLOR)
+        if image is None:
+            raise SystemExit(f"{ckpt}: cannot read the test frame {s.image_path} (a missing or unreadable image)")
+        for k in counts:
+            res = sess.refine(image, s.box_xyxy[None], q_in[i : i + 1], K=s.K if frame == "ray" else None, views=k)
+            refined[k][i] = res.q_refined[0]
+    return {k: summarize_errors(test.obj_ids, rq.geodesic_angle(refined[k], q_gt), err_in)["pooled"] for k in counts}
 
 
 def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | None, runtime: bool = False) -> list[dict]:

@@ -41,14 +41,14 @@ def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
     import models
     from models.evaluate import evaluate_errors, torch_predictor
     from models.metrics import swing_twist_deg
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.pipeline import checkpoint_spec, cropset_for, load_splits
     from refiner_rt import quaternion as rq
 
     net, info = models.load_checkpoint(path)
     if not info.get("data"):
         raise SystemExit(f"{path}: the checkpoint records no split (info['data']); train it with refiner-rt train "
                          "or data_scaling.py --save")
-    spec = DataSpec.from_dict({**info["data"], **({"data": str(data)} if data is not None else {})})
+    spec = checkpoint_spec(info, data)
     splits = load_splits(spec)
     frame = info.get("rotation_frame", "camera")
     predictor = torch_predictor(net.eval())

@@ -19,7 +19,8 @@ import numpy as np
 from models.cropset import CropSet
 from refiner_rt.session import ray_quaternions
 
-__all__ = ["DataSpec", "detect_format", "load_samples", "load_splits", "cropset_for", "checkpoint_test_set", "PARTS"]
+__all__ = ["DataSpec", "detect_format", "load_samples", "load_splits", "cropset_for", "checkpoint_spec",
+           "checkpoint_test_set", "PARTS"]
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +210,17 @@ def cropset_for(
     return cs if obj_id is None else cs.for_object(obj_id)
 
 
+def checkpoint_spec(info: dict, data: str | Path | None = None) -> DataSpec:
+    """The data spec a checkpoint recorded (its split), with ``data`` as the dataset folder if it moved since training.
+
+    Raises:
+        ValueError: the checkpoint records no data spec (``info['data']``).
+    """
+    if not info.get("data"):
+        raise ValueError("the checkpoint records no training data spec (info['data']); evaluate it with refiner-rt eval --data")
+    return DataSpec.from_dict({**info["data"], **({"data": str(data)} if data is not None else {})})
+
+
 def checkpoint_test_set(
     model, info: dict, *, data: str | Path | None = None, cache_root: Path | None = None, progress: bool = False
 ) -> tuple[CropSet, DataSpec]:
@@ -224,9 +236,7 @@ def checkpoint_test_set(
     Returns:
         ``(test CropSet, DataSpec)``.
     """
-    if not info.get("data"):
-        raise ValueError("the checkpoint records no training data spec (info['data']); evaluate it with refiner-rt eval --data")
-    spec = DataSpec.from_dict({**info["data"], **({"data": str(data)} if data is not None else {})})
+    spec = checkpoint_spec(info, data)
     test = cropset_for(load_splits(spec), "test", spec, model.input_size, model.config["crop_context"],
                        cache_root=cache_root, progress=progress)
     return test, spec
