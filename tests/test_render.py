@@ -129,6 +129,22 @@ def test_deterministic_and_resumable(models_dir, rendered, tmp_path):
         render_dataset(again, 8, models_dir, small_cfg(), seed=6, progress=False)
 
 
+def test_first_scene_renders_the_same_scenes_under_their_own_numbers(models_dir, rendered, tmp_path):
+    # Growing a set: the next scenes of the same seed go to a new folder and are the scenes the first folder
+    # would have got.
+    out, _ = rendered
+    more = tmp_path / "more"
+    summary = render_dataset(more, 4, models_dir, small_cfg(), seed=5, progress=False, first_scene=1)
+    assert summary["rendered"] == 1
+    assert sorted(p.name for p in more.iterdir() if p.is_dir() and not p.name.startswith(".")) == ["000001"]
+    for name in ("scene_gt.json", "scene_gt_info.json"):
+        assert (more / "000001" / name).read_text() == (out / "000001" / name).read_text()
+    assert (more / "000001" / "rgb" / "000003.jpg").read_bytes() == (out / "000001" / "rgb" / "000003.jpg").read_bytes()
+    for bad in (-1, 1.0, True):
+        with pytest.raises(ValueError, match="first_scene must be an int >= 0"):
+            render_dataset(more, 4, models_dir, small_cfg(), seed=5, progress=False, first_scene=bad)
+
+
 def test_bad_models_dir_names_what_is_missing(tmp_path, models_dir):
     (tmp_path / "003_cracker_box").mkdir()
     with pytest.raises(FileNotFoundError, match=r"003_cracker_box.*textured_simple.obj or textured.obj"):

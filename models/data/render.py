@@ -598,8 +598,12 @@ def _worker_render(args):
 
 
 def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConfig | None = None, seed: int = 0,
-                   workers: int = 1, progress: bool = True) -> dict:
+                   workers: int = 1, progress: bool = True, first_scene: int = 0) -> dict:
     """Render ``ceil(frames / frames_per_scene)`` BOP scenes into ``out_dir``; finished scenes are kept (resumable).
+
+    The scenes are numbered from ``first_scene``. A set's splits are drawn from its own scenes, so a set
+    is grown by rendering the next scenes of the same seed and config into a second folder
+    (``first_scene`` = the first set's scene count) rather than into the first.
 
     Args:
         out_dir: output folder; scene folders go directly under it (``load_bop(out_dir)`` reads them).
@@ -610,6 +614,7 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
             and independent of ``workers``.
         workers: parallel processes (each with its own pybullet world).
         progress: tqdm progress bar with frames/s.
+        first_scene: index of the first scene (folder ``<first_scene:06d>``).
 
     Returns:
         Summary: scenes rendered and skipped, frames, visible instances per object (``visib_fract >= 0.3``)
@@ -618,6 +623,8 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
     cfg = cfg or RenderConfig()
     if frames < 1:
         raise ValueError(f"frames must be >= 1; got {frames}")
+    if isinstance(first_scene, bool) or not isinstance(first_scene, int) or first_scene < 0:
+        raise ValueError(f"first_scene must be an int >= 0; got {first_scene!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     meshes = find_models(models_dir, cfg.objects)
@@ -631,7 +638,7 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
             raise ValueError(f"{out_dir} holds scenes rendered with another seed or config ({rec_path}); use a new --out")
     else:
         rec_path.write_text(json.dumps(record, indent=1))
-    todo = [s for s in range(n_scenes) if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
+    todo = [s for s in range(first_scene, first_scene + n_scenes) if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
     t0 = time.perf_counter()
     visible: dict[str, int] = {}
     bar = None
@@ -695,6 +702,9 @@ def _objects_option(ctx, param, value):
 @click.option("--builtin", is_flag=True, help="Use the built-in meshes even when ../shared/ycb_models exists.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Dataset seed (scene i depends only on seed and i).")
 @click.option("--workers", type=click.IntRange(1), default=1, show_default=True, help="Parallel render processes.")
+@click.option("--first-scene", type=click.IntRange(0), default=0, show_default=True,
+              help="Number the scenes from this index. To grow a set without changing its splits, render the "
+                   "next scenes (same --seed, --first-scene = its scene count) into a new folder.")
 @click.option("--objects", callback=_objects_option, help="Comma-separated YCB ids (default: the paper's nine).")
 @click.option("--frames-per-scene", type=click.IntRange(1), default=100, show_default=True, help="Frames along each camera path.")
 @click.option("--width", type=click.IntRange(16), default=640, show_default=True)
@@ -704,7 +714,7 @@ def _objects_option(ctx, param, value):
 @click.option("--data", "preview_data", type=click.Path(exists=True, file_okay=False, path_type=Path),
               help="With --preview and no --out: the dataset to preview.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def render_cmd(out, frames, models_dir, builtin, seed, workers, objects, frames_per_scene, width, height,
+def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, objects, frames_per_scene, width, height,
                preview_png, preview_data, quiet):
     """Render BOP-format scenes of YCB objects on the CPU (pybullet TinyRenderer).
 
@@ -734,7 +744,8 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, objects, frames_
         cfg = RenderConfig(width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
                            objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))))
         try:
-            summary = render_dataset(out, frames, models_dir, cfg, seed=seed, workers=workers, progress=not quiet)
+            summary = render_dataset(out, frames, models_dir, cfg, seed=seed, workers=workers, progress=not quiet,
+                                     first_scene=first_scene)
         except (FileNotFoundError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
         fps = summary["frames"] / max(summary["seconds"], 1e-9)
