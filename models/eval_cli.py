@@ -93,6 +93,7 @@ def run_eval(
     per_object = {} if base_only else _siblings(model)
     recorded = c["data"] or {}
     spec = DataSpec.from_dict({**recorded, "data": str(data)}) if recorded else DataSpec(data=str(data))
+    spec = spec.held_out()  # the test part only: the folders of extra training crops are not needed
     if split_mode:
         spec.split_mode = split_mode
     if split_seed is not None:

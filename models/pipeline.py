@@ -45,6 +45,10 @@ class DataSpec:
         min_visib: minimum visible fraction of an instance.
         min_box_size: minimum longer box side in pixels.
         image_set: YCB-Video image set name or file (YCB-Video only).
+        extra_train: more dataset folders whose every sample (of the spec's objects, with the same filters)
+            joins ``train_base`` after ``data`` is split. The split of ``data`` (and so its val and test
+            parts) is unchanged, so a set grows without moving its test scenes: render its next scenes
+            into a new folder (``refiner-rt render --first-scene``). Their scene ids must not occur in ``data``.
     """
 
     data: str
@@ -57,13 +61,20 @@ class DataSpec:
     min_box_size: float = 16.0
     image_set: str | None = None
     split_objects: list[str] | None = None
+    extra_train: list[str] | None = None
 
     def as_dict(self) -> dict:
         d = asdict(self)
         d["sizes"] = list(self.sizes)
-        if d["split_objects"] is None:
-            del d["split_objects"]  # the key of every spec (and crop cache) from before the field existed
+        for name in ("split_objects", "extra_train"):
+            if d[name] is None:
+                del d[name]  # the key of every spec (and crop cache) from before the field existed
         return d
+
+    def held_out(self) -> "DataSpec":
+        """The spec without ``extra_train``: the one that draws the split, so it fixes every part but ``train_base``
+        (two specs with the same ``held_out()`` validate and test on the same crops)."""
+        return replace(self, extra_train=None)
 
     @property
     def object_ids(self) -> list[str]:
@@ -137,6 +148,11 @@ def load_splits(spec: DataSpec):
     """Load and split ``spec.data``; returns :class:`models.data.Splits`.
 
     With ``spec.split_objects`` the split is drawn over those objects and each part then keeps ``spec.objects``.
+    With ``spec.extra_train`` every sample of those folders is appended to ``train_base``.
+
+    Raises:
+        ValueError: an object outside ``split_objects``, or an ``extra_train`` folder sharing a scene id with
+            ``data`` or with another extra folder (it could hold the same scenes, some of them test scenes).
     """
     from models.data import SplitSizes, make_splits
 
@@ -144,19 +160,43 @@ def load_splits(spec: DataSpec):
     base, fine, val, test = spec.sizes
     sizes = SplitSizes(train_base=base, train_finetune=fine, val=val, test=test)
     splits = make_splits(samples, mode=spec.split_mode, sizes=sizes, seed=spec.split_seed)
-    if not spec.split_objects:
-        return splits
-    keep = set(spec.object_ids)
-    missing = keep - set(spec.split_objects)
-    if missing:
-        raise ValueError(f"objects {sorted(missing)} are not among split_objects {spec.split_objects}; the split "
-                         "must be drawn over every object it is used for")
-    return replace(
-        splits, **{p: [s for s in getattr(splits, p) if s.obj_id in keep] for p in PARTS},
-        sizes_per_object={o: n for o, n in splits.sizes_per_object.items() if o in keep})
+    if spec.split_objects:
+        keep = set(spec.object_ids)
+        missing = keep - set(spec.split_objects)
+        if missing:
+            raise ValueError(f"objects {sorted(missing)} are not among split_objects {spec.split_objects}; the split "
+                             "must be drawn over every object it is used for")
+        splits = replace(
+            splits, **{p: [s for s in getattr(splits, p) if s.obj_id in keep] for p in PARTS},
+            sizes_per_object={o: n for o, n in splits.sizes_per_object.items() if o in keep})
+    if spec.extra_train:
+        splits = replace(splits, train_base=splits.train_base + _extra_train_samples(spec, samples))
+    return splits
+
+
+def _extra_train_samples(spec: DataSpec, samples: list) -> list:
+    """The samples of ``spec.extra_train``'s folders, after checking that no scene id repeats one already seen."""
+    if isinstance(spec.extra_train, (str, Path)):
+        raise ValueError(f"extra_train must be a list of dataset folders; got the single value {spec.extra_train!r}")
+    seen = {s.scene_id: str(spec.data) for s in samples}
+    extra = []
+    for folder in spec.extra_train:
+        more = load_samples(replace(spec, data=str(folder), fmt="auto", split_objects=None, extra_train=None))
+        scenes = {s.scene_id for s in more}
+        clash = sorted(scenes & set(seen))
+        if clash:
+            raise ValueError(
+                f"extra_train folder {folder} has scene id(s) {clash[:5]}{' ...' if len(clash) > 5 else ''} that "
+                f"{seen[clash[0]]} has too; the extra scenes must be new ones (render the next scenes of the same "
+                "seed with `refiner-rt render --first-scene N`, N = the first set's scene count)")
+        seen.update({sid: str(folder) for sid in scenes})
+        extra += more
+    return extra
 
 
 def _cache_dir(spec: DataSpec, part: str, size: int, context: float, cache_root: Path | None) -> Path:
+    if part != "train_base":
+        spec = spec.held_out()  # extra training folders change no other part: share its cache
     key = json.dumps({**spec.as_dict(), "part": part, "size": size, "context": context}, sort_keys=True)
     tag = hashlib.sha1(key.encode()).hexdigest()[:10]
     root = Path(cache_root) if cache_root else Path(spec.data) / ".crops"
@@ -237,6 +277,6 @@ def checkpoint_test_set(
         ``(test CropSet, DataSpec)``.
     """
     spec = checkpoint_spec(info, data)
-    test = cropset_for(load_splits(spec), "test", spec, model.input_size, model.config["crop_context"],
+    test = cropset_for(load_splits(spec.held_out()), "test", spec, model.input_size, model.config["crop_context"],
                        cache_root=cache_root, progress=progress)
     return test, spec

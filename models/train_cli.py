@@ -128,6 +128,10 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--test-per-object", default=PAPER_SIZES[3], show_default=True, type=click.IntRange(1), help="Test images per object (held out; used by eval).")
 @click.option("--split-mode", type=click.Choice(["frames", "scenes"]), default="frames", show_default=True, help="frames: paper's random frame split; scenes: whole scenes held out.")
 @click.option("--split-seed", default=0, show_default=True, type=int)
+@click.option("--extra-train", multiple=True, type=click.Path(exists=True, file_okay=False, path_type=Path),
+              help="Another dataset folder whose images all join the base-training images, after --data is split "
+                   "(repeatable): the validation and test images stay those of --data. Its scene ids must be new, "
+                   "e.g. the next scenes of --data's seed (refiner-rt render --first-scene N).")
 @click.option("--min-visib", default=0.3, show_default=True, type=click.FloatRange(0, 1), help="Minimum visible fraction of an instance.")
 @click.option("--epochs-mse", default=5, show_default=True, type=click.IntRange(0), help="Epochs with the MSE loss (paper: 5).")
 @click.option("--epochs-geodesic", default=10, show_default=True, type=click.IntRange(0), help="Epochs with the geodesic loss after those (paper: 10).")
@@ -302,11 +306,15 @@ def run_training(**o) -> dict:
         split_seed=o["split_seed"],
         sizes=(o["base_per_object"], max(o["per_object"], 0), o["val_per_object"], o["test_per_object"]),
         min_visib=o["min_visib"],
+        extra_train=[str(d) for d in o["extra_train"]] or None,
     )
     t_start = time.perf_counter()
     base_model, base_info = load_base(o)
     spec = split_like_base(spec, base_info)
-    splits = load_splits(spec)
+    try:
+        splits = load_splits(spec)
+    except ValueError as exc:  # the data does not give the split asked for (the message says why)
+        raise click.ClickException(str(exc)) from None
     check_base_split(spec, splits, base_info, o.get("base_ckpt"))
     torch.manual_seed(o["seed"])
     model = base_model

@@ -56,3 +56,54 @@ def test_checkpoint_test_set_rebuilds_the_recorded_test_split(tmp_path):
     np.testing.assert_allclose(test.q_gt, direct.q_gt)
     with pytest.raises(ValueError, match="records no training data spec"):
         checkpoint_test_set(Net(), {}, cache_root=tmp_path / "cache")
+
+
+def _grown_set(root):
+    """A 5-scene cube set split in two folders as a grown render is: scenes 0-2 in ``first``, 3-4 in ``more``."""
+    import shutil
+
+    from cube_dataset import make_cube_dataset
+
+    make_cube_dataset(root / "all", scenes=5, frames=6)
+    (root / "more").mkdir()
+    for s in ("000003", "000004"):
+        shutil.move(root / "all" / s, root / "more" / s)
+    return root / "all", root / "more"
+
+
+def test_extra_train_folders_join_the_training_part_and_leave_the_split_alone(tmp_path):
+    first, more = _grown_set(tmp_path)
+    kw = dict(objects=["003_cracker_box"], split_mode="scenes", sizes=(6, 0, 6, 6), min_box_size=0)
+    plain = load_splits(DataSpec(data=str(first), **kw))
+    grown_spec = DataSpec(data=str(first), extra_train=[str(more)], **kw)
+    grown = load_splits(grown_spec)
+    def keys(samples):
+        return [(s.scene_id, s.frame_id, s.instance, s.obj_id) for s in samples]
+
+    assert plain.val and plain.test and plain.train_base
+    for part in ("train_finetune", "val", "test"):
+        assert keys(getattr(grown, part)) == keys(getattr(plain, part))
+    extra = load_samples(DataSpec(data=str(more), **kw))
+    assert keys(grown.train_base) == keys(plain.train_base + extra)
+    assert {s.scene_id for s in extra} == {"000003", "000004"}
+    # The spec round-trips through a checkpoint's info; a spec without the field keeps its old key (and crop cache).
+    assert DataSpec.from_dict(grown_spec.as_dict()) == grown_spec
+    assert "extra_train" not in DataSpec(data=str(first), **kw).as_dict()
+    cs = cropset_for(grown, "train_base", grown_spec, 16, 1.2, cache_root=tmp_path / "cache", progress=False)
+    assert len(cs) == len(grown.train_base) and set(cs.scene_ids.tolist()) >= {"000003", "000004"}
+
+
+def test_extra_train_refuses_scene_ids_it_has_seen(tmp_path):
+    import shutil
+
+    first, more = _grown_set(tmp_path)
+    kw = dict(objects=["003_cracker_box"], split_mode="scenes", sizes=(6, 0, 6, 6), min_box_size=0)
+    with pytest.raises(ValueError, match=r"scene id\(s\) \['000000', '000001', '000002'\].*--first-scene"):
+        load_splits(DataSpec(data=str(first), extra_train=[str(first)], **kw))  # the set itself: its test scenes too
+    with pytest.raises(ValueError, match=r"scene id\(s\) \['000003', '000004'\]"):
+        load_splits(DataSpec(data=str(first), extra_train=[str(more), str(more)], **kw))
+    shutil.copytree(more / "000003", tmp_path / "copy" / "000001")  # a scene id of the first set, other content
+    with pytest.raises(ValueError, match=r"\['000001'\] that .*all has too"):
+        load_splits(DataSpec(data=str(first), extra_train=[str(tmp_path / "copy")], **kw))
+    with pytest.raises(ValueError, match="extra_train must be a list of dataset folders"):
+        load_splits(DataSpec(data=str(first), extra_train=str(more), **kw))

@@ -136,3 +136,32 @@ def test_fine_tuning_a_given_base_network(trained):
     for expected, argv in bad.items():
         res = CliRunner().invoke(main, argv)
         assert res.exit_code == 2 and expected in res.output, (expected, res.output)
+
+
+def test_extra_train_folders_add_base_images_and_keep_the_held_out_ones(tmp_path):
+    import shutil
+
+    import models
+
+    make_cube_dataset(tmp_path / "cubes", scenes=6, frames=10)
+    (tmp_path / "more").mkdir()
+    for s in ("000004", "000005"):  # the set's next scenes, as `refiner-rt render --first-scene 4` writes them
+        shutil.move(tmp_path / "cubes" / s, tmp_path / "more" / s)
+    out = tmp_path / "run" / "cube.pt"
+    common = ["train", "--data", str(tmp_path / "cubes"), "--arch", ARCH, "--config", SMALL,
+              "--base-per-object", "10", "--per-object", "0", "--val-per-object", "5", "--test-per-object", "5",
+              "--split-mode", "scenes", "--epochs-mse", "0", "--epochs-geodesic", "1", "--batch-size", "32",
+              "--threads", "1", "--quiet", "--cache", str(tmp_path / "cache")]
+    res = CliRunner().invoke(main, [*common, "--out", str(out), "--extra-train", str(tmp_path / "more")],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    alone = tmp_path / "alone" / "cube.pt"
+    assert CliRunner().invoke(main, [*common, "--out", str(alone)], catch_exceptions=False).exit_code == 0
+    (_, grown), (_, plain) = models.load_checkpoint(out), models.load_checkpoint(alone)
+    assert grown["data"]["extra_train"] == [str(tmp_path / "more")] and "extra_train" not in plain["data"]
+    g, p = grown["split"]["parts"], plain["split"]["parts"]
+    assert g["train_base"]["scenes"] == p["train_base"]["scenes"] + 2
+    assert g["train_base"]["samples"] == p["train_base"]["samples"] + 2 * 10 * 2  # 2 scenes x 10 frames x 2 cubes
+    assert g["val"] == p["val"] and g["test"] == p["test"]
+    res = CliRunner().invoke(main, [*common, "--out", str(out), "--extra-train", str(tmp_path / "cubes")])
+    assert res.exit_code != 0 and "the extra scenes must be new ones" in res.output
