@@ -16,7 +16,8 @@ ONNX (``refiner-rt export``, parity-checked) and ``RefinerSession.refine(image, 
 frames of the test crops, with the same coarse poses (so one view there is the exported model on the runtime's own
 crops, and the views see real pixels where a window leaves the cached crop).
 
-Every checkpoint must record the same split (``refiner-rt train`` or ``data_scaling.py --save``); they are tested
+Every checkpoint must record the same split (``refiner-rt train`` or ``data_scaling.py --save``; training folders added
+with ``--extra-train`` change no held-out crops, so such models may be mixed with the others); they are tested
 on its test crops of their objects with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024), so every
 row sees the same crops and coarse poses. Each row states its network passes per object (views x models): the
 averaging's price in speed.
@@ -82,7 +83,12 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
             raise SystemExit(f"{p}: the checkpoint records no split (info['data']); train it with refiner-rt train "
                              "or data_scaling.py --save")
         for key, what in (("data", "split"), ("rotation_frame", "rotation frame"), ("objects", "objects")):
-            if info.get(key) != first.get(key):
+            if key == "data":  # models trained on more folders (extra_train) test on the same crops
+                if checkpoint_spec(info).held_out() != checkpoint_spec(first).held_out():
+                    raise SystemExit(f"{p}: its split ({info['data']}) is not that of {paths[0]} ({first['data']}); "
+                                     "averaging compares models on the same test crops: give checkpoints of one "
+                                     "split, frame and object set")
+            elif info.get(key) != first.get(key):
                 raise SystemExit(f"{p}: its {what} ({info.get(key)}) is not that of {paths[0]} ({first.get(key)}); "
                                  "averaging compares models on the same test crops: give checkpoints of one split, "
                                  "frame and object set")
@@ -90,7 +96,7 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
                 loaded[0][0].config["crop_context"] != loaded[-1][0].config["crop_context"]:
             raise SystemExit(f"{p}: its crops (input size, context) differ from those of {paths[0]}")
     # The split is drawn from the dataset's contents: one load gives both the crops and their samples (frames, boxes).
-    spec = checkpoint_spec(first, data)
+    spec = checkpoint_spec(first, data).held_out()
     splits = load_splits(spec)
     if not splits.test:
         raise SystemExit(f"{paths[0]}: its recorded split has no test part (sizes {spec.sizes})")

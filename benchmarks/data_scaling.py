@@ -23,6 +23,10 @@ the background of a crop with probability ``P``, ``--occlude P`` one that pastes
 camera on a crop with probability ``P`` (a smooth shading field, light colour, gamma, blur, noise).
 ``--train-scenes S,...`` makes the runs take every crop of the first S training scenes instead of the first N crops
 (more scenes against fewer, with the same split and test crops).
+``--extra-train DIR`` (repeatable) adds every crop of another dataset folder to the training part after the split
+is drawn, so the split and the test crops stay those of ``--data``; render its scenes as the next ones of ``--data``'s
+seed (``refiner-rt render --first-scene``). ``--init CKPT`` starts every run from a checkpoint's weights (same
+architecture, config and rotation frame) instead of a new network: more data for a trained model.
 ``--split-objects IDS`` draws the split over several objects (the scenes split of ``refiner-rt train`` on them) and
 studies the object's part of it, to compare with such a model on the same test scenes. ``--table JSON`` prints
 the table of a written result again; ``--table A.json B.json ...`` (one object each) prints one table of all of
@@ -155,6 +159,35 @@ def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]
     return runs
 
 
+def _initial_model(args, spec):
+    """The ``--init`` checkpoint's network, refused unless it is the study's network on the same split.
+
+    Its own training crops may be any of the study's training crops, but none of its validation or test crops: the
+    checkpoint's recorded split must be ``spec``'s without the extra training folders.
+    """
+    import models
+    from models.pipeline import checkpoint_spec
+
+    model, info = models.load_checkpoint(args.init)
+    if model.arch != args.arch or model.config != models.build_refiner(args.arch, **args.config).config:
+        raise SystemExit(f"--init {args.init}: a {model.arch} network with config {json.dumps(model.config)}; the study "
+                         f"trains --arch {args.arch} --config {json.dumps(args.config)}")
+    if info.get("rotation_frame", "camera") != args.rotation_frame:
+        raise SystemExit(f"--init {args.init}: trained in the {info.get('rotation_frame', 'camera')} rotation frame; the "
+                         f"study uses --rotation-frame {args.rotation_frame}")
+    try:
+        recorded = checkpoint_spec(info)
+    except ValueError as exc:
+        raise SystemExit(f"--init {args.init}: {exc}") from None
+    mine, theirs = spec.held_out().as_dict(), recorded.held_out().as_dict()
+    differ = [k for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
+    if differ:
+        raise SystemExit(f"--init {args.init}: trained on another split ({', '.join(f'{k} {theirs.get(k)!r}' for k in differ)}"
+                         f"; here {', '.join(repr(mine.get(k)) for k in differ)}), so its validation or test crops may be "
+                         "in this study's training crops")
+    return model.train()
+
+
 def run(args) -> dict:
     import torch
 
@@ -175,8 +208,12 @@ def run(args) -> dict:
     t_all = time.perf_counter()
     for mode in args.modes.split(","):
         spec = DataSpec(data=str(args.data), objects=[args.object], split_mode=mode, split_seed=args.split_seed,
-                        sizes=(sizes[-1], 0, args.val, args.test), split_objects=args.split_objects)
-        splits = load_splits(spec)
+                        sizes=(sizes[-1], 0, args.val, args.test), split_objects=args.split_objects,
+                        extra_train=[str(d) for d in args.extra_train] if args.extra_train else None)
+        try:
+            splits = load_splits(spec)
+        except ValueError as exc:
+            raise SystemExit(f"{mode} split: {exc}") from None
         parts = {p: cropset_for(splits, p, spec, size, context, cache_root=args.cache, progress=not args.quiet)
                  for p in ("train_base", "val", "test")}
         train_all, val, test = parts["train_base"], parts["val"], parts["test"]
@@ -196,13 +233,14 @@ def run(args) -> dict:
                               occlude=occlude, relight=relight, seed=args.seed,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
-            model = models.build_refiner(args.arch, **args.config)
+            model = _initial_model(args, spec) if args.init else models.build_refiner(args.arch, **args.config)
             t0 = time.perf_counter()
             res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
             wall = round(time.perf_counter() - t0, 1)
             predictor = torch_predictor(res.model.eval())
             errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
             row = {"mode": mode, "train_crops": n, **({"train_scenes": train_scenes} if train_scenes else {}),
+                   **({"init": str(args.init)} if args.init else {}),
                    "augment": augment, "background": background, "occlude": occlude,
                    **({"relight": relight} if relight else {}), "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
@@ -224,6 +262,7 @@ def run(args) -> dict:
                                        val_mean_deg=res.best_val_deg, train_noise=cfg.noise,
                                        rotation_frame=args.rotation_frame, data=spec.as_dict(),
                                        split=splits.summary(), train_crops=n,
+                                       **({"init": str(args.init)} if args.init else {}),
                                        **({"train_scene_ids": sorted(set(train.scene_ids.astype(str).tolist()))}
                                           if train_scenes else {}))
                 row["checkpoint"] = str(path)
@@ -447,6 +486,13 @@ def main(argv: list[str] | None = None) -> int:
                         "must include --object) and train and test --object on its part of it: the scenes split of "
                         "`refiner-rt train` on those objects, for a comparison on the same test scenes (default: "
                         "the split of --object alone)")
+    p.add_argument("--extra-train", type=Path, action="append", metavar="DIR",
+                   help="another dataset folder whose crops all join the training part (repeatable); the split and "
+                        "the test crops stay those of --data. Its scene ids must be new: render it with `refiner-rt "
+                        "render --first-scene N` and --data's seed")
+    p.add_argument("--init", type=Path, metavar="CKPT",
+                   help="start each run from this checkpoint's weights (the same --arch, --config, --rotation-frame "
+                        "and split of --data) instead of a new network")
     p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--iterations", type=int, default=1, metavar="N",
@@ -471,6 +517,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.data is None:
         p.error("--data is required (or --table JSON)")
+    for folder in args.extra_train or []:
+        if not folder.is_dir():
+            p.error(f"--extra-train: not a folder: {folder}")
+    if args.init and not args.init.is_file():
+        p.error(f"--init: checkpoint not found: {args.init}")
     if args.iterations < 1:
         p.error(f"--iterations: expected a number of refinement passes >= 1; got {args.iterations}")
     if args.save:

@@ -70,6 +70,27 @@ def test_models_of_other_splits_and_bad_views_are_refused(saved, capsys):
     assert "no such checkpoint file(s)" in capsys.readouterr().err
 
 
+def test_a_model_trained_on_more_scenes_of_the_same_split_joins_an_ensemble(saved, tmp_path):
+    import shutil
+
+    tmp, (a, _, _) = saved
+    make_cube_dataset(tmp_path / "next", scenes=8, frames=20)
+    (tmp_path / "more").mkdir()
+    for s in ("000006", "000007"):  # new scene ids: the set's next scenes
+        shutil.move(tmp_path / "next" / s, tmp_path / "more" / s)
+    out = tmp_path / "grown.json"
+    argv = ["--data", str(tmp / "cubes"), "--object", "003_cracker_box", "--modes", "scenes", "--sizes", "30", "--val",
+            "10", "--test", "20", "--samples", "64", "--epoch-samples", "32", "--cache", str(tmp / "cache"),
+            "--threads", "1", "--extra-train", str(tmp_path / "more"), "--save", str(tmp_path / "models"),
+            "--json", str(out), "--quiet"]
+    assert load_benchmark("data_scaling").main(argv) == 0
+    grown = json.loads(out.read_text())["rows"][0]["checkpoint"]
+    bench = load_benchmark("averaging")
+    _, alone, _, _ = bench.load_models([Path(a)], None, tmp / "cache")
+    _, together, _, _ = bench.load_models([Path(a), Path(grown)], None, tmp / "cache")
+    np.testing.assert_array_equal(together.crops, alone.crops)
+
+
 def test_runtime_views_run_the_exported_model_on_the_full_frames(saved, capsys):
     """--runtime: the checkpoint exported to ONNX and run by RefinerSession.refine(views=K) on the frames, with the
     coarse poses of the crop rows; one view there is the same model on the runtime's own crops of the same boxes."""

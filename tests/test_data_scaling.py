@@ -247,3 +247,48 @@ def test_train_scenes_trains_on_every_crop_of_the_first_scenes_on_one_split(cube
     with pytest.raises(SystemExit):
         study.main([*argv[:-2], "--sizes", "20,40"])
     assert "--train-scenes takes the runs' crops from whole scenes: give one --sizes" in capsys.readouterr().err
+
+
+def test_extra_train_adds_new_scenes_and_init_starts_from_a_trained_model(tmp_path, capsys):
+    import shutil
+
+    from models.pipeline import DataSpec, checkpoint_test_set, load_splits
+
+    study = _load()
+    make_cube_dataset(tmp_path / "cubes", scenes=8, frames=12)
+    (tmp_path / "more").mkdir()
+    for s in ("000006", "000007"):  # the set's next scenes, as `refiner-rt render --first-scene 6` writes them
+        shutil.move(tmp_path / "cubes" / s, tmp_path / "more" / s)
+    first, more = tmp_path / "cubes", tmp_path / "more"
+    common = ["--object", "003_cracker_box", "--val", "10", "--test", "20", "--modes", "scenes", "--sizes", "30",
+              "--samples", "32", "--epoch-samples", "32", "--cache", str(tmp_path / "cache"), "--threads", "1",
+              "--quiet", "--save", str(tmp_path / "models")]
+    assert study.main(["--data", str(first), *common, "--json", str(tmp_path / "plain.json")]) == 0
+    plain = json.loads((tmp_path / "plain.json").read_text())["rows"][0]
+    argv = ["--data", str(first), *common, "--extra-train", str(more), "--train-scenes", "99",
+            "--json", str(tmp_path / "grown.json")]
+    spec = DataSpec(data=str(first), objects=["003_cracker_box"], split_mode="scenes", sizes=(30, 0, 10, 20),
+                    extra_train=[str(more)])
+    train_scenes = len({s.scene_id for s in load_splits(spec).train_base})
+    assert train_scenes == plain["scenes"]["train_base"] + 2
+    argv[argv.index("99")] = str(train_scenes)
+    argv += ["--init", plain["checkpoint"]]
+    assert study.main(argv) == 0
+    grown = json.loads((tmp_path / "grown.json").read_text())["rows"][0]
+    assert grown["scenes"]["train_base"] == train_scenes and grown["init"] == plain["checkpoint"]
+    assert grown["scenes"]["test"] == plain["scenes"]["test"] and grown["input_mean_deg"] == plain["input_mean_deg"]
+    model, info = models.load_checkpoint(grown["checkpoint"])
+    assert {"000006", "000007"} <= set(info["train_scene_ids"]) and info["data"]["extra_train"] == [str(more)]
+    # The recorded spec rebuilds the same test crops as the set alone.
+    test, _ = checkpoint_test_set(model, info, cache_root=tmp_path / "cache")
+    alone, _ = checkpoint_test_set(model, models.load_checkpoint(plain["checkpoint"])[1], cache_root=tmp_path / "cache")
+    assert len(test) == grown["n"] and (test.crops == alone.crops).all()
+    # --init is refused for another network or another split, and missing folders are named.
+    for extra, message in ((["--config", '{"conv_channels": [8, 8]}'], "a fusion network with config"),
+                           (["--split-seed", "3"], r"trained on another split \(split_seed 0; here 3\)")):
+        with pytest.raises(SystemExit, match=message):
+            study.main([*argv, *extra])
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        study.main([*argv, "--extra-train", str(tmp_path / "missing")])
+    assert "--extra-train: not a folder" in capsys.readouterr().err
