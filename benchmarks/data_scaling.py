@@ -47,6 +47,7 @@ import re
 import shlex
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -123,9 +124,20 @@ def _passes_cell(row: dict) -> str:
                                                                      key=lambda kv: int(kv[0]))) or "-"
 
 
-def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]) -> list[tuple]:
-    """The runs of one split: ``(training crop indices, training scenes or None, augment, background, occlude,
-    relight)``.
+@dataclass(frozen=True)
+class Run:
+    """One training run of a split: its training crops and augmentations."""
+
+    index: np.ndarray  # indices into the split's training crops
+    train_scenes: int | None  # the number of whole training scenes they come from (--train-scenes), else None
+    augment: bool
+    background: float
+    occlude: float
+    relight: float
+
+
+def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]) -> list[Run]:
+    """The runs of one split.
 
     Without ``--train-scenes`` a run takes the first N crops of a seeded permutation of the training part (plain
     runs at each ``--sizes``, augmented ones at each ``--augment-sizes``); with it, every crop of the first S
@@ -146,7 +158,7 @@ def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]
                 print(f"{mode}: only {len(scene_order)} training scenes, skipping --train-scenes {s}", file=sys.stderr)
                 continue
             index = np.flatnonzero(np.isin(scene_ids, scene_order[:s]))
-            runs += [(index, s, *kind) for kind in plain + augmented]
+            runs += [Run(index, s, *kind) for kind in plain + augmented]
         return runs
     order = np.random.default_rng(args.seed).permutation(len(train_all))
     for n, kinds in [(n, plain) for n in sizes] + [(n, augmented) for n in augment_sizes]:
@@ -155,7 +167,7 @@ def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]
         if n > len(train_all):
             print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
             continue
-        runs += [(np.sort(order[:n]), None, *kind) for kind in kinds]
+        runs += [Run(np.sort(order[:n]), None, *kind) for kind in kinds]
     return runs
 
 
@@ -222,8 +234,9 @@ def run(args) -> dict:
             raise SystemExit(f"{flag} needs instance masks, but {args.data} has none "
                              "(BOP mask_visib/; `refiner-rt render` writes them)")
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
-        for index, train_scenes, augment, background, occlude, relight in _runs(args, mode, train_all, sizes,
-                                                                                 augment_sizes):
+        for r in _runs(args, mode, train_all, sizes, augment_sizes):
+            index, train_scenes, augment, background, occlude, relight = (
+                r.index, r.train_scenes, r.augment, r.background, r.occlude, r.relight)
             n = len(index)
             train = train_all.subset(index)
             per_epoch = min(n, args.epoch_samples)
