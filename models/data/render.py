@@ -638,7 +638,8 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
             raise ValueError(f"{out_dir} holds scenes rendered with another seed or config ({rec_path}); use a new --out")
     else:
         rec_path.write_text(json.dumps(record, indent=1))
-    todo = [s for s in range(first_scene, first_scene + n_scenes) if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
+    todo = [s for s in range(first_scene, first_scene + n_scenes)
+            if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
     t0 = time.perf_counter()
     visible: dict[str, int] = {}
     bar = None
