@@ -82,18 +82,15 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
         if not info.get("data"):
             raise SystemExit(f"{p}: the checkpoint records no split (info['data']); train it with refiner-rt train "
                              "or data_scaling.py --save")
+    split = checkpoint_spec(first).held_out()  # models trained on more folders (extra_train) test on the same crops
+    for p, (net, info) in zip(paths, loaded):
         for key, what in (("data", "split"), ("rotation_frame", "rotation frame"), ("objects", "objects")):
-            if key == "data":  # models trained on more folders (extra_train) test on the same crops
-                if checkpoint_spec(info).held_out() != checkpoint_spec(first).held_out():
-                    raise SystemExit(f"{p}: its split ({info['data']}) is not that of {paths[0]} ({first['data']}); "
-                                     "averaging compares models on the same test crops: give checkpoints of one "
-                                     "split, frame and object set")
-            elif info.get(key) != first.get(key):
+            if (checkpoint_spec(info).held_out() != split) if key == "data" else (info.get(key) != first.get(key)):
                 raise SystemExit(f"{p}: its {what} ({info.get(key)}) is not that of {paths[0]} ({first.get(key)}); "
                                  "averaging compares models on the same test crops: give checkpoints of one split, "
                                  "frame and object set")
-        if loaded[0][0].input_size != loaded[-1][0].input_size or \
-                loaded[0][0].config["crop_context"] != loaded[-1][0].config["crop_context"]:
+        if (net.input_size, net.config["crop_context"]) != (loaded[0][0].input_size,
+                                                             loaded[0][0].config["crop_context"]):
             raise SystemExit(f"{p}: its crops (input size, context) differ from those of {paths[0]}")
     # The split is drawn from the dataset's contents: one load gives both the crops and their samples (frames, boxes).
     spec = checkpoint_spec(first, data).held_out()

@@ -171,17 +171,18 @@ def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]
     return runs
 
 
-def _initial_model(args, spec):
+def _initial_model(args, spec, config: dict):
     """The ``--init`` checkpoint's network, refused unless it is the study's network on the same split.
 
     Its own training crops may be any of the study's training crops, but none of its validation or test crops: the
-    checkpoint's recorded split must be ``spec``'s without the extra training folders.
+    checkpoint's recorded split must be ``spec``'s without the extra training folders. ``config``: the study's
+    network's full config.
     """
     import models
     from models.pipeline import checkpoint_spec
 
     model, info = models.load_checkpoint(args.init)
-    if model.arch != args.arch or model.config != models.build_refiner(args.arch, **args.config).config:
+    if model.arch != args.arch or model.config != config:
         raise SystemExit(f"--init {args.init}: a {model.arch} network with config {json.dumps(model.config)}; the study "
                          f"trains --arch {args.arch} --config {json.dumps(args.config)}")
     if info.get("rotation_frame", "camera") != args.rotation_frame:
@@ -246,7 +247,7 @@ def run(args) -> dict:
                               occlude=occlude, relight=relight, seed=args.seed,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
-            model = _initial_model(args, spec) if args.init else models.build_refiner(args.arch, **args.config)
+            model = _initial_model(args, spec, probe.config) if args.init else models.build_refiner(args.arch, **args.config)
             t0 = time.perf_counter()
             res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
             wall = round(time.perf_counter() - t0, 1)
