@@ -236,15 +236,13 @@ def run(args) -> dict:
                              "(BOP mask_visib/; `refiner-rt render` writes them)")
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
         for r in _runs(args, mode, train_all, sizes, augment_sizes):
-            index, train_scenes, augment, background, occlude, relight = (
-                r.index, r.train_scenes, r.augment, r.background, r.occlude, r.relight)
-            n = len(index)
-            train = train_all.subset(index)
+            n = len(r.index)
+            train = train_all.subset(r.index)
             per_epoch = min(n, args.epoch_samples)
             epochs = max(2, math.ceil(args.samples / per_epoch))
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
-                              rotation_frame=args.rotation_frame, augment=augment, background=background,
-                              occlude=occlude, relight=relight, seed=args.seed,
+                              rotation_frame=args.rotation_frame, augment=r.augment, background=r.background,
+                              occlude=r.occlude, relight=r.relight, seed=args.seed,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
             model = _initial_model(args, spec, probe.config) if args.init else models.build_refiner(args.arch, **args.config)
@@ -253,10 +251,10 @@ def run(args) -> dict:
             wall = round(time.perf_counter() - t0, 1)
             predictor = torch_predictor(res.model.eval())
             errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
-            row = {"mode": mode, "train_crops": n, **({"train_scenes": train_scenes} if train_scenes else {}),
+            row = {"mode": mode, "train_crops": n, **({"train_scenes": r.train_scenes} if r.train_scenes else {}),
                    **({"init": str(args.init)} if args.init else {}),
-                   "augment": augment, "background": background, "occlude": occlude,
-                   **({"relight": relight} if relight else {}), "epochs": epochs,
+                   "augment": r.augment, "background": r.background, "occlude": r.occlude,
+                   **({"relight": r.relight} if r.relight else {}), "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
                    "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
                    "scenes": scenes, "wall_s": wall}
@@ -269,7 +267,7 @@ def run(args) -> dict:
                     for k in range(2, args.iterations + 1)}
             if args.save:
                 slug = re.sub(r"[^A-Za-z0-9.]+", "-", _augment_label(row))
-                scenes_tag = f"_s{train_scenes}" if train_scenes else ""
+                scenes_tag = f"_s{r.train_scenes}" if r.train_scenes else ""
                 path = args.save / f"{args.object}_{mode}_n{n}{scenes_tag}_{slug}.pt"
                 models.save_checkpoint(res.model, path, objects=[args.object], stage="data_scaling",
                                        train_config=vars(cfg), best_epoch=res.best_epoch,
@@ -278,12 +276,12 @@ def run(args) -> dict:
                                        split=splits.summary(), train_crops=n,
                                        **({"init": str(args.init)} if args.init else {}),
                                        **({"train_scene_ids": sorted(set(train.scene_ids.astype(str).tolist()))}
-                                          if train_scenes else {}))
+                                          if r.train_scenes else {}))
                 row["checkpoint"] = str(path)
             rows.append(row)
-            scenes_note = f" scenes={train_scenes}" if train_scenes else ""
-            print(f"{mode:6s} n={n:6d}{scenes_note} augment={augment!s:5s} background={background:.2f} "
-                  f"occlude={occlude:.2f}{f' relight={relight:.2f}' if relight else ''}: "
+            scenes_note = f" scenes={r.train_scenes}" if r.train_scenes else ""
+            print(f"{mode:6s} n={n:6d}{scenes_note} augment={r.augment!s:5s} background={r.background:.2f} "
+                  f"occlude={r.occlude:.2f}{f' relight={r.relight:.2f}' if r.relight else ''}: "
                   f"test {row['mean_deg']:.2f} deg "
                   f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
                   f"{row['wall_s']:.0f} s", file=sys.stderr)
