@@ -85,7 +85,8 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
     split = checkpoint_spec(first).held_out()  # models trained on more folders (extra_train) test on the same crops
     for p, (net, info) in zip(paths, loaded):
         for key, what in (("data", "split"), ("rotation_frame", "rotation frame"), ("objects", "objects")):
-            if (checkpoint_spec(info).held_out() != split) if key == "data" else (info.get(key) != first.get(key)):
+            differs = checkpoint_spec(info).held_out() != split if key == "data" else info.get(key) != first.get(key)
+            if differs:
                 raise SystemExit(f"{p}: its {what} ({info.get(key)}) is not that of {paths[0]} ({first.get(key)}); "
                                  "averaging compares models on the same test crops: give checkpoints of one split, "
                                  "frame and object set")

@@ -245,7 +245,8 @@ def run(args) -> dict:
                               occlude=r.occlude, relight=r.relight, seed=args.seed,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
-            model = _initial_model(args, spec, probe.config) if args.init else models.build_refiner(args.arch, **args.config)
+            model = (_initial_model(args, spec, probe.config) if args.init
+                     else models.build_refiner(args.arch, **args.config))
             t0 = time.perf_counter()
             res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
             wall = round(time.perf_counter() - t0, 1)
