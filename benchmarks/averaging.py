@@ -74,7 +74,7 @@ def averaged_predictor(nets: list, views: int):
 def load_models(paths: list[Path], data: Path | None, cache: Path | None):
     """The nets, their shared test crops (of their objects) and rotation frame; refuses checkpoints of other splits."""
     import models
-    from models.pipeline import checkpoint_spec, cropset_for, load_splits
+    from models.pipeline import checkpoint_spec, checkpoint_test_set
 
     loaded = [models.load_checkpoint(p) for p in paths]
     first = loaded[0][1]
@@ -93,20 +93,16 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
         if (net.input_size, net.config["crop_context"]) != (loaded[0][0].input_size,
                                                              loaded[0][0].config["crop_context"]):
             raise SystemExit(f"{p}: its crops (input size, context) differ from those of {paths[0]}")
-    # The split is drawn from the dataset's contents: one load gives both the crops and their samples (frames, boxes).
-    spec = checkpoint_spec(first, data).held_out()
-    splits = load_splits(spec)
-    if not splits.test:
-        raise SystemExit(f"{paths[0]}: its recorded split has no test part (sizes {spec.sizes})")
-    net = loaded[0][0]
-    test = cropset_for(splits, "test", spec, net.input_size, net.config["crop_context"], cache_root=cache,
-                       progress=False)
+    try:  # one load of the split gives both the crops and their samples (frames, boxes)
+        test, _, samples = checkpoint_test_set(loaded[0][0], first, data=data, cache_root=cache, with_samples=True)
+    except ValueError as e:
+        raise SystemExit(f"{paths[0]}: {e}") from None
     objects = first.get("objects") or None
     keep = np.flatnonzero(np.isin(test.obj_ids, objects)) if objects else np.arange(len(test))
     test = test.subset(keep)
     if len(test) == 0:
         raise SystemExit(f"{paths[0]}: its recorded split has no test crops of its objects {objects}")
-    samples = [splits.test[i] for i in keep]
+    samples = [samples[i] for i in keep]
     return [m.eval() for m, _ in loaded], test, first.get("rotation_frame", "camera"), samples
 
 

@@ -262,8 +262,14 @@ def checkpoint_spec(info: dict, data: str | Path | None = None) -> DataSpec:
 
 
 def checkpoint_test_set(
-    model, info: dict, *, data: str | Path | None = None, cache_root: Path | None = None, progress: bool = False
-) -> tuple[CropSet, DataSpec]:
+    model,
+    info: dict,
+    *,
+    data: str | Path | None = None,
+    cache_root: Path | None = None,
+    progress: bool = False,
+    with_samples: bool = False,
+) -> tuple:
     """The test crops a checkpoint was trained against: its recorded data spec, cropped for the model.
 
     Args:
@@ -272,11 +278,16 @@ def checkpoint_test_set(
         data: the dataset folder if it moved since training (default: the recorded one).
         cache_root: where crop caches live (default ``<data>/.crops``).
         progress: progress bar while the cache is built.
+        with_samples: also return the test part's samples (frames, boxes, poses), in the crops' order.
 
     Returns:
-        ``(test CropSet, DataSpec)``.
+        ``(test CropSet, DataSpec)``, or ``(test CropSet, DataSpec, samples)`` with ``with_samples``.
+
+    Raises:
+        ValueError: the checkpoint records no data spec, or its split has no test part.
     """
     spec = checkpoint_spec(info, data)
-    test = cropset_for(load_splits(spec.held_out()), "test", spec, model.input_size, model.config["crop_context"],
+    splits = load_splits(spec.held_out())  # the split is drawn without extra training folders
+    test = cropset_for(splits, "test", spec, model.input_size, model.config["crop_context"],
                        cache_root=cache_root, progress=progress)
-    return test, spec
+    return (test, spec, list(splits.test)) if with_samples else (test, spec)

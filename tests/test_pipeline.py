@@ -54,6 +54,11 @@ def test_checkpoint_test_set_rebuilds_the_recorded_test_split(tmp_path):
     assert got == spec
     np.testing.assert_array_equal(test.crops, direct.crops)
     np.testing.assert_allclose(test.q_gt, direct.q_gt)
+    again, _, samples = checkpoint_test_set(Net(), {"data": spec.as_dict()}, cache_root=tmp_path / "cache",
+                                            with_samples=True)
+    assert len(samples) == len(again)  # the samples in the crops' order: the frames runtime studies read again
+    np.testing.assert_allclose(again.q_gt, np.stack([s.q_gt for s in samples]))
+    np.testing.assert_array_equal(again.scene_ids, [s.scene_id for s in samples])
     with pytest.raises(ValueError, match="records no training data spec"):
         checkpoint_test_set(Net(), {}, cache_root=tmp_path / "cache")
 
