@@ -26,9 +26,6 @@ averaging's price in speed.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import shlex
 import sys
 from pathlib import Path
 
@@ -37,6 +34,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+
+from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
 
 
 def jittered_views(crops: np.ndarray, views: int) -> list[np.ndarray]:
@@ -194,23 +193,13 @@ def _parse_views(text: str) -> list[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("checkpoints", type=Path, nargs="+", metavar="CKPT")
+    p = checkpoint_parser(__doc__.splitlines()[0], json_help="write the rows and the command here")
     p.add_argument("--views", type=_parse_views, default=[4, 8], metavar="K[,K...]",
                    help="view counts to measure besides one (default: 4,8)")
     p.add_argument("--runtime", action="store_true",
                    help="also measure each model's views end to end: exported to ONNX and run by "
                         "RefinerSession.refine(views=K) on the full frames, with the same coarse poses")
-    p.add_argument("--data", type=Path, help="the dataset folder if it moved since training (default: the recorded one)")
-    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
-    p.add_argument("--threads", type=int, default=0)
-    p.add_argument("--json", type=Path, help="write the rows and the command here")
-    args = p.parse_args(argv)
-    missing = [str(c) for c in args.checkpoints if not c.is_file()]
-    if missing:
-        p.error(f"no such checkpoint file(s): {', '.join(missing)}")
-
-    import torch
+    args = parse_checkpoint_args(p, argv)
 
     from models.train import set_threads
 
@@ -218,13 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = run(args.checkpoints, args.views, args.data, args.cache, runtime=args.runtime)
     print(markdown(rows))
     if args.json:
-        doc = {"study": "corrections averaged over box-jittered views and over models", "rows": rows,
-               "test_noise": "uniform:0:30", "checkpoints": [str(c) for c in args.checkpoints],
-               "command": shlex.join(["python", "benchmarks/averaging.py", *(sys.argv[1:] if argv is None else argv)]),
-               "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
-                           "threads": threads, "torch": torch.__version__}}
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+        write_json(args.json, {"study": "corrections averaged over box-jittered views and over models", "rows": rows,
+                               "test_noise": "uniform:0:30", "checkpoints": [str(c) for c in args.checkpoints],
+                               **provenance("averaging.py", argv, threads)})
     return 0
 
 

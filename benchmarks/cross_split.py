@@ -18,10 +18,7 @@ their split); each must cover the first checkpoint's objects.
 
 from __future__ import annotations
 
-import argparse
 import json
-import platform
-import shlex
 import sys
 from pathlib import Path
 
@@ -30,6 +27,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+
+from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
 
 SEEN_PARTS = ("train_base", "train_finetune", "val")
 
@@ -118,18 +117,8 @@ def markdown(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("checkpoints", type=Path, nargs="+", metavar="CKPT",
-                   help="the first one's split gives the test crops")
-    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
-    p.add_argument("--threads", type=int, default=0)
-    p.add_argument("--json", type=Path, help="write the results and the command here")
-    args = p.parse_args(argv)
-    missing = [str(c) for c in args.checkpoints if not c.is_file()]
-    if missing:
-        p.error(f"no such checkpoint file(s): {', '.join(missing)}")
-
-    import torch
+    p = checkpoint_parser(__doc__.splitlines()[0], data=False, checkpoints_help="the first one's split gives the test crops")
+    args = parse_checkpoint_args(p, argv)
 
     from models.train import set_threads
 
@@ -137,13 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     result = compare(args.checkpoints, args.cache)
     print(markdown(result))
     if args.json:
-        doc = {"study": "checkpoints on the same test crops from scenes none of them saw", **result,
-               "test_noise": "uniform:0:30",
-               "command": shlex.join(["python", "benchmarks/cross_split.py", *(sys.argv[1:] if argv is None else argv)]),
-               "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
-                           "threads": threads, "torch": torch.__version__}}
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+        write_json(args.json, {"study": "checkpoints on the same test crops from scenes none of them saw", **result,
+                               "test_noise": "uniform:0:30", **provenance("cross_split.py", argv, threads)})
     return 0
 
 

@@ -42,9 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import re
-import shlex
 import sys
 import time
 from dataclasses import dataclass
@@ -55,6 +53,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+
+from benchmarks.study_cli import provenance, write_json  # noqa: E402
 
 
 def _parse_sizes(text: str, flag: str = "--sizes") -> list[int]:
@@ -292,9 +292,7 @@ def run(args) -> dict:
         **({"split_objects": args.split_objects} if args.split_objects else {}),
         "parameters": sum(p.numel() for p in probe.parameters()), "rotation_frame": args.rotation_frame, "lr": args.lr,
         "lr_schedule": "cosine", "test_noise": "uniform:0:30", "rows": rows,
-        "command": shlex.join(["python", "benchmarks/data_scaling.py", *args.argv]),
-        "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
-                    "threads": threads, "torch": torch.__version__},
+        **provenance("data_scaling.py", args.argv, threads),
         "wall_s": round(time.perf_counter() - t_all, 1),
     }
 
@@ -561,8 +559,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = run(args)
     print(markdown(doc))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+        write_json(args.json, doc)
     return 0
 
 

@@ -20,10 +20,6 @@ reference (:func:`models.metrics.swing_twist_deg`).
 
 from __future__ import annotations
 
-import argparse
-import json
-import platform
-import shlex
 import sys
 from pathlib import Path
 
@@ -32,6 +28,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+
+from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
 
 PARTS = ("train_base", "train_finetune", "val", "test")
 
@@ -120,19 +118,8 @@ def markdown(results: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("checkpoints", type=Path, nargs="+", metavar="CKPT")
-    p.add_argument("--data", type=Path,
-                   help="the dataset folder if it moved since training (default: the recorded one)")
-    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
-    p.add_argument("--threads", type=int, default=0)
-    p.add_argument("--json", type=Path, help="write the results and the command here")
-    args = p.parse_args(argv)
-    missing = [str(c) for c in args.checkpoints if not c.is_file()]
-    if missing:
-        p.error(f"no such checkpoint file(s): {', '.join(missing)}")
-
-    import torch
+    p = checkpoint_parser(__doc__.splitlines()[0])
+    args = parse_checkpoint_args(p, argv)
 
     from models.train import set_threads
 
@@ -140,14 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     results = [breakdown(c, args.data, args.cache) for c in args.checkpoints]
     print(markdown(results))
     if args.json:
-        doc = {"study": "error on train/val/test parts, test error in and out of the image plane", "results": results,
-               "test_noise": "uniform:0:30",
-               "command": shlex.join(["python", "benchmarks/error_breakdown.py",
-                                      *(sys.argv[1:] if argv is None else argv)]),
-               "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
-                           "threads": threads, "torch": torch.__version__}}
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+        write_json(args.json, {"study": "error on train/val/test parts, test error in and out of the image plane",
+                               "results": results, "test_noise": "uniform:0:30",
+                               **provenance("error_breakdown.py", argv, threads)})
     return 0
 
 

@@ -1,0 +1,57 @@
+"""What the checkpoint studies of ``benchmarks/`` share: their common options and the record each JSON carries.
+
+``averaging.py``, ``cross_split.py`` and ``error_breakdown.py`` take checkpoints and rebuild their recorded test
+crops; every study writes the command that produced it and the machine it ran on beside its numbers, so a row of
+``RESULTS.md`` can be traced and rerun.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import sys
+from pathlib import Path
+
+
+def checkpoint_parser(description: str, *, data: bool = True, checkpoints_help: str | None = None,
+                      json_help: str = "write the results and the command here") -> argparse.ArgumentParser:
+    """A parser with the studies' common options: ``CKPT...``, ``--data`` (optional), ``--cache``, ``--threads``,
+    ``--json``; the caller adds its own."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("checkpoints", type=Path, nargs="+", metavar="CKPT", help=checkpoints_help)
+    if data:
+        p.add_argument("--data", type=Path,
+                       help="the dataset folder if it moved since training (default: the recorded one)")
+    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (default 0: torch's own choice)")
+    p.add_argument("--json", type=Path, help=json_help)
+    return p
+
+
+def parse_checkpoint_args(p: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """``p.parse_args(argv)``, refusing checkpoint paths that are not files (before any slow import)."""
+    args = p.parse_args(argv)
+    missing = [str(c) for c in args.checkpoints if not c.is_file()]
+    if missing:
+        p.error(f"no such checkpoint file(s): {', '.join(missing)}")
+    return args
+
+
+def provenance(script: str, argv: list[str] | None, threads: int) -> dict:
+    """``{"command", "machine"}`` of a study run: the command line as typed (``argv``, default ``sys.argv[1:]``)
+    and the Python, processor, torch threads and torch version it ran with."""
+    import torch
+
+    return {
+        "command": shlex.join(["python", f"benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)]),
+        "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
+                    "threads": threads, "torch": torch.__version__},
+    }
+
+
+def write_json(path: Path, doc: dict) -> None:
+    """Write a study's document (indented, one trailing newline), creating its folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1) + "\n")
