@@ -117,7 +117,8 @@ def markdown(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = checkpoint_parser(__doc__.splitlines()[0], data=False, checkpoints_help="the first one's split gives the test crops")
+    p = checkpoint_parser(__doc__.splitlines()[0], data=False,
+                          checkpoints_help="the first one's split gives the test crops")
     args = parse_checkpoint_args(p, argv)
 
     from models.train import set_threads
