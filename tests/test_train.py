@@ -1,7 +1,6 @@
 """Training loop, noise specs, CropSet and metrics: behaviour on small synthetic data."""
 
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -124,17 +123,13 @@ def test_train_config_rejects_bad_values():
                       tiny_data(), None, TrainConfig(), progress=False)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_ddp_two_processes_keep_identical_weights(tmp_path):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(TESTS.parent), os.environ.get("PYTHONPATH", "")]),
            "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
-           "--master_port", str(_free_port()), str(TESTS / "ddp_worker.py"), str(tmp_path)]
+    # --standalone: the launcher binds its rendezvous store to a free port itself; a port picked here and passed
+    # on could be taken by another process before the launcher binds it (seen once, beside another test run).
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           str(TESTS / "ddp_worker.py"), str(tmp_path)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     a = torch.load(tmp_path / "rank0.pt", weights_only=True)
