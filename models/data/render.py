@@ -324,7 +324,11 @@ def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
 
 
 class _World:
-    """A pybullet client with the meshes loaded once; scenes are built and cleared in it."""
+    """A pybullet client with the meshes loaded once; scenes are built and cleared in it.
+
+    Each object's collision shape (a convex hull), visual shape and texture are made on first use and kept for
+    every later scene: making them again per scene cost about half of a four-frame scene's time.
+    """
 
     def __init__(self, meshes: dict[str, Mesh], tmp_dir: Path):
         import pybullet as pb
@@ -333,21 +337,41 @@ class _World:
         self.client = pb.connect(pb.DIRECT)
         self.meshes = meshes
         self.tmp_dir = tmp_dir
+        self._shapes: dict[str, tuple[int, int, int]] = {}
+        self._table: int | None = None
+
+    def _shape(self, obj: str) -> tuple[int, int, int]:
+        """``(collision shape, visual shape, texture)`` of mesh ``obj``, made once per client."""
+        if obj not in self._shapes:
+            pb, c = self.pb, self.client
+            m = self.meshes[obj]
+            vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
+            col = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
+            tex = pb.loadTexture(str(m.texture_path), physicsClientId=c)
+            self._shapes[obj] = (col, vis, tex)
+        return self._shapes[obj]
+
+    def add_table(self) -> int:
+        """The static table top: a box whose top face is the plane z = 0 (physics only, see build_scene)."""
+        pb, c = self.pb, self.client
+        if self._table is None:
+            self._table = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[TABLE_HALF, TABLE_HALF, 0.02], physicsClientId=c)
+        return pb.createMultiBody(0, self._table, -1, basePosition=[0, 0, -0.02], physicsClientId=c)
 
     def add_object(self, obj: str, pos, orn) -> int:
         """A dynamic, textured body of mesh ``obj`` (its collision shape is the mesh's convex hull)."""
         pb, c = self.pb, self.client
-        m = self.meshes[obj]
-        vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
-        col = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
+        col, vis, tex = self._shape(obj)
         body = pb.createMultiBody(0.3, col, vis, basePosition=pos, baseOrientation=orn, physicsClientId=c)
-        tex = pb.loadTexture(str(m.texture_path), physicsClientId=c)
         pb.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
         pb.changeDynamics(body, -1, lateralFriction=0.8, rollingFriction=0.001, spinningFriction=0.001, physicsClientId=c)
         return body
 
     def clear(self):
-        self.pb.resetSimulation(physicsClientId=self.client)
+        """Remove every body (the shapes and textures stay for the next scene)."""
+        pb, c = self.pb, self.client
+        for i in reversed(range(pb.getNumBodies(physicsClientId=c))):
+            pb.removeBody(pb.getBodyUniqueId(i, physicsClientId=c), physicsClientId=c)
 
 
 class _Backdrop:
@@ -410,8 +434,7 @@ def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> t
     pb.setGravity(0, 0, -9.81, physicsClientId=c)
     # The table takes part in the physics only: TinyRenderer's cost is per covered pixel, so the table
     # and the room are composited afterwards (see _Backdrop), and only the objects are rendered.
-    table = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[TABLE_HALF, TABLE_HALF, 0.02], physicsClientId=c)
-    table_body = pb.createMultiBody(0, table, -1, basePosition=[0, 0, -0.02], physicsClientId=c)
+    table_body = world.add_table()
     lo, hi = cfg.objects_per_scene
     k = int(rng.integers(lo, hi + 1))
     chosen = rng.choice(list(cfg.objects), size=min(k, len(cfg.objects)), replace=False)
@@ -565,11 +588,11 @@ def _may_be_occluded(vis: np.ndarray, seg: np.ndarray, b: int, box: np.ndarray, 
     x1, y1, x2, y2 = box
     if x1 < 1 or y1 < 1 or x2 > width - 2 or y2 > height - 2:
         return True
-    ys, xs = np.nonzero(vis)
-    if len(xs) == 0:
+    x, y, w, h = cv2.boundingRect(vis.view(np.uint8))
+    if w == 0:
         return True
-    a0, a1 = max(ys.min() - 2, 0), min(ys.max() + 3, height)
-    b0, b1 = max(xs.min() - 2, 0), min(xs.max() + 3, width)
+    a0, a1 = max(y - 2, 0), min(y + h + 2, height)
+    b0, b1 = max(x - 2, 0), min(x + w + 2, width)
     local = vis[a0:a1, b0:b1].astype(np.uint8)
     ring = cv2.dilate(local, np.ones((3, 3), np.uint8)) > local
     neighbours = seg[a0:a1, b0:b1][ring]
@@ -578,10 +601,8 @@ def _may_be_occluded(vis: np.ndarray, seg: np.ndarray, b: int, box: np.ndarray, 
 
 def _bbox(mask: np.ndarray) -> list[int]:
     """BOP box ``[x, y, w, h]`` of a mask, ``[-1, -1, -1, -1]`` when empty (as the BOP toolkit writes it)."""
-    ys, xs = np.nonzero(mask)
-    if len(xs) == 0:
-        return [-1, -1, -1, -1]
-    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))  # the tight box of the non-zero pixels; (0, 0, 0, 0) if none
+    return [int(x), int(y), int(w), int(h)] if w else [-1, -1, -1, -1]
 
 
 # ------------------------------------------------------------------------------------ datasets

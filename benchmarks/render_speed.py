@@ -1,0 +1,107 @@
+"""Render speed: one pybullet world kept for every scene (what ``refiner-rt render`` does) against a fresh world per
+scene (each object's convex hull, visual shape and texture made again for every scene, as the renderer did before it
+kept them), on the same scenes, and whether the two write the same bytes.
+
+Each scene is rendered once each way, the two interleaved so that load on the machine falls on both alike; one
+process, one core. Reported: the median seconds per scene each way, their ratio, frames/s of one worker, and the
+number of files that differ between the two outputs (0: keeping the shapes changes no pixel or label).
+
+Usage (from the repository root)::
+
+    python benchmarks/render_speed.py                                  # 20 four-frame scenes of ../shared/ycb_models
+    python benchmarks/render_speed.py --scenes 40 --json benchmarks/results/render_speed.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import filecmp
+import json
+import platform
+import shlex
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from models.data.render import RenderConfig, _default_models_dir, _World, find_models, render_scene  # noqa: E402
+
+
+def differing_files(a: Path, b: Path) -> tuple[int, list[str]]:
+    """``(files compared, relative paths of the files under a and b that are missing on one side or differ)``."""
+    files_a = {p.relative_to(a) for p in a.rglob("*") if p.is_file()}
+    files_b = {p.relative_to(b) for p in b.rglob("*") if p.is_file()}
+    differ = files_a ^ files_b
+    differ |= {p for p in files_a & files_b if not filecmp.cmp(a / p, b / p, shallow=False)}
+    return len(files_a | files_b), sorted(map(str, differ))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models-dir", type=Path, default=_default_models_dir(),
+                    help="YCB-Video-style models folder (default ../shared/ycb_models when present)")
+    ap.add_argument("--scenes", type=int, default=20, help="scenes rendered each way (default 20)")
+    ap.add_argument("--frames-per-scene", type=int, default=4, help="frames per scene (default 4, as the scene sets)")
+    ap.add_argument("--seed", type=int, default=2, help="dataset seed (default 2, as the scene sets)")
+    ap.add_argument("--first-scene", type=int, default=0, help="first scene index (default 0)")
+    ap.add_argument("--json", type=Path, help="write the result here")
+    args = ap.parse_args(argv)
+    if args.models_dir is None:
+        ap.error("no --models-dir given and ../shared/ycb_models was not found")
+    if args.scenes < 1 or args.frames_per_scene < 1:
+        ap.error(f"--scenes and --frames-per-scene must be >= 1; got {args.scenes} and {args.frames_per_scene}")
+    cfg = RenderConfig(frames_per_scene=args.frames_per_scene)
+    meshes = find_models(args.models_dir, cfg.objects)
+    from tqdm import tqdm
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        kept_dir, fresh_dir = tmp / "kept", tmp / "fresh"
+        kept_dir.mkdir()
+        fresh_dir.mkdir()
+        kept = _World(meshes, tmp)
+        render_scene(kept, cfg, args.seed, args.first_scene, tmp / "warmup")  # loads the libraries and the first shapes
+        t_kept, t_fresh = [], []
+        scenes = range(args.first_scene, args.first_scene + args.scenes)
+        for scene in tqdm(scenes, desc="render_speed", unit="scene", dynamic_ncols=True):
+            t0 = time.perf_counter()
+            render_scene(kept, cfg, args.seed, scene, kept_dir)
+            t_kept.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            world = _World(meshes, tmp)
+            render_scene(world, cfg, args.seed, scene, fresh_dir)
+            world.pb.disconnect(physicsClientId=world.client)
+            t_fresh.append(time.perf_counter() - t0)
+        compared, differ = differing_files(kept_dir, fresh_dir)
+    med_kept, med_fresh = float(np.median(t_kept)), float(np.median(t_fresh))
+    doc = {
+        "command": shlex.join(["python", "benchmarks/render_speed.py", *(sys.argv[1:] if argv is None else argv)]),
+        "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
+                    "processes": 1},
+        "scenes": args.scenes, "frames_per_scene": args.frames_per_scene, "seed": args.seed,
+        "first_scene": args.first_scene, "image": [cfg.width, cfg.height],
+        "median_s_per_scene": {"kept_world": med_kept, "fresh_world": med_fresh},
+        "frames_per_s_one_worker": {"kept_world": args.frames_per_scene / med_kept,
+                                    "fresh_world": args.frames_per_scene / med_fresh},
+        "speedup": med_fresh / med_kept,
+        "files_compared": compared,
+        "files_differing": differ,
+    }
+    print(f"{args.scenes} scenes of {args.frames_per_scene} frames, one core: median {med_kept:.3f} s per scene with the "
+          f"world kept, {med_fresh:.3f} s with a fresh world per scene ({doc['speedup']:.2f}x); "
+          f"{args.frames_per_scene / med_kept:.1f} frames/s against {args.frames_per_scene / med_fresh:.1f}; "
+          f"{len(differ)} of {compared} files differ")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
