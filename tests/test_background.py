@@ -143,6 +143,38 @@ def test_background_is_replaced_outside_the_mask_only():
     assert torch.equal(_replace_background(images, masks, 0.0, gen), images)
 
 
+def _replace_background_whole_batch(images, masks, p, gen):
+    """The background replacement written the plain way: every crop's new background made, then chosen per crop."""
+    import torch.nn.functional as F
+
+    n, s = images.shape[0], images.shape[1]
+    pick = (torch.rand(n, generator=gen) < p) & (masks.flatten(1) > 0).any(dim=1)
+    if n == 0 or not pick.any():
+        return images
+    other = torch.roll(images, shifts=int(torch.randint(1, max(n, 2), (1,), generator=gen)), dims=0).float()
+    grid = torch.rand(n, 3, 4, 4, generator=gen) * 255
+    field = F.interpolate(grid, size=(s, s), mode="bicubic", align_corners=False).permute(0, 2, 3, 1)
+    field = field + torch.randn(n, s, s, 3, generator=gen) * 8
+    use_field = (torch.rand(n, generator=gen) < 0.5) | (n == 1)
+    background = torch.where(use_field[:, None, None, None], field, other)
+    keep = ((masks > 0) | ~pick[:, None, None])[..., None]
+    return torch.where(keep, images.float(), background).clamp(0, 255).round().to(torch.uint8)
+
+
+@pytest.mark.parametrize("n,p", [(1, 1.0), (2, 0.5), (7, 0.5), (32, 0.5), (32, 1.0)])
+def test_background_matches_the_whole_batch_formula_to_the_byte(n, p):
+    """Making the new background for the picked crops only gives the same bytes and leaves the generator in the
+    same state as making it for every crop (the training runs before this change stay reproducible)."""
+    g_ref, g = torch.Generator().manual_seed(n), torch.Generator().manual_seed(n)
+    data = torch.Generator().manual_seed(100 + n)
+    for _ in range(10):
+        images = torch.randint(0, 256, (n, 24, 24, 3), dtype=torch.uint8, generator=data)
+        masks = (torch.rand(n, 24, 24, generator=data) > 0.6).to(torch.uint8)
+        masks[::3] = 0  # some crops without a mask
+        assert torch.equal(_replace_background(images, masks, p, g), _replace_background_whole_batch(images, masks, p, g_ref))
+    assert torch.equal(g.get_state(), g_ref.get_state())
+
+
 def test_background_comes_from_other_crops_and_from_colour_fields():
     """Over a few batches both kinds appear: another crop's pixels exactly, or something no crop holds."""
     images = torch.randint(0, 256, (4, 16, 16, 3), dtype=torch.uint8)
