@@ -64,6 +64,10 @@ class TrainConfig:
         seed: seed of the noise, shuffling and augmentation.
         val_seed: seed of the fixed validation noise (the same inputs every epoch).
         max_steps_per_epoch: cap on optimisation steps per epoch (0 = one full pass).
+        bf16: mixed precision: the training forward pass runs under ``torch.autocast`` in bfloat16 (its
+            backward follows); the weights, the optimiser and the loss stay float32, and validation, prediction
+            and export run in float32. About 1.7x the network's step rate on a CPU with AVX-512 BF16
+            (measured on a five-block fusion step, batch 64, one thread); slower than float32 on one without.
     """
 
     epochs_mse: int = 5
@@ -84,6 +88,7 @@ class TrainConfig:
     seed: int = 0
     val_seed: int = 12345
     max_steps_per_epoch: int = 0
+    bf16: bool = False
 
     def __post_init__(self):
         NoiseSpec.parse(self.noise)
@@ -102,6 +107,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a probability in [0, 1]; got {getattr(self, name)}")
         if self.rotation_frame not in ("camera", "ray"):
             raise ValueError(f"rotation_frame must be 'camera' or 'ray'; got {self.rotation_frame!r}")
+        if not isinstance(self.bf16, bool):
+            raise ValueError(f"bf16 must be True or False; got {self.bf16!r}")
 
     @property
     def epochs(self) -> int:
@@ -402,7 +409,9 @@ def train_refiner(
                 images = _augment(images, cfg, gen)
             q_in = torch.from_numpy(q_in_all[idx].astype(np.float32))
             label = torch.from_numpy(label_all[idx].astype(np.float32))
-            q_out = net(images, q_in)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.bf16):
+                q_out = net(images, q_in)
+            q_out = q_out.float()
             loss = F.mse_loss(q_out, label) if loss_kind == "mse" else geodesic_loss(q_out, label)
             opt.zero_grad(set_to_none=True)
             loss.backward()
