@@ -304,3 +304,19 @@ def test_train_cli_and_data_scaling_take_bf16(cubes, tmp_path):
                        "--bf16", "--json", str(js), "--quiet"]) == 0
     doc = json.loads(js.read_text())
     assert doc["bf16"] is True and [r["background"] for r in doc["rows"]] == [0.5]
+
+
+def test_train_speed_benchmark_measures_both_precisions(tmp_path):
+    bench = load_benchmark("train_speed")
+    data = bench.synthetic_crops(6, 16)
+    assert data.masks.shape == (6, 16, 16) and set(np.unique(data.masks)) <= {0, 1} and data.masks.any()
+    js = tmp_path / "speed.json"
+    assert bench.main(["--config", json.dumps({"input_size": 16, "conv_channels": [4], "fuse_width": 16,
+                                               "pose_widths": [16], "head_widths": [8]}),
+                       "--batch-size", "4", "--steps", "2", "--epochs", "3", "--json", str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert [len(doc["samples_per_s"][k]) for k in ("float32", "bf16")] == [2, 2]
+    assert all(v > 0 for v in doc["median_samples_per_s"].values())
+    assert doc["bf16_speedup"] == pytest.approx(doc["median_samples_per_s"]["bf16"] / doc["median_samples_per_s"]["float32"])
+    with pytest.raises(SystemExit):
+        bench.main(["--config", "[1]"])
