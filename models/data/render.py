@@ -327,7 +327,7 @@ class _World:
     """A pybullet client with the meshes loaded once; scenes are built and cleared in it.
 
     Each object's collision shape (a convex hull), visual shape and texture are made on first use and kept for
-    every later scene: making them again per scene cost about half of a four-frame scene's time.
+    every later scene: making them again per scene cost about a third of a four-frame scene's time.
     """
 
     def __init__(self, meshes: dict[str, Mesh], tmp_dir: Path):
