@@ -1,10 +1,10 @@
-"""Render speed: one pybullet world kept for every scene (what ``refiner-rt render`` does) against a fresh world per
-scene (each object's convex hull, visual shape and texture made again for every scene, as the renderer did before it
-kept them), on the same scenes, and whether the two write the same bytes.
+"""Render speed: the renderer's textures decoded once per worker and read back as BMPs (what ``refiner-rt render``
+does) against each scene loading the PNG textures (as the renderer did before), on the same scenes, and whether the
+two write the same bytes.
 
 Each scene is rendered once each way, the two interleaved so that load on the machine falls on both alike; one
 process, one core. Reported: the median seconds per scene each way, their ratio, frames/s of one worker, and the
-number of files that differ between the two outputs (0: keeping the shapes changes no pixel or label).
+number of files that differ between the two outputs (0: the BMPs change no pixel or label).
 
 Usage (from the repository root)::
 
@@ -31,6 +31,13 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from models.data.render import RenderConfig, _default_models_dir, _World, find_models, render_scene  # noqa: E402
+
+
+class _PngTextureWorld(_World):
+    """The world as it was: every body's texture loaded from the mesh's PNG."""
+
+    def _texture(self, obj: str) -> Path:
+        return self.meshes[obj].texture_path
 
 
 def differing_files(a: Path, b: Path) -> tuple[int, list[str]]:
@@ -62,40 +69,33 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        kept_dir, fresh_dir = tmp / "kept", tmp / "fresh"
-        kept_dir.mkdir()
-        fresh_dir.mkdir()
-        kept = _World(meshes, tmp)
-        render_scene(kept, cfg, args.seed, args.first_scene, tmp / "warmup")  # loads the libraries and the first shapes
-        t_kept, t_fresh = [], []
+        worlds = {"bmp_textures": _World(meshes, tmp / "bmp"), "png_textures": _PngTextureWorld(meshes, tmp / "png")}
+        times: dict[str, list[float]] = {name: [] for name in worlds}
+        for name, world in worlds.items():
+            (tmp / name).mkdir()
+            render_scene(world, cfg, args.seed, args.first_scene, tmp / "warmup")  # loads the libraries and the textures
         scenes = range(args.first_scene, args.first_scene + args.scenes)
         for scene in tqdm(scenes, desc="render_speed", unit="scene", dynamic_ncols=True):
-            t0 = time.perf_counter()
-            render_scene(kept, cfg, args.seed, scene, kept_dir)
-            t_kept.append(time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            world = _World(meshes, tmp)
-            render_scene(world, cfg, args.seed, scene, fresh_dir)
-            world.pb.disconnect(physicsClientId=world.client)
-            t_fresh.append(time.perf_counter() - t0)
-        compared, differ = differing_files(kept_dir, fresh_dir)
-    med_kept, med_fresh = float(np.median(t_kept)), float(np.median(t_fresh))
+            for name, world in worlds.items():
+                t0 = time.perf_counter()
+                render_scene(world, cfg, args.seed, scene, tmp / name)
+                times[name].append(time.perf_counter() - t0)
+        compared, differ = differing_files(tmp / "bmp_textures", tmp / "png_textures")
+    med = {name: float(np.median(t)) for name, t in times.items()}
     doc = {
         "command": shlex.join(["python", "benchmarks/render_speed.py", *(sys.argv[1:] if argv is None else argv)]),
         "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                     "processes": 1},
         "scenes": args.scenes, "frames_per_scene": args.frames_per_scene, "seed": args.seed,
         "first_scene": args.first_scene, "image": [cfg.width, cfg.height],
-        "median_s_per_scene": {"kept_world": med_kept, "fresh_world": med_fresh},
-        "frames_per_s_one_worker": {"kept_world": args.frames_per_scene / med_kept,
-                                    "fresh_world": args.frames_per_scene / med_fresh},
-        "speedup": med_fresh / med_kept,
+        "median_s_per_scene": med,
+        "frames_per_s_one_worker": {name: args.frames_per_scene / m for name, m in med.items()},
+        "speedup": med["png_textures"] / med["bmp_textures"],
         "files_compared": compared,
         "files_differing": differ,
     }
-    print(f"{args.scenes} scenes of {args.frames_per_scene} frames, one core: median {med_kept:.3f} s per scene with the "
-          f"world kept, {med_fresh:.3f} s with a fresh world per scene ({doc['speedup']:.2f}x); "
-          f"{args.frames_per_scene / med_kept:.1f} frames/s against {args.frames_per_scene / med_fresh:.1f}; "
+    print(f"{args.scenes} scenes of {args.frames_per_scene} frames, one core: median {med['bmp_textures']:.3f} s per "
+          f"scene with the BMP textures, {med['png_textures']:.3f} s loading the PNGs ({doc['speedup']:.2f}x); "
           f"{len(differ)} of {compared} files differ")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
