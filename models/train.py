@@ -67,7 +67,8 @@ class TrainConfig:
         bf16: mixed precision: the training forward pass runs under ``torch.autocast`` in bfloat16 (its
             backward follows); the weights, the optimiser and the loss stay float32, and validation, prediction
             and export run in float32. About 1.7x the network's step rate on a CPU with AVX-512 BF16
-            (measured on a five-block fusion step, batch 64, one thread); slower than float32 on one without.
+            (measured on a five-block fusion step, batch 64, one thread); ``benchmarks/train_speed.py`` measures
+            both precisions on other machines.
     """
 
     epochs_mse: int = 5

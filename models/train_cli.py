@@ -157,7 +157,7 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed of initialisation, noise and shuffling.")
 @click.option("--bf16/--no-bf16", default=False, show_default=True,
               help="Mixed precision: the training forward pass in bfloat16 (torch.autocast); weights, loss, validation "
-                   "and export stay float32. Faster on CPUs with AVX-512 BF16, slower without.")
+                   "and export stay float32. Faster on CPUs with AVX-512 BF16 (benchmarks/train_speed.py measures it).")
 @click.option("--threads", default=0, show_default=True, type=click.IntRange(0), help="Torch threads (0: all cores, shared between torchrun ranks).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
 @click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
