@@ -28,19 +28,10 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.data_scaling import _parse_config  # noqa: E402
 from benchmarks.study_cli import provenance, write_json  # noqa: E402
 
 FIVE_BLOCKS = {"conv_channels": [16, 32, 64, 128, 128]}
-
-
-def _config(text: str) -> dict:
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise argparse.ArgumentTypeError(f"--config: expected a JSON object; got {text!r} ({exc})") from None
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"--config: expected a JSON object; got {text!r}")
-    return value
 
 
 def synthetic_crops(n: int, size: int, seed: int = 0):
@@ -62,7 +53,7 @@ def synthetic_crops(n: int, size: int, seed: int = 0):
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--arch", default="fusion", help="network (default fusion)")
-    ap.add_argument("--config", type=_config, default=FIVE_BLOCKS,
+    ap.add_argument("--config", type=_parse_config, default=FIVE_BLOCKS,
                     help=f"network config overrides as JSON (default the five-block stage, {json.dumps(FIVE_BLOCKS)})")
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--steps", type=int, default=40, help="optimisation steps per epoch (default 40)")
