@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import filecmp
-import json
 import platform
 import shlex
 import sys
@@ -30,6 +29,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.study_cli import write_json  # noqa: E402
 from models.data.render import RenderConfig, _default_models_dir, _World, find_models, render_scene  # noqa: E402
 
 
@@ -98,8 +98,7 @@ def main(argv: list[str] | None = None) -> int:
           f"scene with the BMP textures, {med['png_textures']:.3f} s loading the PNGs ({doc['speedup']:.2f}x); "
           f"{len(differ)} of {compared} files differ")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=1) + "\n")
+        write_json(args.json, doc)
     return 0
 
 

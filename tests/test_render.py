@@ -255,3 +255,18 @@ def test_a_used_world_renders_a_scene_as_a_fresh_one_does(models_dir, tmp_path):
     assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file()) and len(files) > 10
     for f in files:
         assert (a / f).read_bytes() == (b / f).read_bytes(), f
+
+
+def test_render_speed_benchmark_finds_the_bmp_textures_change_nothing(tmp_path):
+    from bench_scripts import load_benchmark
+    from models.data.objects import PAPER_OBJECTS
+
+    for k, obj in enumerate(PAPER_OBJECTS):
+        write_box_mesh(tmp_path / "models" / obj, size=(0.05 + 0.01 * k, 0.04, 0.08), n=2, seed=k)
+    js = tmp_path / "speed.json"
+    bench = load_benchmark("render_speed")
+    assert bench.main(["--models-dir", str(tmp_path / "models"), "--scenes", "1", "--frames-per-scene", "1",
+                       "--json", str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert doc["files_differing"] == [] and doc["files_compared"] >= 5
+    assert set(doc["median_s_per_scene"]) == {"bmp_textures", "png_textures"} and doc["speedup"] > 0
