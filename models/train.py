@@ -190,8 +190,8 @@ def _replace_background(images: torch.Tensor, masks: torch.Tensor, p: float, gen
     noise = torch.randn(n, s, s, 3, generator=gen)
     use_field = (torch.rand(n, generator=gen) < 0.5) | (n == 1)  # a batch of one has no other crop
     # Only the picked crops change: the field is made for those that take it and the rest are copied, which
-    # gives the same bytes as making every crop's background (the random draws above are the same) at about
-    # a quarter of the cost.
+    # gives the same bytes as making every crop's background (the random draws above are the same) in about
+    # half the time (1.8x, batch 64 of 64 px).
     idx = torch.nonzero(pick).flatten()
     background = torch.roll(images, shifts=roll, dims=0)[idx].float()
     f_idx = torch.nonzero(use_field[idx]).flatten()
