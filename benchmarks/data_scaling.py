@@ -243,6 +243,7 @@ def run(args) -> dict:
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
                               rotation_frame=args.rotation_frame, augment=r.augment, background=r.background,
                               occlude=r.occlude, relight=r.relight, seed=args.seed, bf16=args.bf16,
+                              ema=args.ema, weight_decay=args.weight_decay, decoupled_weight_decay=True,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
             model = (_initial_model(args, spec, probe.config) if args.init
@@ -291,7 +292,9 @@ def run(args) -> dict:
         "object": args.object, "arch": args.arch, "config": args.config,
         **({"split_objects": args.split_objects} if args.split_objects else {}),
         "parameters": sum(p.numel() for p in probe.parameters()), "rotation_frame": args.rotation_frame, "lr": args.lr,
-        "lr_schedule": "cosine", **({"bf16": True} if args.bf16 else {}), "test_noise": "uniform:0:30", "rows": rows,
+        "lr_schedule": "cosine", **({"bf16": True} if args.bf16 else {}),
+        **({"ema": args.ema} if args.ema else {}), **({"adamw_weight_decay": args.weight_decay} if args.weight_decay else {}),
+        "test_noise": "uniform:0:30", "rows": rows,
         **provenance("data_scaling.py", args.argv, threads),
         "wall_s": round(time.perf_counter() - t_all, 1),
     }
@@ -493,6 +496,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bf16", action="store_true",
                    help="train in mixed precision (bfloat16 forward under torch.autocast; weights, loss and tests float32)")
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="keep an exponential moving average of the weights (e.g. 0.999) and validate, select and test "
+                        "it (TrainConfig.ema); 0 = off")
+    p.add_argument("--weight-decay", type=float, default=0.0, metavar="WD",
+                   help="AdamW weight decay (decoupled: the weights shrink by lr * WD per step); 0 = off")
     p.add_argument("--split-seed", type=int, default=0)
     p.add_argument("--split-objects", type=_parse_objects, metavar="IDS",
                    help="draw the split over these YCB ids (comma-separated, or 'paper' for the paper's nine; they "

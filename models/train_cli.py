@@ -158,6 +158,11 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--bf16/--no-bf16", default=False, show_default=True,
               help="Mixed precision: the training forward pass in bfloat16 (torch.autocast); weights, loss, validation "
                    "and export stay float32. Faster on CPUs with AVX-512 BF16 (benchmarks/train_speed.py measures it).")
+@click.option("--ema", default=0.0, show_default=True, type=click.FloatRange(0, 1, max_open=True),
+              help="Decay of a moving average of the weights updated every step (e.g. 0.999); validation, the kept "
+                   "epoch and the saved model use the average. 0: off.")
+@click.option("--weight-decay", default=0.0, show_default=True, type=click.FloatRange(0),
+              help="AdamW weight decay: the weights shrink by lr * weight-decay every step. 0: off.")
 @click.option("--threads", default=0, show_default=True, type=click.IntRange(0), help="Torch threads (0: all cores, shared between torchrun ranks).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
 @click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
@@ -346,6 +351,9 @@ def run_training(**o) -> dict:
         seed=o["seed"],
         max_steps_per_epoch=o["max_steps_per_epoch"],
         bf16=o["bf16"],
+        ema=o["ema"],
+        weight_decay=o["weight_decay"],
+        decoupled_weight_decay=True,
     )
     log_path = Path(f"{stem}.log.jsonl") if rank == 0 else None
     first = "train_base" if base_model is None else "train_finetune"

@@ -282,18 +282,19 @@ def test_data_scaling_adds_background_and_occluder_runs(cubes, tmp_path, capsys)
         study.main(["--data", str(cubes / "plain"), *common, "--occlude", "1"])
 
 
-def test_train_cli_and_data_scaling_take_bf16(cubes, tmp_path):
+def test_train_cli_and_data_scaling_take_bf16_ema_and_weight_decay(cubes, tmp_path):
     import models
 
     out = tmp_path / "b.pt"
     args = ["train", "--data", str(cubes / "masked"), "--out", str(out), "--objects", "003_cracker_box",
             "--base-per-object", "8", "--per-object", "0", "--val-per-object", "4", "--test-per-object", "4",
             "--epochs-mse", "1", "--epochs-geodesic", "0", "--arch", "fusion", "--config", TINY, "--cache",
-            str(tmp_path / "cache"), "--bf16", "--quiet", "--threads", "1"]
+            str(tmp_path / "cache"), "--bf16", "--ema", "0.99", "--weight-decay", "0.05", "--quiet", "--threads", "1"]
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0, res.output
     model, meta = models.load_checkpoint(out)
-    assert meta["train_config"]["bf16"] is True
+    assert meta["train_config"]["bf16"] is True and meta["train_config"]["ema"] == 0.99
+    assert meta["train_config"]["weight_decay"] == 0.05 and meta["train_config"]["decoupled_weight_decay"] is True
     assert all(v.dtype == torch.float32 for v in model.state_dict().values() if v.is_floating_point())
 
     study = load_benchmark("data_scaling")
@@ -301,8 +302,9 @@ def test_train_cli_and_data_scaling_take_bf16(cubes, tmp_path):
     assert study.main(["--data", str(cubes / "masked"), "--object", "003_cracker_box", "--modes", "frames", "--sizes",
                        "8", "--samples", "16", "--epoch-samples", "8", "--val", "4", "--test", "4", "--config", TINY,
                        "--cache", str(tmp_path / "cache"), "--threads", "1", "--skip-plain", "--background", "0.5",
-                       "--bf16", "--json", str(js), "--quiet"]) == 0
+                       "--bf16", "--ema", "0.99", "--weight-decay", "0.05", "--json", str(js), "--quiet"]) == 0
     doc = json.loads(js.read_text())
+    assert doc["ema"] == 0.99 and doc["adamw_weight_decay"] == 0.05
     assert doc["bf16"] is True and [r["background"] for r in doc["rows"]] == [0.5]
 
 

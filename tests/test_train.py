@@ -13,7 +13,7 @@ import models
 from models.cropset import CropSet
 from models.metrics import format_markdown, format_table, summarize_errors
 from models.noise import NoiseSpec, perturb
-from models.train import TrainConfig, train_refiner
+from models.train import TrainConfig, train_refiner, validation_errors
 from refiner_rt import quaternion as rq
 
 TESTS = Path(__file__).parent
@@ -111,6 +111,78 @@ def test_bf16_training_learns_like_float32_and_keeps_float32_weights():
     assert abs(bf16.best_val_deg - fp32.best_val_deg) < 0.25 * fp32.best_val_deg
     with pytest.raises(ValueError, match="bf16 must be True or False"):
         TrainConfig(bf16="yes")
+
+
+def test_weight_average_follows_the_ema_recurrence():
+    """The average is ``a <- d * a + (1 - d) * w`` with ``d = min(decay, (1 + t) / (10 + t))``, written out here in
+    float64 numpy; integer buffers (batch-norm's step counter) are copied, not averaged."""
+    from models.train import _WeightAverage
+
+    torch.manual_seed(0)
+    model = models.build_refiner("fusion", input_size=16, conv_channels=[4], fuse_width=16, pose_widths=[16],
+                                 head_widths=[8])
+    avg = _WeightAverage(model, 0.9)
+    ref = {k: v.detach().double().numpy().copy() for k, v in model.state_dict().items() if v.is_floating_point()}
+    rng = np.random.default_rng(1)
+    for t in range(30):
+        with torch.no_grad():
+            for v in model.state_dict().values():
+                if v.is_floating_point():
+                    v.add_(torch.from_numpy(rng.normal(size=v.shape)).to(v.dtype))
+                else:
+                    v.add_(1)
+        avg.update(model)
+        d = min(0.9, (1 + t) / (10 + t))
+        for k in ref:
+            ref[k] = d * ref[k] + (1 - d) * model.state_dict()[k].double().numpy()
+    assert avg.steps == 30
+    for k, v in avg.state.items():
+        if v.is_floating_point():
+            np.testing.assert_allclose(v.double().numpy(), ref[k], rtol=1e-5, atol=1e-5)
+        else:
+            assert torch.equal(v, model.state_dict()[k])
+
+
+def test_ema_training_validates_and_keeps_the_averaged_weights(tmp_path):
+    data = tiny_data(96)
+    val = data.subset(np.arange(32))
+    cfg = TrainConfig(epochs_mse=2, epochs_geodesic=4, batch_size=16, lr=3e-3, ema=0.9)  # constant rate: resumable
+    torch.manual_seed(0)
+    res = train_refiner(tiny_model(), data, val, cfg, progress=False)
+    assert all("val_raw_mean_deg" in r for r in res.history)
+    assert any(r["val_raw_mean_deg"] != r["val_mean_deg"] for r in res.history)
+    # the returned model is the averaged weights of the kept epoch: they score that epoch's validation error
+    assert validation_errors(res.model, val, cfg).mean() == pytest.approx(res.best_val_deg, abs=1e-4)
+    assert res.best_val_deg == min(r["val_mean_deg"] for r in res.history)
+    # interrupted after 3 epochs and resumed: the same average as one uninterrupted run
+    state = tmp_path / "state.pt"
+    torch.manual_seed(0)
+    train_refiner(tiny_model(), data, val, TrainConfig(**{**cfg.__dict__, "epochs_geodesic": 1}), state_path=state,
+                  progress=False)
+    resumed = train_refiner(tiny_model(), data, val, cfg, state_path=state, progress=False)
+    for a, b in zip(res.history, resumed.history):
+        assert a["val_mean_deg"] == pytest.approx(b["val_mean_deg"], abs=1e-3)
+    for a, b in zip(res.model.state_dict().values(), resumed.model.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    for bad in (1.0, -0.1):
+        with pytest.raises(ValueError, match="ema must be a decay in"):
+            TrainConfig(ema=bad)
+
+
+def test_decoupled_weight_decay_shrinks_the_weights():
+    data = tiny_data(96)
+    norms = {}
+    for wd in (0.0, 5.0):
+        torch.manual_seed(0)
+        cfg = TrainConfig(epochs_mse=1, epochs_geodesic=2, batch_size=16, lr=3e-3, weight_decay=wd,
+                          decoupled_weight_decay=True)
+        res = train_refiner(tiny_model(), data, None, cfg, progress=False)
+        norms[wd] = sum(float(p.detach().norm() ** 2) for p in res.model.parameters()) ** 0.5
+    assert norms[5.0] < 0.9 * norms[0.0]
+    with pytest.raises(ValueError, match="weight_decay must be >= 0"):
+        TrainConfig(weight_decay=-1.0)
+    with pytest.raises(ValueError, match="decoupled_weight_decay must be True or False"):
+        TrainConfig(decoupled_weight_decay=1)
 
 
 def test_resume_continues_where_it_stopped(tmp_path):
