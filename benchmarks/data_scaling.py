@@ -209,6 +209,9 @@ def run(args) -> dict:
     from models.pipeline import DataSpec, cropset_for, load_splits
     from models.train import TrainConfig, set_threads, train_refiner
 
+    if args.inplane and args.rotation_frame != "ray":
+        raise SystemExit(f"--inplane {args.inplane:g} needs --rotation-frame ray (a crop turned about its centre shows "
+                         f"the object turned about the viewing ray); got --rotation-frame {args.rotation_frame}")
     threads = set_threads(args.threads)
     sizes = _parse_sizes(args.sizes)
     augment_sizes = args.augment_sizes or [sizes[-1]]
@@ -243,7 +246,7 @@ def run(args) -> dict:
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
                               rotation_frame=args.rotation_frame, augment=r.augment, background=r.background,
                               occlude=r.occlude, relight=r.relight, seed=args.seed, bf16=args.bf16,
-                              ema=args.ema, weight_decay=args.weight_decay, decoupled_weight_decay=True,
+                              ema=args.ema, inplane=args.inplane, weight_decay=args.weight_decay, decoupled_weight_decay=True,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
             model = (_initial_model(args, spec, probe.config) if args.init
@@ -293,7 +296,7 @@ def run(args) -> dict:
         **({"split_objects": args.split_objects} if args.split_objects else {}),
         "parameters": sum(p.numel() for p in probe.parameters()), "rotation_frame": args.rotation_frame, "lr": args.lr,
         "lr_schedule": "cosine", **({"bf16": True} if args.bf16 else {}),
-        **({"ema": args.ema} if args.ema else {}), **({"adamw_weight_decay": args.weight_decay} if args.weight_decay else {}),
+        **({"ema": args.ema} if args.ema else {}), **({"inplane_deg": args.inplane} if args.inplane else {}), **({"adamw_weight_decay": args.weight_decay} if args.weight_decay else {}),
         "test_noise": "uniform:0:30", "rows": rows,
         **provenance("data_scaling.py", args.argv, threads),
         "wall_s": round(time.perf_counter() - t_all, 1),
@@ -499,6 +502,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
                    help="keep an exponential moving average of the weights (e.g. 0.999) and validate, select and test "
                         "it (TrainConfig.ema); 0 = off")
+    p.add_argument("--inplane", type=float, default=0.0, metavar="DEG",
+                   help="turn every training crop about its centre by up to DEG degrees, the coarse pose with it "
+                        "(TrainConfig.inplane; needs --rotation-frame ray); 0 = off")
     p.add_argument("--weight-decay", type=float, default=0.0, metavar="WD",
                    help="AdamW weight decay (decoupled: the weights shrink by lr * WD per step); 0 = off")
     p.add_argument("--split-seed", type=int, default=0)

@@ -66,6 +66,10 @@ class TrainConfig:
         occlude: probability that a training crop gets an occluder: another crop's object (its masked
             pixels), shifted by up to 60% of the side, pasted over it, after ``background`` and before
             ``augment``; needs masks.
+        inplane: maximum angle (degrees) of an in-plane turn of every training crop about its centre, drawn from
+            U(-inplane, inplane), with the coarse pose turned to match (see ``_rotate_in_plane``): the object
+            seen at rotations about the viewing ray that no training scene had. First of the crop changes; needs
+            ``rotation_frame="ray"``. 0 = off.
         relight: probability that a training crop gets another scene's light and camera (a smooth shading field,
             light colour, gamma, blur and sensor noise; see ``_relight``), after ``occlude`` and before ``augment``.
         seed: seed of the noise, shuffling and augmentation.
@@ -95,6 +99,7 @@ class TrainConfig:
     background: float = 0.0
     occlude: float = 0.0
     relight: float = 0.0
+    inplane: float = 0.0
     seed: int = 0
     val_seed: int = 12345
     max_steps_per_epoch: int = 0
@@ -117,6 +122,13 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a probability in [0, 1]; got {getattr(self, name)}")
         if self.rotation_frame not in ("camera", "ray"):
             raise ValueError(f"rotation_frame must be 'camera' or 'ray'; got {self.rotation_frame!r}")
+        if not 0.0 <= self.inplane <= 180.0:
+            raise ValueError(f"inplane must be an angle in [0, 180] degrees; got {self.inplane}")
+        if self.inplane > 0 and self.rotation_frame != "ray":
+            raise ValueError(
+                "inplane needs rotation_frame='ray': a crop turned about its centre shows the object turned about "
+                f"the viewing ray, not the camera axis; got rotation_frame={self.rotation_frame!r}"
+            )
         for name in ("bf16", "decoupled_weight_decay"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False; got {getattr(self, name)!r}")
@@ -214,6 +226,38 @@ def _lr_at(cfg: TrainConfig, progress_epochs: float) -> float:
     span = max(cfg.epochs - cfg.warmup_epochs, 1e-9)
     t = min((progress_epochs - cfg.warmup_epochs) / span, 1.0)
     return cfg.lr * (cfg.lr_min_ratio + (1 - cfg.lr_min_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def _rotate_in_plane(
+    images: torch.Tensor, masks: torch.Tensor | None, max_deg: float, gen: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor | None, np.ndarray]:
+    """Rotate every crop about its centre by an angle from U(-max_deg, max_deg): uint8 NHWC in and out.
+
+    A crop centred on the box shows the object around the viewing ray, so turning the image by ``phi`` (a pixel
+    offset ``(dx, dy)`` -> ``R(phi) (dx, dy)`` with x right and y down) shows the object turned by ``phi`` about
+    that ray: in the ray frame ``q_gt -> q_z(phi) * q_gt``, and since the coarse pose is ``q_gt * q_noise`` the
+    input becomes ``q_z(phi) * q_in`` with the same label. Corners the turn uncovers are filled by reflection;
+    masks are turned with nearest sampling and zeros outside.
+
+    Returns:
+        the turned images, the turned masks (None without masks), and ``q_z(phi)`` per crop ``(N, 4)`` wxyz float64.
+    """
+    n = images.shape[0]
+    phi = (torch.rand(n, generator=gen, dtype=torch.float64) * 2 - 1) * math.radians(max_deg)
+    c, s = torch.cos(phi).float(), torch.sin(phi).float()
+    # affine_grid maps each output position to where it samples the input: R(-phi) (square crop, centred units).
+    theta = torch.zeros(n, 2, 3)
+    theta[:, 0, 0], theta[:, 0, 1], theta[:, 1, 0], theta[:, 1, 1] = c, s, -s, c
+    x = images.permute(0, 3, 1, 2).float()
+    grid = F.affine_grid(theta, list(x.shape), align_corners=False)
+    x = F.grid_sample(x, grid, mode="bilinear", padding_mode="reflection", align_corners=False)
+    out = x.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).contiguous()
+    if masks is not None:
+        m = F.grid_sample(masks[:, None].float(), grid, mode="nearest", padding_mode="zeros", align_corners=False)
+        masks = m[:, 0].round().to(masks.dtype)
+    half = phi.numpy() / 2
+    q_turn = np.stack([np.cos(half), np.zeros(n), np.zeros(n), np.sin(half)], axis=1)
+    return out, masks, q_turn
 
 
 def _replace_background(images: torch.Tensor, masks: torch.Tensor, p: float, gen: torch.Generator) -> torch.Tensor:
@@ -445,8 +489,14 @@ def train_refiner(
             for g in opt.param_groups:
                 g["lr"] = lr
             images = torch.from_numpy(np.ascontiguousarray(train.crops[idx]))
+            q_in = q_in_all[idx]
+            masks = None
             if cfg.background > 0 or cfg.occlude > 0:
                 masks = torch.from_numpy(np.ascontiguousarray(train.masks[idx]))
+            if cfg.inplane > 0:
+                images, masks, q_turn = _rotate_in_plane(images, masks, cfg.inplane, gen)
+                q_in = rq.multiply(q_turn, q_in)
+            if masks is not None:
                 if cfg.background > 0:
                     images = _replace_background(images, masks, cfg.background, gen)
                 if cfg.occlude > 0:
@@ -455,7 +505,7 @@ def train_refiner(
                 images = _relight(images, cfg.relight, gen)
             if cfg.augment:
                 images = _augment(images, cfg, gen)
-            q_in = torch.from_numpy(q_in_all[idx].astype(np.float32))
+            q_in = torch.from_numpy(q_in.astype(np.float32))
             label = torch.from_numpy(label_all[idx].astype(np.float32))
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.bf16):
                 q_out = net(images, q_in)

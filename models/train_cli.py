@@ -152,6 +152,9 @@ def write_logs(history: list[dict], stem: Path) -> None:
 @click.option("--relight", default=0.0, show_default=True, type=click.FloatRange(0, 1),
               help="Probability of giving a training crop another scene's light and camera: a smooth shading field, "
                    "light colour, gamma, blur and sensor noise (no masks needed).")
+@click.option("--inplane", default=0.0, show_default=True, type=click.FloatRange(0, 180),
+              help="Turn every training crop about its centre by up to this many degrees, the coarse pose with it "
+                   "(new rotations about the viewing ray); needs --rotation-frame ray. 0: off.")
 @click.option("--rotation-frame", type=click.Choice(["camera", "ray"]), default="camera", show_default=True, help="camera: paper; ray: rotation relative to the viewing ray (needs K at run time).")
 @click.option("--max-steps-per-epoch", default=0, show_default=True, type=click.IntRange(0), help="Cap optimisation steps per epoch (0: full pass).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed of initialisation, noise and shuffling.")
@@ -293,6 +296,11 @@ def run_training(**o) -> dict:
     from models.pipeline import DataSpec, cropset_for, load_splits
     from models.train import TrainConfig, set_threads, train_refiner
 
+    if o["inplane"] and o["rotation_frame"] != "ray":
+        raise click.ClickException(
+            f"--inplane {o['inplane']:g} needs --rotation-frame ray (a crop turned about its centre shows the object "
+            f"turned about the viewing ray); got --rotation-frame {o['rotation_frame']}"
+        )
     rank, world = _init_distributed()
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     set_threads(o["threads"] or max(1, cores // world))
@@ -348,6 +356,7 @@ def run_training(**o) -> dict:
         background=o["background"],
         occlude=o["occlude"],
         relight=o["relight"],
+        inplane=o["inplane"],
         seed=o["seed"],
         max_steps_per_epoch=o["max_steps_per_epoch"],
         bf16=o["bf16"],

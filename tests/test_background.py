@@ -282,7 +282,7 @@ def test_data_scaling_adds_background_and_occluder_runs(cubes, tmp_path, capsys)
         study.main(["--data", str(cubes / "plain"), *common, "--occlude", "1"])
 
 
-def test_train_cli_and_data_scaling_take_bf16_ema_and_weight_decay(cubes, tmp_path):
+def test_train_cli_and_data_scaling_take_bf16_ema_weight_decay_and_inplane(cubes, tmp_path):
     import models
 
     out = tmp_path / "b.pt"
@@ -297,14 +297,19 @@ def test_train_cli_and_data_scaling_take_bf16_ema_and_weight_decay(cubes, tmp_pa
     assert meta["train_config"]["weight_decay"] == 0.05 and meta["train_config"]["decoupled_weight_decay"] is True
     assert all(v.dtype == torch.float32 for v in model.state_dict().values() if v.is_floating_point())
 
+    res = CliRunner().invoke(main, args + ["--inplane", "30"])  # the camera frame: refused before any work
+    assert res.exit_code != 0 and "--inplane 30 needs --rotation-frame ray" in res.output
     study = load_benchmark("data_scaling")
+    with pytest.raises(SystemExit, match="--inplane 30 needs --rotation-frame ray"):
+        study.main(["--data", str(cubes / "masked"), "--rotation-frame", "camera", "--inplane", "30"])
     js = tmp_path / "s.json"
     assert study.main(["--data", str(cubes / "masked"), "--object", "003_cracker_box", "--modes", "frames", "--sizes",
                        "8", "--samples", "16", "--epoch-samples", "8", "--val", "4", "--test", "4", "--config", TINY,
                        "--cache", str(tmp_path / "cache"), "--threads", "1", "--skip-plain", "--background", "0.5",
+                       "--inplane", "20",
                        "--bf16", "--ema", "0.99", "--weight-decay", "0.05", "--json", str(js), "--quiet"]) == 0
     doc = json.loads(js.read_text())
-    assert doc["ema"] == 0.99 and doc["adamw_weight_decay"] == 0.05
+    assert doc["ema"] == 0.99 and doc["adamw_weight_decay"] == 0.05 and doc["inplane_deg"] == 20
     assert doc["bf16"] is True and [r["background"] for r in doc["rows"]] == [0.5]
 
 
