@@ -22,7 +22,7 @@ from data_fixtures import write_ycbv_frame
 from models.cropset import CropSet
 from models.data import CropCache, load_bop, load_ycbv
 from models.data.cache import samples_fingerprint
-from models.train import TrainConfig, _paste_occluders, _replace_background, train_refiner
+from models.train import TrainConfig, _augment, _paste_occluders, _replace_background, train_refiner
 from refiner_rt.cli import main
 from refiner_rt.preprocess import crop_to_square
 
@@ -172,6 +172,39 @@ def test_background_matches_the_whole_batch_formula_to_the_byte(n, p):
         masks = (torch.rand(n, 24, 24, generator=data) > 0.6).to(torch.uint8)
         masks[::3] = 0  # some crops without a mask
         assert torch.equal(_replace_background(images, masks, p, g), _replace_background_whole_batch(images, masks, p, g_ref))
+    assert torch.equal(g.get_state(), g_ref.get_state())
+
+
+def _augment_with_affine_grid(images, cfg, gen):
+    """The colour and box jitter written with ``F.affine_grid`` and out-of-place arithmetic (the earlier code)."""
+    import torch.nn.functional as F
+
+    n = images.shape[0]
+    x = images.permute(0, 3, 1, 2).float()
+    scale = 1 + (torch.rand(n, generator=gen) * 2 - 1) * cfg.box_jitter
+    shift = (torch.rand(n, 2, generator=gen) * 2 - 1) * cfg.box_jitter * 2
+    theta = torch.zeros(n, 2, 3)
+    theta[:, 0, 0], theta[:, 1, 1], theta[:, :, 2] = scale, scale, shift
+    x = F.grid_sample(x, F.affine_grid(theta, list(x.shape), align_corners=False), mode="bilinear",
+                      padding_mode="zeros", align_corners=False)
+    brightness = (torch.rand(n, 1, 1, 1, generator=gen) * 2 - 1) * 25
+    contrast = 1 + (torch.rand(n, 1, 1, 1, generator=gen) * 2 - 1) * 0.2
+    gain = 1 + (torch.rand(n, 3, 1, 1, generator=gen) * 2 - 1) * 0.1
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = ((x - mean) * contrast + mean) * gain + brightness
+    return x.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).contiguous()
+
+
+@pytest.mark.parametrize("n,s,jitter", [(1, 16, 0.05), (7, 24, 0.05), (64, 64, 0.05), (16, 64, 0.2)])
+def test_augment_matches_the_affine_grid_formula_to_the_byte(n, s, jitter):
+    """The written-out sampling grid gives the same bytes and generator state as ``F.affine_grid``, so training runs
+    made before the change stay reproducible to the digit."""
+    cfg = TrainConfig(augment=True, box_jitter=jitter)
+    g_ref, g = torch.Generator().manual_seed(n), torch.Generator().manual_seed(n)
+    data = torch.Generator().manual_seed(200 + n)
+    for _ in range(20):
+        images = torch.randint(0, 256, (n, s, s, 3), dtype=torch.uint8, generator=data)
+        assert torch.equal(_augment(images, cfg, g), _augment_with_affine_grid(images, cfg, g_ref))
     assert torch.equal(g.get_state(), g_ref.get_state())
 
 
