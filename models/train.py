@@ -244,12 +244,14 @@ def _rotate_in_plane(
     """
     n = images.shape[0]
     phi = (torch.rand(n, generator=gen, dtype=torch.float64) * 2 - 1) * math.radians(max_deg)
-    c, s = torch.cos(phi).float(), torch.sin(phi).float()
-    # affine_grid maps each output position to where it samples the input: R(-phi) (square crop, centred units).
-    theta = torch.zeros(n, 2, 3)
-    theta[:, 0, 0], theta[:, 0, 1], theta[:, 1, 0], theta[:, 1, 1] = c, s, -s, c
+    size = images.shape[1]
+    c, s = torch.cos(phi).float()[:, None, None], torch.sin(phi).float()[:, None, None]
+    # Each output pixel samples the input at R(-phi) of its position (pixel centres in grid_sample's [-1, 1] units,
+    # the grid F.affine_grid would give, written out: its batched matrix product is the slow part).
+    u = torch.linspace(-1, 1, size) * (size - 1) / size
+    x_out, y_out = u[None, None, :], u[None, :, None]
+    grid = torch.stack([c * x_out + s * y_out, c * y_out - s * x_out], dim=-1)
     x = images.permute(0, 3, 1, 2).float()
-    grid = F.affine_grid(theta, list(x.shape), align_corners=False)
     x = F.grid_sample(x, grid, mode="bilinear", padding_mode="reflection", align_corners=False)
     out = x.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).contiguous()
     if masks is not None:
