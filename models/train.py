@@ -4,8 +4,9 @@ Paper (Jain & Dellaert, section "Training"): coarse inputs ``q_in = q_gt * q_noi
 ``q_noise`` every epoch, label ``q_noise^-1``; MSE for the first 5 epochs then the geodesic angle
 ``2 * atan2(|v|, |w|)`` of ``q_out * q_label^-1`` for 10 more; Adam. Beyond the paper: a learning-rate
 schedule (constant, or cosine decay with linear warm-up), optional crop augmentation (colour
-jitter, a box jitter that imitates a detector), the viewing-ray rotation frame, best-epoch
-selection on validation, resumable state and data-parallel training under ``torchrun``.
+jitter, a box jitter that imitates a detector; new backgrounds, occluders, relighting and in-plane
+turns), the viewing-ray rotation frame, mixed precision, AdamW decay, a moving average of the weights,
+best-epoch selection on validation, resumable state and data-parallel training under ``torchrun``.
 
 Conventions: quaternions ``wxyz``, object-to-camera; crops ``(N, S, S, 3)`` uint8 BGR; angles in degrees.
 """
