@@ -212,6 +212,11 @@ def run(args) -> dict:
     if args.inplane and args.rotation_frame != "ray":
         raise SystemExit(f"--inplane {args.inplane:g} needs --rotation-frame ray (a crop turned about its centre shows "
                          f"the object turned about the viewing ray); got --rotation-frame {args.rotation_frame}")
+    try:  # the training options' ranges, checked by TrainConfig before any crops are cut
+        TrainConfig(ema=args.ema, inplane=args.inplane, weight_decay=args.weight_decay,
+                    rotation_frame=args.rotation_frame, bf16=args.bf16)
+    except ValueError as exc:
+        raise SystemExit(f"--ema {args.ema:g} --inplane {args.inplane:g} --weight-decay {args.weight_decay:g}: {exc}") from None
     threads = set_threads(args.threads)
     sizes = _parse_sizes(args.sizes)
     augment_sizes = args.augment_sizes or [sizes[-1]]
@@ -246,7 +251,8 @@ def run(args) -> dict:
             cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
                               rotation_frame=args.rotation_frame, augment=r.augment, background=r.background,
                               occlude=r.occlude, relight=r.relight, seed=args.seed, bf16=args.bf16,
-                              ema=args.ema, inplane=args.inplane, weight_decay=args.weight_decay, decoupled_weight_decay=True,
+                              ema=args.ema, inplane=args.inplane, weight_decay=args.weight_decay,
+                              decoupled_weight_decay=True,
                               max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
             torch.manual_seed(args.seed)
             model = (_initial_model(args, spec, probe.config) if args.init
@@ -296,7 +302,8 @@ def run(args) -> dict:
         **({"split_objects": args.split_objects} if args.split_objects else {}),
         "parameters": sum(p.numel() for p in probe.parameters()), "rotation_frame": args.rotation_frame, "lr": args.lr,
         "lr_schedule": "cosine", **({"bf16": True} if args.bf16 else {}),
-        **({"ema": args.ema} if args.ema else {}), **({"inplane_deg": args.inplane} if args.inplane else {}), **({"adamw_weight_decay": args.weight_decay} if args.weight_decay else {}),
+        **({"ema": args.ema} if args.ema else {}), **({"inplane_deg": args.inplane} if args.inplane else {}),
+        **({"adamw_weight_decay": args.weight_decay} if args.weight_decay else {}),
         "test_noise": "uniform:0:30", "rows": rows,
         **provenance("data_scaling.py", args.argv, threads),
         "wall_s": round(time.perf_counter() - t_all, 1),

@@ -198,16 +198,16 @@ class _WeightAverage:
         self.decay = decay
         self.steps = 0
         self.state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        self._floats = [k for k, v in self.state.items() if v.is_floating_point()]
+        self._counters = [k for k, v in self.state.items() if not v.is_floating_point()]
 
     @torch.no_grad()
     def update(self, model: torch.nn.Module) -> None:
         d = min(self.decay, (1 + self.steps) / (10 + self.steps))
         current = model.state_dict()
-        floats = [k for k, v in self.state.items() if v.is_floating_point()]
-        torch._foreach_lerp_([self.state[k] for k in floats], [current[k].detach() for k in floats], 1.0 - d)
-        for k, v in self.state.items():
-            if not v.is_floating_point():
-                v.copy_(current[k])
+        torch._foreach_lerp_([self.state[k] for k in self._floats], [current[k] for k in self._floats], 1.0 - d)
+        for k in self._counters:
+            self.state[k].copy_(current[k])
         self.steps += 1
 
     def average_buffers(self, model: torch.nn.Module, world: int) -> None:

@@ -335,6 +335,8 @@ def test_train_cli_and_data_scaling_take_bf16_ema_weight_decay_and_inplane(cubes
     study = load_benchmark("data_scaling")
     with pytest.raises(SystemExit, match="--inplane 30 needs --rotation-frame ray"):
         study.main(["--data", str(cubes / "masked"), "--rotation-frame", "camera", "--inplane", "30"])
+    with pytest.raises(SystemExit, match="ema must be a decay in"):
+        study.main(["--data", str(cubes / "masked"), "--ema", "1.5"])
     js = tmp_path / "s.json"
     assert study.main(["--data", str(cubes / "masked"), "--object", "003_cracker_box", "--modes", "frames", "--sizes",
                        "8", "--samples", "16", "--epoch-samples", "8", "--val", "4", "--test", "4", "--config", TINY,
