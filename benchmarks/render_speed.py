@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import filecmp
-import platform
-import shlex
 import sys
 import tempfile
 import time
@@ -29,7 +27,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from benchmarks.study_cli import write_json  # noqa: E402
+from benchmarks.study_cli import provenance, write_json  # noqa: E402
 from models.data.render import RenderConfig, _default_models_dir, _World, find_models, render_scene  # noqa: E402
 
 
@@ -83,9 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         compared, differ = differing_files(tmp / "bmp_textures", tmp / "png_textures")
     med = {name: float(np.median(t)) for name, t in times.items()}
     doc = {
-        "command": shlex.join(["python", "benchmarks/render_speed.py", *(sys.argv[1:] if argv is None else argv)]),
-        "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
-                    "processes": 1},
+        **provenance("render_speed.py", argv, processes=1),
         "scenes": args.scenes, "frames_per_scene": args.frames_per_scene, "seed": args.seed,
         "first_scene": args.first_scene, "image": [cfg.width, cfg.height],
         "median_s_per_scene": med,

@@ -39,16 +39,18 @@ def parse_checkpoint_args(p: argparse.ArgumentParser, argv: list[str] | None) ->
     return args
 
 
-def provenance(script: str, argv: list[str] | None, threads: int) -> dict:
+def provenance(script: str, argv: list[str] | None, threads: int | None = None, **machine) -> dict:
     """``{"command", "machine"}`` of a study run: the command line as typed (``argv``, default ``sys.argv[1:]``)
-    and the Python, processor, torch threads and torch version it ran with."""
-    import torch
+    and the Python and processor it ran with; with ``threads`` (a torch study) also its torch threads and torch
+    version, and ``machine``'s entries after those (e.g. ``processes=1``). Without ``threads`` torch is not imported."""
+    record = {"python": platform.python_version(), "processor": platform.processor() or platform.machine()}
+    if threads is not None:
+        import torch
 
-    return {
-        "command": shlex.join(["python", f"benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)]),
-        "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
-                    "threads": threads, "torch": torch.__version__},
-    }
+        record.update(threads=threads, torch=torch.__version__)
+    record.update(machine)
+    return {"command": shlex.join(["python", f"benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)]),
+            "machine": record}
 
 
 def write_json(path: Path, doc: dict) -> None:

@@ -57,7 +57,10 @@ def test_breakdown_measures_each_part_and_splits_the_test_error(saved, capsys):
     out = tmp / "breakdown.json"
     argv = [row["checkpoint"], "--cache", str(tmp / "cache"), "--threads", "1", "--json", str(out)]
     assert load_benchmark("error_breakdown").main(argv) == 0
-    r = json.loads(out.read_text())["results"][0]
+    doc = json.loads(out.read_text())
+    assert doc["command"] == "python benchmarks/error_breakdown.py " + " ".join(argv)
+    assert doc["machine"]["threads"] == 1 and doc["machine"]["torch"]  # a torch study records torch's threads and version
+    r = doc["results"][0]
     parts = r["parts"]
     assert [parts[p]["n"] for p in ("train_base", "val", "test")] == [row["train_crops"], 10, 20]
     assert parts["test"]["mean_deg"] == pytest.approx(row["mean_deg"], abs=1e-6)  # data_scaling's own evaluation

@@ -270,3 +270,6 @@ def test_render_speed_benchmark_finds_the_bmp_textures_change_nothing(tmp_path):
     doc = json.loads(js.read_text())
     assert doc["files_differing"] == [] and doc["files_compared"] >= 5
     assert set(doc["median_s_per_scene"]) == {"bmp_textures", "png_textures"} and doc["speedup"] > 0
+    # the shared study record, without torch: the renderer's benchmark does not need it
+    assert doc["command"].startswith("python benchmarks/render_speed.py --models-dir ")
+    assert doc["machine"]["processes"] == 1 and "torch" not in doc["machine"] and "threads" not in doc["machine"]
