@@ -8,7 +8,7 @@ number of files that differ between the two outputs (0: the BMPs change no pixel
 
 Usage (from the repository root)::
 
-    python benchmarks/render_speed.py                                  # 20 four-frame scenes of ../shared/ycb_models
+    python benchmarks/render_speed.py                                  # 20 four-frame scenes of the shipped YCB meshes
     python benchmarks/render_speed.py --scenes 40 --json benchmarks/results/render_speed.json
 """
 
@@ -28,7 +28,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.study_cli import provenance, write_json  # noqa: E402
-from models.data.render import RenderConfig, _default_models_dir, _World, find_models, render_scene  # noqa: E402
+from models.data.render import RenderConfig, default_models_dir, _World, find_models, render_scene  # noqa: E402
 
 
 class _PngTextureWorld(_World):
@@ -49,16 +49,14 @@ def differing_files(a: Path, b: Path) -> tuple[int, list[str]]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--models-dir", type=Path, default=_default_models_dir(),
-                    help="YCB-Video-style models folder (default ../shared/ycb_models when present)")
+    ap.add_argument("--models-dir", type=Path, default=default_models_dir(),
+                    help="YCB-Video-style models folder (default: the meshes in models/data/ycb_models)")
     ap.add_argument("--scenes", type=int, default=20, help="scenes rendered each way (default 20)")
     ap.add_argument("--frames-per-scene", type=int, default=4, help="frames per scene (default 4, as the scene sets)")
     ap.add_argument("--seed", type=int, default=2, help="dataset seed (default 2, as the scene sets)")
     ap.add_argument("--first-scene", type=int, default=0, help="first scene index (default 0)")
     ap.add_argument("--json", type=Path, help="write the result here")
     args = ap.parse_args(argv)
-    if args.models_dir is None:
-        ap.error("no --models-dir given and ../shared/ycb_models was not found")
     if args.scenes < 1 or args.frames_per_scene < 1:
         ap.error(f"--scenes and --frames-per-scene must be >= 1; got {args.scenes} and {args.frames_per_scene}")
     cfg = RenderConfig(frames_per_scene=args.frames_per_scene)

