@@ -1,5 +1,5 @@
 """The CPU renderer: BOP output that load_bop reads, ground truth consistent with the pixels, determinism,
-resume, and the CLI. Uses a small textured box mesh written by the test (never ../shared/ycb_models)."""
+resume, and the CLI. Uses a small textured box mesh written by the test (never the shipped YCB meshes)."""
 
 import json
 from pathlib import Path
@@ -97,6 +97,53 @@ def test_boxes_and_visible_fractions_are_consistent(rendered):
                 if inst["px_count_visib"]:
                     x, y, w, h = inst["bbox_visib"]
                     assert x >= 0 and y >= 0 and x + w <= 160 and y + h <= 120
+
+
+def test_visible_fraction_counts_the_silhouette_beyond_the_border(models_dir):
+    """BOP's visib_fract: an object cut in half by the image border has about 0.5 (the silhouette is drawn on a canvas
+    three times the image, as bop_toolkit does), and the canvas's image part is the image-sized silhouette."""
+    mesh = find_models(models_dir, OBJECTS[:1])[OBJECTS[0]]
+    K = np.array([[260.0, 0.0, 79.5], [0.0, 260.0, 59.5], [0.0, 0.0, 1.0]])
+    R = np.eye(3)
+    t = np.array([-79.5 / 260.0 * 0.5, 0.0, 0.5])  # the box's centre projects onto the image's left edge (u = 0)
+    inside = silhouette(mesh, R, t, K, 160, 120)
+    whole = silhouette(mesh, R, t, K, 160, 120, border=True)
+    assert whole.shape == (360, 480)
+    np.testing.assert_array_equal(whole[120:240, 160:320], inside)
+    frac = inside.sum() / whole.sum()
+    assert 0.45 < frac < 0.55, frac
+    # A box wholly inside the image: the canvas adds nothing.
+    t_in = np.array([0.0, 0.0, 0.5])
+    assert silhouette(mesh, R, t_in, K, 160, 120, border=True).sum() == silhouette(mesh, R, t_in, K, 160, 120).sum()
+
+
+def test_rendered_instances_cut_by_the_border_are_not_fully_visible(models_dir, tmp_path):
+    """Close cameras cut objects; their visib_fract then falls below 1 and bbox_obj reaches past the image."""
+    out = tmp_path / "close"
+    render_dataset(out, 8, models_dir, small_cfg(distance=(0.25, 0.3)), seed=3, progress=False)
+    cut = 0
+    for info_path in out.glob("*/scene_gt_info.json"):
+        for frame in json.loads(info_path.read_text()).values():
+            for inst in frame:
+                assert inst["px_count_visib"] <= inst["px_count_valid"] <= inst["px_count_all"]
+                x, y, w, h = inst["bbox_obj"]
+                if inst["px_count_visib"] and (x < 0 or y < 0 or x + w > 160 or y + h > 120):
+                    cut += 1
+                    assert inst["px_count_valid"] < inst["px_count_all"]
+                    assert inst["visib_fract"] < 1.0
+    assert cut >= 1
+
+
+def test_tone_curve_table_matches_the_formula():
+    """The tabulated exposure / white balance / gamma / shoulder curve against the formula evaluated per pixel."""
+    from models.data.render import _ToneCurve
+
+    for seed in range(3):
+        tone = _ToneCurve(np.random.default_rng(seed), RenderConfig())
+        img = np.random.default_rng(10 + seed).uniform(0, 300, (40, 50, 3)).astype(np.float32)
+        x = np.minimum(img.astype(np.float64) * tone.gain / 255.0 * tone.wb, 8.0) ** tone.gamma
+        ref = np.clip((1 - np.exp(-tone.k * x)) / (1 - np.exp(-tone.k)), 0, 1) * 255
+        np.testing.assert_allclose(tone(img), ref, atol=0.5)  # inputs quantised to 1/4 grey level
 
 
 def test_ground_truth_pose_matches_the_rendered_pixels(rendered, models_dir):
