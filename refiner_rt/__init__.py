@@ -9,7 +9,7 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-__all__ = ["RefinerSession", "RefineResult", "quaternion", "__version__"]
+__all__ = ["RefinerSession", "RefineResult", "quaternion", "pretrained_models", "__version__"]
 
 
 def __getattr__(name):
@@ -18,6 +18,10 @@ def __getattr__(name):
         from refiner_rt import session
 
         return getattr(session, name)
+    if name == "pretrained_models":
+        from refiner_rt.pretrained import pretrained_models
+
+        return pretrained_models
     if name == "quaternion":
         import importlib
 

@@ -274,6 +274,8 @@ class RefinerSession:
             be available: there is no silent fallback to another provider.
         session_options: an ``onnxruntime.SessionOptions`` to use instead of the defaults (then
             ``threads`` is ignored and :attr:`threads` reports the options' intra-op thread count).
+        object_id: the YCB id (or object name) the caller will refine. When given, the model must have been
+            trained for it (metadata ``objects``), so one object is never refined with another's model.
 
     Default session options, each chosen by measurement (``benchmarks/profile_refine.py`` and the notes in
     issue 6): graph optimisation ``ORT_ENABLE_ALL`` (``EXTENDED``/``BASIC`` ran 1.2-1.5x slower at batch 1;
@@ -286,7 +288,7 @@ class RefinerSession:
         FileNotFoundError: ``model`` is a path that does not exist.
         ValueError: the model lacks the refiner-rt metadata contract, declares one this runtime does
             not understand, or lacks the ``image`` / ``q_in`` inputs or ``q_out`` output; an unknown
-            or unavailable provider; a bad ``threads`` value.
+            or unavailable provider; a bad ``threads`` value; ``object_id`` not among the model's objects.
 
     Example:
         >>> sess = RefinerSession("refiner.onnx", threads=1)
@@ -294,7 +296,8 @@ class RefinerSession:
         >>> res.q_refined  # (N, 4) wxyz, object-to-camera
     """
 
-    def __init__(self, model, threads: int = 1, providers=None, session_options: ort.SessionOptions | None = None):
+    def __init__(self, model, threads: int = 1, providers=None, session_options: ort.SessionOptions | None = None,
+                 object_id: str | None = None):
         if isinstance(model, (bytes, bytearray)):
             source, self.model_path = bytes(model), None
         elif isinstance(model, (str, os.PathLike)):
@@ -352,6 +355,32 @@ class RefinerSession:
         self._output_names = [OUTPUT_QUATERNION]
         self._rgb = self.contract.channel_order == "RGB"
         self._ray = self.contract.rotation_frame == "ray"
+        if object_id is not None:
+            if not isinstance(object_id, str):
+                raise TypeError(f"object_id must be a string such as '003_cracker_box'; got {type(object_id).__name__}")
+            if object_id not in self.contract.objects:
+                raise ValueError(f"object_id {object_id!r} is not an object this model was trained for "
+                                 f"(metadata objects: {list(self.contract.objects)}); use that object's model")
+
+    @classmethod
+    def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, **kwargs) -> "RefinerSession":
+        """A session on the refiner shipped for ``object_id`` (package data; nothing is downloaded).
+
+        Args:
+            object_id: YCB id, e.g. ``"003_cracker_box"`` (``refiner_rt.pretrained_models()`` lists them).
+            int8: the INT8 model (default, fastest) or the fp32 one.
+            threads: as for the constructor.
+            **kwargs: ``providers`` / ``session_options``, as for the constructor.
+
+        The shipped models were trained in the viewing-ray frame: pass the camera intrinsics ``K`` to
+        :meth:`refine`. Their object frame is the YCB google_16k scan frame (see :mod:`refiner_rt.pretrained`).
+
+        Raises:
+            ValueError: no model ships for ``object_id`` (the message lists those that do).
+        """
+        from refiner_rt.pretrained import pretrained_model
+
+        return cls(pretrained_model(object_id).path(int8=int8), threads=threads, object_id=object_id, **kwargs)
 
     # ------------------------------------------------------------------ properties
     @property

@@ -1,0 +1,109 @@
+"""The refiners that ship inside the package: listing them, finding their files, and their model-card data.
+
+Each shipped model refines one YCB object (the paper's design: one network per object). Its files live in
+``refiner_rt/weights/`` (package data, nothing is downloaded): ``<ycb id>.int8.onnx`` (INT8) and
+``<ycb id>.onnx`` (fp32). ``weights/models.json`` holds what the model card says about each (held-out-scene error,
+speed, recipe, mesh, training time); it is generated from the evaluation JSON by ``benchmarks/pretrained.py``,
+never written by hand.
+
+Frames: the shipped models were trained on renders of the YCB google_16k meshes in their **original YCB scan frame**
+(origin near the object's base), which is not the YCB-Video / BOP model frame. A rotation refined by a shipped model
+maps that frame to the camera (``x_cam = R @ x_obj + t``); ``q_in`` must be given in the same frame.
+
+Example:
+    >>> from refiner_rt import RefinerSession, pretrained_models
+    >>> [m.object_id for m in pretrained_models()]
+    >>> sess = RefinerSession.pretrained("003_cracker_box", int8=True, threads=1)
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["WEIGHTS_DIR", "PretrainedModel", "pretrained_models", "pretrained_model", "model_file_name"]
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+INDEX_FILE = "models.json"
+INDEX_FORMAT = "refiner-rt/pretrained/1"
+
+
+def model_file_name(object_id: str, int8: bool) -> str:
+    """The file name of a shipped model: ``<ycb id>.int8.onnx`` or ``<ycb id>.onnx`` (the one naming rule)."""
+    return f"{object_id}.int8.onnx" if int8 else f"{object_id}.onnx"
+
+
+@dataclass(frozen=True)
+class PretrainedModel:
+    """One shipped refiner and its model-card data.
+
+    Attributes:
+        object_id: the YCB id it refines, e.g. ``"003_cracker_box"``.
+        arch: network architecture (``models`` registry name) and ``config``: its configuration.
+        version: the model's version (bumped whenever its weights change).
+        files: ``{"int8": file name, "fp32": file name}`` in :data:`WEIGHTS_DIR` (fp32 may be absent).
+        heldout: held-out-scene error of the INT8 model through the runtime (degrees; ``mean_deg``, ``median_deg``,
+            ``under_5_deg``, ``under_10_deg``, ``input_mean_deg``, ``n``, the split named in ``split``).
+        card: everything else the model card shows (fp32 error, inside / cut by the border, speed, recipe command,
+            mesh and its sha256, training wall time and machine).
+    """
+
+    object_id: str
+    arch: str
+    version: str
+    files: dict
+    heldout: dict
+    config: dict = field(default_factory=dict)
+    card: dict = field(default_factory=dict)
+
+    def path(self, int8: bool = True) -> Path:
+        """The model's ONNX file (INT8 by default).
+
+        Raises:
+            ValueError: the fp32 file was asked for but is not shipped for this object.
+        """
+        key = "int8" if int8 else "fp32"
+        name = self.files.get(key)
+        if not name:
+            raise ValueError(f"{self.object_id}: no {key} model ships (files: {sorted(self.files)}); use int8=True")
+        return WEIGHTS_DIR / name
+
+
+def _index() -> dict:
+    path = WEIGHTS_DIR / INDEX_FILE
+    if not path.is_file():
+        return {"format": INDEX_FORMAT, "models": {}}
+    doc = json.loads(path.read_text())
+    if doc.get("format") != INDEX_FORMAT:
+        raise ValueError(f"{path}: format {doc.get('format')!r} is not {INDEX_FORMAT!r}")
+    return doc
+
+
+def pretrained_models() -> list[PretrainedModel]:
+    """The refiners shipped in this package, sorted by YCB id (empty when none ships)."""
+    out = []
+    for obj, m in sorted(_index()["models"].items()):
+        out.append(PretrainedModel(object_id=obj, arch=m["arch"], version=str(m["version"]), files=dict(m["files"]),
+                                   heldout=dict(m["heldout"]), config=dict(m.get("config", {})),
+                                   card=dict(m.get("card", {}))))
+    return out
+
+
+def pretrained_model(object_id: str) -> PretrainedModel:
+    """The shipped refiner of one object.
+
+    Args:
+        object_id: a YCB id string such as ``"003_cracker_box"``.
+
+    Raises:
+        TypeError: ``object_id`` is not a string.
+        ValueError: no model ships for that object (the message lists the ones that do).
+    """
+    if not isinstance(object_id, str):
+        raise TypeError(f"object_id must be a YCB id string such as '003_cracker_box'; got {type(object_id).__name__}")
+    models = {m.object_id: m for m in pretrained_models()}
+    if object_id not in models:
+        shipped = ", ".join(sorted(models)) or "none"
+        raise ValueError(f"no pretrained model for object {object_id!r}; shipped: {shipped}")
+    return models[object_id]
