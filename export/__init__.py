@@ -11,19 +11,24 @@ models (``quantize_model``; schemes, the agreement bound and why dynamic MatMul/
 
 from __future__ import annotations
 
-from export.onnx_export import (
-    DEFAULT_LRN_LOWERING,
-    DEFAULT_OPSET,
-    LRN_LOWERINGS,
-    MIN_OPSET,
-    ExportReport,
-    ParityError,
-    build_model_metadata,
-    export_checkpoint,
-    export_model,
-    to_onnx_proto,
-)
-from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, ParityResult, check_parity
+# The names below load lazily (PEP 562): importing a torch-free submodule such as export.defaults (what
+# `refiner-rt export --help` needs) must not import torch through this package.
+_LAZY = {
+    "DEFAULT_LRN_LOWERING": "export.defaults",
+    "DEFAULT_OPSET": "export.defaults",
+    "MIN_OPSET": "export.defaults",
+    "LRN_LOWERINGS": "export.onnx_export",
+    "ExportReport": "export.onnx_export",
+    "ParityError": "export.onnx_export",
+    "build_model_metadata": "export.onnx_export",
+    "export_checkpoint": "export.onnx_export",
+    "export_model": "export.onnx_export",
+    "to_onnx_proto": "export.onnx_export",
+    "DEFAULT_TOL": "export.parity",
+    "MIN_PARITY_INPUTS": "export.parity",
+    "ParityResult": "export.parity",
+    "check_parity": "export.parity",
+}
 
 __all__ = [
     "DEFAULT_LRN_LOWERING",
@@ -41,3 +46,11 @@ __all__ = [
     "export_model",
     "to_onnx_proto",
 ]
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'export' has no attribute {name!r}")

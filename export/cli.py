@@ -3,7 +3,9 @@
 Checkpoint -> parity-checked fp32 ONNX model, and with ``--int8`` its INT8 sibling ``OUT.int8.onnx``
 (:mod:`export.quantize`: scheme, agreement bound, why dynamic is the default).
 
-Registered lazily by :mod:`refiner_rt.cli` (``export.cli:export_cmd``), so torch is imported only when it runs.
+Registered lazily by :mod:`refiner_rt.cli` (``export.cli:export_cmd``). The options come from the torch-free
+:mod:`export.defaults` and the exporter is imported when the command runs, so ``export --help`` answers without
+importing torch.
 """
 
 from __future__ import annotations
@@ -13,25 +15,16 @@ from pathlib import Path
 
 import click
 
-from export.onnx_export import (
+from export.defaults import (
     DEFAULT_LRN_LOWERING,
     DEFAULT_OPSET,
-    LRN_LOWERINGS,
-    MIN_OPSET,
-    ParityError,
-    export_loaded_checkpoint,
-)
-from export.quantize import (
     DEFAULT_SCHEME,
+    LRN_LOWERING_NAMES,
     MAX_MAX_DEG,
     MAX_MEAN_DEG,
+    MIN_OPSET,
     SCHEMES,
-    QuantizationError,
-    dataset_calibration,
-    int8_path_for,
-    quantize_model,
 )
-from models.checkpoint import load_checkpoint
 
 __all__ = ["export_cmd"]
 
@@ -57,7 +50,7 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
 )
 @click.option(
     "--lrn",
-    type=click.Choice(sorted(LRN_LOWERINGS)),
+    type=click.Choice(sorted(LRN_LOWERING_NAMES)),
     default=DEFAULT_LRN_LOWERING,
     show_default=True,
     help="How VGG-M's local response norms are written: 'decomposed' is fastest in onnxruntime, "
@@ -125,6 +118,8 @@ def export_cmd(
             param_hint="'--calib'",
         )
     scheme = int8_scheme or ("static-qdq-int8" if calib is not None else DEFAULT_SCHEME)
+    from export.quantize import int8_path_for
+
     output = output if output is not None else checkpoint.with_suffix(".onnx")
     if not output.parent.is_dir():
         raise click.BadParameter(f"directory {output.parent} does not exist", param_hint="'-o' / '--output'")
@@ -151,6 +146,8 @@ def export_cmd(
 
 def _quantize_one(fp32: Path, out: Path, scheme: str, calib: Path | None) -> None:
     """Write the INT8 model ``out`` from the fp32 model ``fp32`` (see :func:`export.quantize.quantize_model`)."""
+    from export.quantize import QuantizationError, dataset_calibration, quantize_model
+
     calibration = None
     if calib is not None:
         from refiner_rt.session import RefinerSession
@@ -168,6 +165,9 @@ def _quantize_one(fp32: Path, out: Path, scheme: str, calib: Path | None) -> Non
 
 
 def _export_one(checkpoint: Path, output: Path, opset: int, lrn: str) -> None:
+    from export.onnx_export import ParityError, export_loaded_checkpoint
+    from models.checkpoint import load_checkpoint
+
     try:
         model, info = load_checkpoint(checkpoint)
     except ValueError as exc:

@@ -59,6 +59,8 @@ import torch
 from torch.export import Dim
 
 import refiner_rt
+from export.defaults import DEFAULT_LRN_LOWERING, DEFAULT_OPSET, MIN_OPSET
+from export.files import replace_with_umask
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, PARITY_SEED, check_parity, random_inputs
 from models.blocks import Refiner
 from models.checkpoint import file_sha256, load_checkpoint
@@ -80,8 +82,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_OPSET = 18
-MIN_OPSET = 18  # the dynamo exporter's native opset; conversion to lower opsets fails for these graphs
 _MAX_PROTO_BYTES = 2**31 - 1  # protobuf limit of a self-contained model
 
 
@@ -167,7 +167,6 @@ def _lrn_decomposed(x, size: int, alpha: float, beta: float, k: float):
 
 # How refiner_rt::local_response_norm (VGG-M's LRN) is written into the graph; see the module docstring.
 LRN_LOWERINGS = {"decomposed": _lrn_decomposed, "LRN": _lrn_as_onnx_op}
-DEFAULT_LRN_LOWERING = "decomposed"
 
 
 def _custom_translations(lrn: str) -> dict:
@@ -361,7 +360,7 @@ def export_model(
                 result.max_abs_dq,
                 tol,
             )
-        os.replace(tmp, out_path)
+        replace_with_umask(tmp, out_path)
     finally:
         tmp.unlink(missing_ok=True)
     report = ExportReport(

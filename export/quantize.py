@@ -79,6 +79,8 @@ from onnxruntime.quantization import (
     quantize_static,
 )
 
+from export.defaults import DEFAULT_SCHEME, MAX_MAX_DEG, MAX_MEAN_DEG, SCHEMES
+from export.files import replace_with_umask
 from export.parity import MIN_PARITY_INPUTS, PARITY_SEED, onnxruntime_outputs, random_inputs
 from refiner_rt import quaternion as rq
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, ModelContract, parse_metadata
@@ -103,11 +105,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-SCHEMES = ("dynamic-int8", "static-qdq-int8")
-DEFAULT_SCHEME = "dynamic-int8"
 QUANTIZED_OP_TYPES = ("MatMul", "Gemm")  # the fully connected layers; convs stay fp32 (see the module docstring)
-MAX_MEAN_DEG = 2.0   # bound on the mean INT8-vs-fp32 geodesic difference of q_out (degrees)
-MAX_MAX_DEG = 15.0   # bound on the largest difference (degrees)
 CALIBRATION_SIZE = 256  # crops used to calibrate static QDQ activation ranges
 CALIBRATION_SEED = 1  # differs from PARITY_SEED: the agreement is measured on inputs the calibration never saw
 _CALIBRATION_BATCH = 16
@@ -491,7 +489,7 @@ def quantize_model(
         enforced = heldout_agreement if heldout_agreement is not None else agreement
         if enforce and not enforced.passed:
             raise QuantizationError(f"refusing to write {out_path}: {enforced}", enforced)
-        os.replace(tmp, out_path)
+        replace_with_umask(tmp, out_path)
     finally:
         tmp.unlink(missing_ok=True)
     report = QuantizeReport(

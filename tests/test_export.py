@@ -1,5 +1,7 @@
 """export: ONNX graph contract, metadata, parity (enforced), OpenCV cv2.dnn agreement, and `refiner-rt export`."""
 
+import stat
+
 import numpy as np
 import onnx
 import onnxruntime as ort
@@ -11,6 +13,8 @@ from test_models import small_config
 import export
 import models
 from export import parity
+from export.defaults import LRN_LOWERING_NAMES
+from export.files import current_umask
 from models.checkpoint import file_sha256
 from refiner_rt import __version__
 from refiner_rt.cli import main as cli_main
@@ -52,6 +56,8 @@ def test_report_and_enforced_parity(exported, arch):
     assert report.max_abs_dq <= 1e-4 and report.tol == 1e-4
     assert report.n_parity >= 64 and report.opset == export.DEFAULT_OPSET
     assert report.size_bytes == report.path.stat().st_size
+    # The file the user gets has the usual permissions (umask applied), not mkstemp's owner-only 0600.
+    assert stat.S_IMODE(report.path.stat().st_mode) == 0o666 & ~current_umask()
     assert "parity OK" in report.summary() and str(report.path) in report.summary()
     # Independent re-check on other inputs.
     result = export.check_parity(model, report.path, n=64, seed=123)
@@ -229,6 +235,7 @@ def test_lrn_lowerings_match_torch(tmp_path, beta):
 
     x = torch.rand(2, 11, 6, 6) * 20
     expected = torch.nn.functional.local_response_norm(x, 5, 1e-2, beta, 2.0).numpy()
+    assert sorted(export.LRN_LOWERINGS) == sorted(LRN_LOWERING_NAMES)  # what `export --lrn` offers
     for name, lowering in export.LRN_LOWERINGS.items():
         program = torch.onnx.export(
             Net().eval(), (x,), dynamo=True, verbose=False, input_names=["x"],
