@@ -203,15 +203,26 @@ def test_bad_models_dir_names_what_is_missing(tmp_path, models_dir):
 
 def test_cli_renders_and_previews(models_dir, tmp_path):
     out, png = tmp_path / "cli", tmp_path / "sheet.png"
-    args = ["render", "--out", str(out), "--frames", "3", "--frames-per-scene", "3", "--models", str(models_dir),
+    args = ["render", "--out", str(out), "--frames", "2", "--frames-per-scene", "3", "--models", str(models_dir),
             "--objects", ",".join(OBJECTS), "--width", "160", "--height", "120", "--quiet", "--preview", str(png)]
     res = CliRunner().invoke(main, args, catch_exceptions=False)
     assert res.exit_code == 0, res.output
     assert "Rendered 1 scene(s)" in res.output and png.is_file()
+    assert "--frames 2 rounds up to 1 whole scene(s) of 3 frames" in res.output  # said, not silent
     sheet = cv2.imread(str(png))
     assert sheet is not None and sheet.shape[0] >= 128
     res = CliRunner().invoke(main, ["render", "--frames", "3"])
     assert res.exit_code != 0 and "--out" in res.output
+
+
+def test_pybullet_banner_is_not_printed():
+    """pybullet's C extension prints a build-time banner at import; it must not land in progress bars or output."""
+    import subprocess
+    import sys
+
+    code = "from models.data.render import import_pybullet; pb = import_pybullet(); print('ok', pb.DIRECT)"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "ok 2" and done.stderr == ""
 
 
 def test_cli_stops_cleanly_on_sigterm(tmp_path, monkeypatch):

