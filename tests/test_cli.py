@@ -21,6 +21,15 @@ def test_group_help_lists_every_command_without_importing_them():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.parametrize("name", ["export", "info", "models", "bench", "demo"])
+def test_runtime_and_export_help_do_not_import_torch(name):
+    """`--help` of these answers at once: torch (seconds to import) is loaded only when a command needs it."""
+    code = ("import sys; from click.testing import CliRunner; from refiner_rt.cli import main; "
+            f"r = CliRunner().invoke(main, [{name!r}, '--help']); assert r.exit_code == 0, r.output; "
+            "assert 'torch' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
 @pytest.mark.parametrize("name", sorted(LAZY_COMMANDS))
 def test_every_subcommand_help(name):
     res = CliRunner().invoke(main, [name, "--help"])
@@ -37,6 +46,14 @@ def test_info_prints_the_contract(tmp_path):
     res = CliRunner().invoke(main, ["info", str(path), "--json"])
     d = json.loads(res.output)
     assert d["metadata"]["arch"] == "test" and d["parameters"] == 5 and d["inputs"][0]["name"] == "image"
+
+
+def test_info_on_a_file_that_is_not_onnx_is_one_line(tmp_path):
+    path = tmp_path / "notes.txt"
+    path.write_text("not a model")
+    res = CliRunner().invoke(main, ["info", str(path)])
+    assert res.exit_code == 1
+    assert res.output.count("\n") == 1 and "not an ONNX model" in res.output and "Traceback" not in res.output
 
 
 def test_info_refuses_a_model_without_contract(tmp_path):
