@@ -1,6 +1,6 @@
 """The ``refiner-rt`` command line: a thin click group whose heavy subcommands import lazily.
 
-The runtime subcommands (``info``, ``bench``) need only numpy, OpenCV and onnxruntime; ``export``,
+The runtime subcommands (``info``, ``models``, ``demo``, ``bench`` of ONNX files) need only numpy, OpenCV and onnxruntime; ``export``,
 ``train``, ``render`` and ``eval`` live in the training package and are imported only when invoked,
 so ``refiner-rt --help`` and the runtime path never import torch.
 """
@@ -18,6 +18,7 @@ LAZY_COMMANDS = {
     "export": ("export.cli:export_cmd", "Export a checkpoint to ONNX (parity-checked against PyTorch)."),
     "info": ("refiner_rt.info:info_cmd", "Print a model's metadata contract, inputs/outputs and size."),
     "models": ("refiner_rt.models_cli:models_cmd", "List the pretrained refiners that ship in the package."),
+    "demo": ("refiner_rt.demo_cli:demo_cmd", "Refine sample frames (or your image) with the shipped models; draw it."),
     "bench": ("refiner_rt.bench:bench_cmd", "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8."),
     "render": ("models.data.render:render_cmd", "Render BOP-format training scenes of YCB objects on the CPU."),
     "train": ("models.train_cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning)."),
