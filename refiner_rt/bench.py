@@ -12,6 +12,7 @@ project's refiner; ``vggm``, the paper's deep variant) and any ``--variant`` con
 weights and exported (speed does not depend on the weight values), each in fp32 and, quantised in the same run
 with :mod:`export.quantize`'s default scheme, in INT8; this needs the training extra (torch). The same networks
 are also timed in PyTorch eager mode (batches up to :data:`TORCH_MAX_BATCH`) for the onnxruntime/PyTorch ratio.
+Without torch (a runtime-only install) it times the shipped INT8 models instead, and says so.
 
 Roofline (when the ``onnx`` package is installed): a lower bound on the time of one inference from the
 machine's measured limits (see :class:`MachineLimits`):
@@ -27,6 +28,7 @@ come from DRAM: a model whose weights fit in the 32 MB L3 (the INT8 ones) can be
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
 import platform
@@ -749,6 +751,8 @@ def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir:
             seen.add(label)
             bench_models.append(BenchModel(label, p))
         return bench_models, "user-supplied models"
+    if importlib.util.find_spec("torch") is None:
+        return _shipped_models(echo)
     specs = [(a.strip(), a.strip(), {}) for a in archs.split(",") if a.strip()] + list(variants)
     if not specs:
         raise click.BadParameter("nothing to benchmark: give --archs, --variant or --model", param_hint="'--archs'")
@@ -757,6 +761,22 @@ def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir:
         raise click.BadParameter(f"model labels must be unique; got {labels}", param_hint="'--variant'")
     echo(f"Building random-weight models {labels} (speed does not depend on weight values)...")
     return build_default_models(specs, workdir, int8=with_int8, echo=echo), "random weights (speed does not depend on weight values)"
+
+
+def _shipped_models(echo) -> tuple[list, str]:
+    """Without torch (a runtime-only install) the random-weight networks cannot be built: time the INT8 models that
+    ship in the package instead, and say so."""
+    from refiner_rt.pretrained import pretrained_models
+
+    shipped = pretrained_models()
+    if not shipped:
+        raise click.ClickException(
+            "building the default benchmark models needs torch (pip install 'refiner-rt[train]'), and no pretrained "
+            "model ships to time instead; pass exported models with --model"
+        )
+    echo(f"torch is not installed, so the default random-weight models cannot be built: timing the {len(shipped)} "
+         "shipped INT8 models instead (--model FILE times others; the training extra builds the default set).")
+    return [BenchModel(m.object_id, m.path(int8=True)) for m in shipped], "the shipped INT8 models"
 
 
 def _describe_limits(limits: MachineLimits, thread_counts) -> str:

@@ -51,6 +51,18 @@ class LazyGroup(click.Group):
             return getattr(module, attr)
         return super().get_command(ctx, cmd_name)
 
+    def invoke(self, ctx):
+        # A training command run in a runtime-only install fails on its first import of a training dependency
+        # (torch, onnx, pybullet, tqdm...): say which and how to get it, not a traceback.
+        try:
+            return super().invoke(ctx)
+        except ModuleNotFoundError as exc:
+            name = ctx.invoked_subcommand or "this command"
+            raise click.ClickException(
+                f"'refiner-rt {name}' needs {exc.name or 'a module'!r}, which is not installed; "
+                f"install the training extra: pip install 'refiner-rt[train]'"
+            ) from None
+
     def format_commands(self, ctx, formatter):
         rows = [(name, self.lazy_commands[name][1]) for name in sorted(self.lazy_commands)]
         if rows:

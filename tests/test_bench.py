@@ -9,7 +9,10 @@ from onnx import TensorProto, helper, numpy_helper
 
 import onnx_fixtures as fx
 from bench_scripts import load_benchmark
+from test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
+
 from refiner_rt import bench
+from refiner_rt import pretrained as pt
 from refiner_rt.cli import main
 
 
@@ -207,3 +210,25 @@ def test_a_write_that_fails_on_a_full_disk_is_reported_as_such(tmp_path, monkeyp
     with pytest.raises(RuntimeError, match="unrelated"):
         with bench._disk_full_is_clear(tmp_path, 1, "vggm"):
             raise RuntimeError("unrelated")
+
+
+def _without_torch(monkeypatch):
+    """Make `bench` see a runtime-only install (no torch to build the default models with)."""
+    real = bench.importlib.util.find_spec
+    monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a))
+
+
+def test_bench_without_torch_times_the_shipped_models(weights, monkeypatch):  # noqa: F811
+    _without_torch(monkeypatch)
+    res = CliRunner().invoke(main, ["bench", "--seconds", "0.05", "--batch", "1", "--threads", "1"])
+    assert res.exit_code == 0, res.output
+    assert "torch is not installed" in res.output and "timing the 2 shipped INT8 models instead" in res.output
+    assert "003_cracker_box" in res.output and "011_banana" in res.output
+
+
+def test_bench_without_torch_or_shipped_models_is_one_line(tmp_path, monkeypatch):
+    _without_torch(monkeypatch)
+    monkeypatch.setattr(pt, "WEIGHTS_DIR", tmp_path)
+    res = CliRunner().invoke(main, ["bench", "--seconds", "0.05"])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert "needs torch" in res.output and "pass exported models with --model" in res.output

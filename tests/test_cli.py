@@ -30,6 +30,17 @@ def test_runtime_and_export_help_do_not_import_torch(name):
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_a_missing_training_dependency_is_named_not_a_traceback(tmp_path):
+    """In a runtime-only install (here: torch and onnx made unimportable) `export` says what to install."""
+    ckpt = tmp_path / "m.pt"
+    ckpt.write_bytes(b"x")
+    code = ("import sys; sys.modules['torch'] = None; sys.modules['onnx'] = None; "
+            f"from refiner_rt.cli import main; main(['export', {str(ckpt)!r}])")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert "'refiner-rt export' needs" in done.stderr and "pip install 'refiner-rt[train]'" in done.stderr
+
+
 @pytest.mark.parametrize("name", sorted(LAZY_COMMANDS))
 def test_every_subcommand_help(name):
     res = CliRunner().invoke(main, [name, "--help"])
