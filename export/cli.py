@@ -107,6 +107,8 @@ def export_cmd(
     (geodesic difference, degrees); it is written only if the mean is <= 2 and
     the max <= 15 degrees (on held-out dataset crops when calibrated with --calib).
     """
+    from export.quantize import int8_path_for  # the exporter's modules (torch, onnx) load only when it runs
+
     for name in _NOISY_LOGGERS:
         logging.getLogger(name).setLevel(logging.ERROR)
     if (int8_scheme or calib) and not int8:
@@ -118,8 +120,6 @@ def export_cmd(
             param_hint="'--calib'",
         )
     scheme = int8_scheme or ("static-qdq-int8" if calib is not None else DEFAULT_SCHEME)
-    from export.quantize import int8_path_for
-
     output = output if output is not None else checkpoint.with_suffix(".onnx")
     if not output.parent.is_dir():
         raise click.BadParameter(f"directory {output.parent} does not exist", param_hint="'-o' / '--output'")

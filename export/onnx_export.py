@@ -59,8 +59,6 @@ import torch
 from torch.export import Dim
 
 import refiner_rt
-from export.defaults import DEFAULT_LRN_LOWERING, DEFAULT_OPSET, MIN_OPSET
-from export.files import replace_with_umask
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, PARITY_SEED, check_parity, random_inputs
 from models.blocks import Refiner
 from models.checkpoint import file_sha256, load_checkpoint
@@ -81,6 +79,10 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+# The option values (opsets, LRN lowering names) live in the torch-free export.defaults, which `export --help` reads.
+from export.defaults import DEFAULT_LRN_LOWERING, DEFAULT_OPSET, MIN_OPSET  # noqa: E402
+from export.files import replace_with_umask  # noqa: E402
 
 _MAX_PROTO_BYTES = 2**31 - 1  # protobuf limit of a self-contained model
 

@@ -79,8 +79,6 @@ from onnxruntime.quantization import (
     quantize_static,
 )
 
-from export.defaults import DEFAULT_SCHEME, MAX_MAX_DEG, MAX_MEAN_DEG, SCHEMES
-from export.files import replace_with_umask
 from export.parity import MIN_PARITY_INPUTS, PARITY_SEED, onnxruntime_outputs, random_inputs
 from refiner_rt import quaternion as rq
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, ModelContract, parse_metadata
@@ -104,6 +102,10 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+# The schemes and agreement bounds live in the torch-free export.defaults, which `export --help` reads.
+from export.defaults import DEFAULT_SCHEME, MAX_MAX_DEG, MAX_MEAN_DEG, SCHEMES  # noqa: E402
+from export.files import replace_with_umask  # noqa: E402
 
 QUANTIZED_OP_TYPES = ("MatMul", "Gemm")  # the fully connected layers; convs stay fp32 (see the module docstring)
 CALIBRATION_SIZE = 256  # crops used to calibrate static QDQ activation ranges

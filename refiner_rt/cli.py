@@ -1,8 +1,8 @@
 """The ``refiner-rt`` command line: a thin click group whose heavy subcommands import lazily.
 
-The runtime subcommands (``info``, ``models``, ``demo``, ``bench`` of ONNX files) need only numpy, OpenCV and onnxruntime; ``export``,
-``train``, ``render`` and ``eval`` live in the training package and are imported only when invoked,
-so ``refiner-rt --help`` and the runtime path never import torch.
+The runtime subcommands (``info``, ``models``, ``demo``, ``bench`` of ONNX files) need only numpy, OpenCV and
+onnxruntime; ``export``, ``train``, ``render`` and ``eval`` live in the training package and are imported only when
+invoked, so ``refiner-rt --help`` and the runtime path never import torch.
 """
 
 from __future__ import annotations
@@ -51,18 +51,6 @@ class LazyGroup(click.Group):
             return getattr(module, attr)
         return super().get_command(ctx, cmd_name)
 
-    def invoke(self, ctx):
-        # A training command run in a runtime-only install fails on its first import of a training dependency
-        # (torch, onnx, pybullet, tqdm...): say which and how to get it, not a traceback.
-        try:
-            return super().invoke(ctx)
-        except ModuleNotFoundError as exc:
-            name = ctx.invoked_subcommand or "this command"
-            raise click.ClickException(
-                f"'refiner-rt {name}' needs {exc.name or 'a module'!r}, which is not installed; "
-                f"install the training extra: pip install 'refiner-rt[train]'"
-            ) from None
-
     def format_commands(self, ctx, formatter):
         rows = [(name, self.lazy_commands[name][1]) for name in sorted(self.lazy_commands)]
         if rows:
@@ -70,7 +58,31 @@ class LazyGroup(click.Group):
                 formatter.write_dl(rows)
 
 
-@click.group(cls=LazyGroup, lazy_commands=LAZY_COMMANDS)
+class RefinerGroup(LazyGroup):
+    """The ``refiner-rt`` group: what a command fails on outside the input checks is one line, not a traceback.
+
+    * A training command run in a runtime-only install stops at its first import of a training dependency (torch,
+      onnx, pybullet, tqdm...): the message names the module and the extra to install.
+    * onnxruntime's own exception types (a file that is not ONNX, a graph it cannot run) are shown as one line.
+    """
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except ModuleNotFoundError as exc:
+            name = ctx.invoked_subcommand or "this command"  # set by the group's invoke once the command is found
+            raise click.ClickException(
+                f"'refiner-rt {name}' needs {exc.name or 'a module'!r}, which is not installed; "
+                f"install the training extra: pip install 'refiner-rt[train]'"
+            ) from None
+        except Exception as exc:
+            if not type(exc).__module__.startswith("onnxruntime"):
+                raise
+            first = (str(exc).splitlines() or [type(exc).__name__])[0]
+            raise click.ClickException(f"onnxruntime could not use the model: {first}") from None
+
+
+@click.group(cls=RefinerGroup, lazy_commands=LAZY_COMMANDS)
 @click.version_option(__version__, prog_name="refiner-rt")
 def main():
     """refiner-rt: fast 3D pose refinement from RGB crops.

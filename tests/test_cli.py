@@ -64,7 +64,8 @@ def test_info_on_a_file_that_is_not_onnx_is_one_line(tmp_path):
     path.write_text("not a model")
     res = CliRunner().invoke(main, ["info", str(path)])
     assert res.exit_code == 1
-    assert res.output.count("\n") == 1 and "not an ONNX model" in res.output and "Traceback" not in res.output
+    assert res.output.count("\n") == 1 and "Traceback" not in res.output
+    assert str(path) in res.output  # the message names the file, whichever layer reports it
 
 
 def test_info_refuses_a_model_without_contract(tmp_path):
