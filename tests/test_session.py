@@ -176,7 +176,7 @@ def test_empty_batch_returns_empty_result():
         (dict(q_in_wxyz=np.zeros((3, 4))), "zero quaternion"),
         (dict(q_in_wxyz=np.full((3, 4), np.nan)), "finite"),
         (dict(q_in_wxyz=np.ones((3, 3))), r"shape \(\.\.\., 4\)"),
-        (dict(iterations=0), "iterations must be an integer >= 1"),
+        (dict(iterations=0), "iterations must be an integer from 1 to 16"),
         (dict(views=0), "views must be an integer from 1 to 16"),
         (dict(views=17), "views must be an integer from 1 to 16"),
         (dict(views=2.0), "views must be an integer from 1 to 16"),
@@ -344,8 +344,8 @@ def test_lean_path_accepts_lists_and_other_numeric_dtypes():
         (dict(q_in_wxyz=[[1, 0, 0, 0], [1, 0, 0, np.inf], [1, 0, 0, 0]]), "finite"),
         (dict(q_in_wxyz=[[1, 0, 0, 0], [0, 0, 0, 1e-13], [1, 0, 0, 0]]), "zero quaternion"),
         (dict(q_in_wxyz=np.array([[True, False, False, False]] * 3)), "numeric"),
-        (dict(iterations=1.0), "iterations must be an integer >= 1"),
-        (dict(iterations=True), "iterations must be an integer >= 1"),
+        (dict(iterations=1.0), "iterations must be an integer from 1 to 16"),
+        (dict(iterations=True), "iterations must be an integer from 1 to 16"),
     ],
 )
 def test_fast_paths_fall_back_to_the_detailed_errors(kwargs, match):
@@ -383,3 +383,61 @@ def test_threads_does_what_it_says():
     options.intra_op_num_threads = 3
     assert RefinerSession(model, threads=1, session_options=options).threads == 3
     del one, two, every
+
+
+# ---------------------------------------------------------------- one session shared by many threads
+import threading  # noqa: E402
+
+
+def _thread_calls(count: int, seed: int, ray: bool) -> list[tuple]:
+    """``count`` distinct calls: mostly batch 1 (the fast path), some 3 boxes with 2 iterations, 37 boxes (the
+    numpy path), 3 views, and refine_crops on crops of other sizes; each with its own image, boxes and rotations."""
+    rng = np.random.default_rng(seed)
+    K = K_TEST if ray else None
+    calls = []
+    for i in range(count):
+        image = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+        kind = i % 10
+        n = {7: 3, 8: session_module.SMALL_BATCH + 5}.get(kind, 1 if kind != 9 else 2)
+        side = rng.uniform(6, 30, n)
+        cx, cy = rng.uniform(0, 64, n), rng.uniform(0, 48, n)
+        boxes = np.stack([cx - side / 2, cy - side / 2, cx + side / 2, cy + side * 0.4], axis=1)
+        q_in = rng.standard_normal((n, 4))
+        if kind == 9:
+            crops = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for h, w in rng.integers(4, 20, (n, 2))]
+            calls.append(("refine_crops", (crops, q_in), {}))
+        elif kind == 6:
+            calls.append(("refine", (image, boxes, q_in), dict(K=K, views=3)))
+        else:
+            calls.append(("refine", (image, boxes, q_in), dict(K=K, iterations=2 if kind == 7 else 1)))
+    return calls
+
+
+@pytest.mark.parametrize("frame,order", [("camera", "BGR"), ("ray", "RGB")])
+def test_one_session_shared_by_8_threads_gives_the_serial_results_bit_for_bit(frame, order):
+    sess = RefinerSession(fx.random_weight_model(size=16, props=fx.contract(input_size=16, rotation_frame=frame,
+                                                                                channel_order=order)))
+    calls = _thread_calls(400, seed=3, ray=frame == "ray")
+    serial = [getattr(sess, name)(*args, **kwargs) for name, args, kwargs in calls]
+    threads, results, errors = 8, [None] * len(calls), []
+    start = threading.Barrier(threads)
+
+    def worker(t):
+        try:
+            start.wait()
+            for _ in range(2):  # twice: the second round runs on buffers grown by the first
+                for i in range(t, len(calls), threads):
+                    name, args, kwargs = calls[i]
+                    results[i] = getattr(sess, name)(*args, **kwargs)
+        except Exception as exc:  # surfaced below, with the thread's traceback kept in the exception
+            errors.append(exc)
+
+    pool = [threading.Thread(target=worker, args=(t,)) for t in range(threads)]
+    for th in pool:
+        th.start()
+    for th in pool:
+        th.join()
+    assert not errors, errors[0]
+    for i, (got, want) in enumerate(zip(results, serial)):
+        for a, b in zip((got.q_refined, got.q_out, got.q_in), (want.q_refined, want.q_out, want.q_in)):
+            np.testing.assert_array_equal(a, b, err_msg=f"call {i}: {calls[i][0]} {calls[i][2]}")
