@@ -133,3 +133,23 @@ def random_weight_model(size: int = 8, hidden: int = 16, seed: int = 0, props: d
         helper.make_node("Div", ["q", "n"], [OUTPUT_QUATERNION]),
     ]
     return _model(nodes, inits, size, contract(input_size=size) if props is None else props)
+
+
+def graph_model(nodes, inputs, outputs, initializers=(), props: dict[str, str] | None = None) -> bytes:
+    """A model with any inputs and outputs, each ``(name, TensorProto type, shape)``: for contract-breaking tests.
+
+    ``props`` defaults to a valid contract for ``input_size=8``.
+    """
+    graph = helper.make_graph(
+        nodes,
+        "test_graph",
+        [helper.make_tensor_value_info(n, t, s) for n, t, s in inputs],
+        [helper.make_tensor_value_info(n, t, s) for n, t, s in outputs],
+        initializer=list(initializers),
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    for k, v in (contract() if props is None else props).items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = k, v
+    return model.SerializeToString()

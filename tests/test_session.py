@@ -441,3 +441,199 @@ def test_one_session_shared_by_8_threads_gives_the_serial_results_bit_for_bit(fr
     for i, (got, want) in enumerate(zip(results, serial)):
         for a, b in zip((got.q_refined, got.q_out, got.q_in), (want.q_refined, want.q_out, want.q_in)):
             np.testing.assert_array_equal(a, b, err_msg=f"call {i}: {calls[i][0]} {calls[i][2]}")
+
+
+# ---------------------------------------------------------------- models that cannot be used: one error type
+from refiner_rt import ModelError  # noqa: E402
+
+U8, F32, F64 = TensorProto.UINT8, TensorProto.FLOAT, TensorProto.DOUBLE
+
+
+def _regroup(width: int) -> list:
+    """Nodes ``q_out = reshape(reshape(q_in, (-1, width)), (-1, 4))``: shape inference cannot see that this fails
+    unless ``4 * batch`` is a multiple of ``width`` (needs the initializers ``w{width}`` and ``w4``)."""
+    return [helper.make_node("Reshape", [INPUT_QUATERNION, f"w{width}"], ["grouped"]),
+            helper.make_node("Reshape", ["grouped", "w4"], [OUTPUT_QUATERNION])]
+
+
+def _shape_inits() -> list:
+    return [helper.make_tensor("one_row", TensorProto.INT64, [2], [1, 4])] + [
+        helper.make_tensor(n, TensorProto.INT64, [1], [v]) for n, v in (("s0", 0), ("s3", 3), ("s1", 1))] + [
+        helper.make_tensor(f"w{w}", TensorProto.INT64, [2], [-1, w]) for w in (4, 8, 12)]
+IMAGE_IN = (INPUT_IMAGE, U8, ["batch", 8, 8, 3])
+Q_IN = (INPUT_QUATERNION, F32, ["batch", 4])
+Q_OUT = (OUTPUT_QUATERNION, F32, ["batch", 4])
+ECHO = [helper.make_node("Identity", [INPUT_QUATERNION], [OUTPUT_QUATERNION])]
+
+
+def _bad_bytes() -> dict[str, bytes]:
+    rng = np.random.default_rng(39)
+    good = fx.constant_model([1, 0, 0, 0])
+    return {
+        "empty": b"",
+        "random": rng.integers(0, 256, 4096, dtype=np.uint8).tobytes(),
+        "truncated": good[: len(good) // 2],
+        "text": b"this is not an onnx model\n" * 10,
+        "one byte": b"\x08",
+    }
+
+
+@pytest.mark.parametrize("kind", list(_bad_bytes()))
+@pytest.mark.parametrize("as_file", [False, True])
+def test_unreadable_models_raise_model_error_naming_the_file(kind, as_file, tmp_path):
+    data = _bad_bytes()[kind]
+    source = data
+    if as_file:
+        source = tmp_path / f"{kind.replace(' ', '_')}.onnx"
+        source.write_bytes(data)
+    with pytest.raises(ModelError) as info:
+        RefinerSession(source)
+    assert type(info.value) is ModelError and isinstance(info.value, ValueError)
+    assert str(source if as_file else "<model bytes>") in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads files whatever their mode")
+def test_a_model_file_without_read_permission_is_a_model_error(tmp_path):
+    path = tmp_path / "m.onnx"
+    path.write_bytes(fx.constant_model([1, 0, 0, 0]))
+    path.chmod(0)
+    with pytest.raises(ModelError, match="cannot read"):
+        RefinerSession(path)
+
+
+@pytest.mark.parametrize(
+    "nodes,inputs,outputs,match",
+    [
+        (ECHO, [(INPUT_IMAGE, U8, ["batch", 8, 8, 4]), Q_IN], [Q_OUT], r"'image' must have shape \(batch, 8, 8, 3\)"),
+        (ECHO, [(INPUT_IMAGE, F32, ["batch", 8, 8, 3]), Q_IN], [Q_OUT], r"'image' must be tensor\(uint8\)"),
+        (ECHO, [(INPUT_IMAGE, U8, [1, 8, 8, 3]), (INPUT_QUATERNION, F32, [1, 4])],
+         [(OUTPUT_QUATERNION, F32, [1, 4])], "'image' must have a dynamic batch axis"),
+        ([helper.make_node("Identity", [INPUT_QUATERNION], [OUTPUT_QUATERNION])], [IMAGE_IN, (INPUT_QUATERNION, F32,
+         ["batch", 3])], [(OUTPUT_QUATERNION, F32, ["batch", 3])], r"'q_in' must have shape \(batch, 4\)"),
+        (ECHO, [IMAGE_IN, (INPUT_QUATERNION, F64, ["batch", 4])], [(OUTPUT_QUATERNION, F64, ["batch", 4])],
+         r"'q_in' must be tensor\(float\)"),
+        ([helper.make_node("Slice", [INPUT_QUATERNION, "s0", "s3", "s1"], [OUTPUT_QUATERNION])], [IMAGE_IN, Q_IN],
+         [(OUTPUT_QUATERNION, F32, ["batch", 3])], r"'q_out' must have shape \(batch, 4\)"),
+        (ECHO, [IMAGE_IN, Q_IN, ("mask", U8, ["batch", 8, 8])], [Q_OUT], r"inputs \['mask'\]"),
+        ([helper.make_node("Identity", [INPUT_QUATERNION], ["out"])], [IMAGE_IN, Q_IN],
+         [("out", F32, ["batch", 4])], r"lacks \['q_out'\]"),
+        # a batch axis fixed inside the graph: onnxruntime's shape inference shows it
+        ([helper.make_node("Reshape", [INPUT_QUATERNION, "one_row"], [OUTPUT_QUATERNION])], [IMAGE_IN, Q_IN],
+         [Q_OUT], "'q_out' must have a dynamic batch axis"),
+        # a graph that only works for batches of 3, 6, ...: the trial run on two crops finds it
+        (_regroup(12), [IMAGE_IN, Q_IN], [Q_OUT], "fails on a trial batch of 2 black 8x8 crops"),
+        # declared (batch, 4) but gives three components
+        ([helper.make_node("Slice", [INPUT_QUATERNION, "s0", "s3", "s1"], [OUTPUT_QUATERNION])], [IMAGE_IN, Q_IN],
+         [Q_OUT], r"must be \(batch, 4\) float32; a trial batch of 2 gave shape \(2, 3\)"),
+    ],
+)
+def test_contract_breaking_graphs_are_refused_on_load_naming_the_input_or_output(nodes, inputs, outputs, match):
+    with pytest.raises(ModelError, match=match) as info:
+        RefinerSession(fx.graph_model(nodes, inputs, outputs, _shape_inits()))
+    assert type(info.value) is ModelError
+
+
+@pytest.mark.parametrize("key,value", [("crop_context", "inf"), ("crop_context", "1e308"), ("input_size", "0"),
+                                       ("quaternion_order", "xyzw")])
+def test_metadata_out_of_range_is_refused_on_load(key, value):
+    props = fx.contract()
+    props[key] = value
+    with pytest.raises(ModelError, match=f"'{key}'"):
+        RefinerSession(fx.constant_model([1, 0, 0, 0], props=props))
+
+
+def test_a_network_that_fails_at_run_time_raises_model_error_not_an_onnxruntime_type():
+    # works for even batches only: it passes the trial run on two crops and fails on one or three
+    sess = RefinerSession(fx.graph_model(_regroup(8), [IMAGE_IN, Q_IN], [Q_OUT], _shape_inits()))
+    sess.refine(IMG, BOXES[:2], rq.identity((2,)))
+    with pytest.raises(ModelError, match="the network failed on a batch of 3") as info:
+        sess.refine(IMG, BOXES, rq.identity((3,)))
+    assert type(info.value) is ModelError
+    nan = RefinerSession(fx.constant_model([float("nan"), 0, 0, 0]))
+    for n in (1, 40):  # the Python-float path and the numpy path
+        with pytest.raises(ModelError, match=r"returned q_out\[0\] = \[nan, 0.0, 0.0, 0.0\]"):
+            nan.refine(IMG, np.tile(BOXES[:1], (n, 1)), rq.identity((n,)))
+    with pytest.raises(ModelError, match="q_out"):
+        RefinerSession(fx.constant_model([0, 0, 0, 0])).refine(IMG, BOXES, rq.identity((3,)), views=2)
+
+
+# ---------------------------------------------------------------- every bad input named, every result finite
+@pytest.mark.parametrize("n,views", [(3, 1), (40, 1), (3, 2)])  # the Python-float path, the numpy path, views
+def test_huge_finite_q_in_gives_the_rotation_of_its_direction(n, views):
+    sess = RefinerSession(mix_model())
+    rng = np.random.default_rng(n)
+    direction = rng.standard_normal((n, 4))
+    boxes = np.tile(BOXES[:1], (n, 1))
+    ref = sess.refine(IMG, boxes, direction, views=views)
+    for scale in (1e154, 1e200, 1e308 / 4):
+        res = sess.refine(IMG, boxes, direction * scale, views=views)
+        assert np.isfinite(res.q_refined).all() and res.q_refined.dtype == np.float64
+        np.testing.assert_allclose(np.linalg.norm(res.q_refined, axis=1), 1.0, atol=1e-12)
+        np.testing.assert_allclose(res.q_refined, ref.q_refined, atol=1e-6)
+
+
+K_RAY = K_TEST
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(boxes_xyxy=[[5, 6, 25, 30], [30.5, 10, 60], [-4, 20, 10, 47]]), r"boxes_xyxy must be numeric.*ragged"),
+        (dict(boxes_xyxy=[["a", "b", "c", "d"]] * 3), "boxes_xyxy must be numeric"),
+        (dict(boxes_xyxy=[[5, 6, 25, 2e6]] * 3), r"boxes_xyxy\[0\] must have coordinates within \+-1e\+06"),
+        (dict(boxes_xyxy=[[-1e300, 6, 25, 30]] * 3), r"boxes_xyxy\[0\] must have coordinates within"),
+        (dict(q_in_wxyz=[[1, 0, 0, 0], [1, 0, 0], [1, 0, 0, 0]]), r"q_in_wxyz must be .*ragged"),
+        (dict(q_in_wxyz=np.array([[1, 0, 0, 0]] * 3, dtype=object)), "q_in_wxyz must be a numeric"),
+        (dict(q_in_wxyz=[[1, 0, 0, 0]] * 3 + [[1, 0, 0, 0]]), "q_in_wxyz has 4 rotations but boxes_xyxy has 3"),
+        (dict(q_in_wxyz=np.full((3, 4), 1e-200)), "zero quaternion"),
+        (dict(iterations=17), "iterations must be an integer from 1 to 16"),
+        (dict(iterations=10**9), "iterations must be an integer from 1 to 16"),
+        (dict(iterations=np.int64(-1)), "iterations must be an integer from 1 to 16"),
+        (dict(K=[[500, 0, 31.5], [0, 500, 23.5], [0, 0]]), r"K must be a \(3, 3\).*ragged"),
+        (dict(K=np.zeros((3, 3))), "K must have focal lengths fx > 0 and fy > 0"),
+        (dict(K=[[500, 0, 31.5], [0, 500, 23.5], [0, 0, 0]]), "K must have the pinhole form"),
+        (dict(K=[[500, 0, 31.5], [0, 500, 23.5], [0, 0, 3]]), "K must have the pinhole form"),
+        (dict(K=[[500, 0, 31.5], [7, 500, 23.5], [0, 0, 1]]), "K must have the pinhole form"),
+        (dict(K=np.diag([1e-300, 500, 1])), r"K must have fx, fy in \[0.001, 1e\+09\]"),
+        (dict(K=[[500, 0, 1e300], [0, 500, 23.5], [0, 0, 1]]), r"\|cx\|, \|cy\| <= 1e\+09"),
+        (dict(K=[["500", 0, 1], [0, 500, 1], [0, 0, 1]]), r"K must be a \(3, 3\) numeric"),
+        (dict(image_bgr=IMG.tolist()), "image_bgr must be a numpy array"),
+        (dict(image_bgr=np.zeros((0, 5, 3), np.uint8)), "image_bgr must not be empty"),
+    ],
+)
+def test_more_bad_inputs_are_named_with_expected_and_got(kwargs, match):
+    sess = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
+    args = dict(image_bgr=IMG, boxes_xyxy=BOXES, q_in_wxyz=rq.identity((3,)), K=K_RAY)
+    args.update(kwargs)
+    with pytest.raises((ValueError, TypeError), match=match) as info:
+        sess.refine(**args)
+    assert not isinstance(info.value, ModelError)
+
+
+def test_limits_are_documented_constants_and_hold_at_their_edge():
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    one = BOXES[:1]
+    assert sess.refine(IMG, one, rq.identity((1,)), iterations=session_module.MAX_ITERATIONS).q_refined.shape == (1, 4)
+    edge = session_module.MAX_BATCH
+    boxes = np.tile(one, (edge, 1))
+    assert len(sess.refine(IMG, boxes, rq.identity((edge,)))) == edge
+    with pytest.raises(ValueError, match=f"boxes_xyxy has {edge + 1} entries: at most MAX_BATCH={edge}"):
+        sess.refine(IMG, np.tile(one, (edge + 1, 1)), rq.identity((edge + 1,)))
+    half = edge // 2 + 1
+    with pytest.raises(ValueError, match=f"boxes_xyxy has {half} entries x views=2 = {2 * half} crops"):
+        sess.refine(IMG, np.tile(one, (half, 1)), rq.identity((half,)), views=2)
+    crops = np.zeros((edge + 1, 8, 8, 3), np.uint8)
+    with pytest.raises(ValueError, match=f"crops_bgr has {edge + 1} entries"):
+        sess.refine_crops(crops, rq.identity((edge + 1,)))
+    with pytest.raises(ValueError, match="iterations must be an integer from 1 to 16"):
+        sess.refine_crops(crops[:1], rq.identity((1,)), iterations=17)
+    # the widest box and K the limits allow still give a finite unit rotation in the viewing-ray frame
+    ray = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
+    big = session_module.MAX_BOX_COORDINATE
+    K = np.array([[session_module.K_MIN_FOCAL, session_module.K_MAX_ABS, session_module.K_MAX_ABS],
+                  [0, session_module.K_MIN_FOCAL, -session_module.K_MAX_ABS], [0, 0, 1]])
+    for boxes in ([[-big, -big, big, big]], [[-big, -big, 1, 1]] * 40):
+        res = ray.refine(IMG, boxes, rq.identity((len(boxes),)), K=K, views=2 if len(boxes) == 1 else 1)
+        assert np.isfinite(res.q_refined).all()
+        np.testing.assert_allclose(np.linalg.norm(res.q_refined, axis=1), 1.0, atol=1e-12)
