@@ -59,7 +59,8 @@ def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str 
     """Check ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels and return them as float64.
 
     Args:
-        boxes: array-like ``(N, 4)`` (or a single ``(4,)`` box, returned as ``(1, 4)``).
+        boxes: array-like ``(N, 4)`` (or a single ``(4,)`` box, returned as ``(1, 4)``; an empty sequence is
+            ``(0, 4)``, no boxes).
         image_shape: ``(H, W, ...)``; when given, each box must overlap the image.
         name: argument name used in error messages.
 
@@ -78,6 +79,8 @@ def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str 
     arr = arr.astype(np.float64)
     if arr.ndim == 1 and arr.shape[0] == 4:
         arr = arr[None]
+    elif arr.shape == (0,):  # [] : no boxes
+        arr = arr.reshape(0, 4)
     if arr.ndim != 2 or arr.shape[1] != 4:
         raise ValueError(f"{name} must have shape (N, 4) as (x1, y1, x2, y2) in pixels; got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):

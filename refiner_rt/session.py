@@ -579,6 +579,8 @@ class RefinerSession:
         return self._validate_q(q, n, other), None
 
     def _validate_q(self, q, n: int, other: str) -> np.ndarray:
+        if isinstance(q, (list, tuple, np.ndarray)) and len(q) == 0 and np.ndim(q) == 1:
+            q = np.zeros((0, 4))  # [] : no rotations (as boxes_xyxy=[] is no boxes)
         q = rq.as_quaternion(q, "q_in_wxyz")
         if q.ndim == 1:
             q = q[None]

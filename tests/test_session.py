@@ -637,3 +637,199 @@ def test_limits_are_documented_constants_and_hold_at_their_edge():
         res = ray.refine(IMG, boxes, rq.identity((len(boxes),)), K=K, views=2 if len(boxes) == 1 else 1)
         assert np.isfinite(res.q_refined).all()
         np.testing.assert_allclose(np.linalg.norm(res.q_refined, axis=1), 1.0, atol=1e-12)
+
+
+# ---------------------------------------------------------------- property fuzzing: a finite unit rotation or a named error
+import re  # noqa: E402
+import warnings  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+ARGUMENT_NAMES = re.compile(r"\b(image_bgr|boxes_xyxy|q_in_wxyz|K|iterations|views|crops_bgr)\b")
+# derandomize: the same examples every run (a fixed seed); a few seconds in all
+FUZZ = settings(max_examples=300, deadline=None, derandomize=True, database=None,
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+_FUZZ_SESSIONS = {}
+
+
+def fuzz_session(frame: str) -> RefinerSession:
+    """One random-weight session per rotation frame, shared by all examples (the ray one takes RGB)."""
+    if frame not in _FUZZ_SESSIONS:
+        props = fx.contract(rotation_frame=frame, channel_order="RGB" if frame == "ray" else "BGR")
+        _FUZZ_SESSIONS[frame] = RefinerSession(fx.random_weight_model(props=props))
+    return _FUZZ_SESSIONS[frame]
+
+
+# odd floats: extreme but finite, tiny, zero, non-finite
+ODD_FLOAT = st.one_of(
+    st.sampled_from([0.0, -0.0, 5e-324, 1e-200, 1e-13, 1e154, -1e200, 1e300, 1.7e308, -1.7e308, np.nan, np.inf]),
+    st.floats(allow_nan=True, allow_infinity=True),
+)
+FORMS_OK = ["f64", "f32", "int", "list"]
+FORMS_BAD = ["ragged", "object", "strings", "3 columns", "rows+1", "3-d", "scalar"]
+
+
+def box_ints(boxes: np.ndarray) -> np.ndarray:
+    """Boxes on whole pixels, grown outwards (so they stay non-empty and overlapping)."""
+    return np.concatenate([np.floor(boxes[:, :2]), np.ceil(boxes[:, 2:])], axis=1).astype(np.int64)
+
+
+def rotation_ints(q: np.ndarray) -> np.ndarray:
+    """Quaternions as integers (scaled to a largest component of +-1000: the same rotations)."""
+    return np.rint(q / np.abs(q).max(axis=1, keepdims=True) * 1000).astype(np.int64) if len(q) else q.astype(np.int64)
+
+
+def as_form(arr: np.ndarray, form: str, to_int):
+    """``arr`` (``(n, 4)`` float64) as a user might pass it: an array of some dtype (``to_int`` makes the integer
+    one), a list, or a broken form."""
+    with np.errstate(all="ignore"):
+        if form == "f32":
+            return arr.astype(np.float32)
+        if form == "int":
+            return to_int(arr)
+    return {
+        "f64": lambda: arr,
+        "list": arr.tolist,
+        "ragged": lambda: [r[: 4 - (i % 2)] for i, r in enumerate(arr.tolist())] or [[1.0, 2.0], [3.0]],
+        "object": lambda: arr.astype(object),
+        "strings": lambda: arr.astype(str),
+        "3 columns": lambda: arr[:, :3],
+        "rows+1": lambda: np.vstack([arr, np.ones((1, 4))]),
+        "3-d": lambda: arr[None],
+        "scalar": lambda: 1.0,
+    }[form]()
+
+
+@st.composite
+def table(draw, valid: np.ndarray, bad: bool, to_int):
+    """``valid`` as given in one of the accepted forms, or (``bad``) with an odd value or in a broken form."""
+    arr = valid.copy()
+    if bad and len(arr) and draw(st.booleans()):
+        arr[draw(st.integers(0, len(arr) - 1)), draw(st.integers(0, 3))] = draw(ODD_FLOAT)
+        return as_form(arr, draw(st.sampled_from(["f64", "list"])), to_int)
+    if not valid.size or np.abs(valid).max() < 1e18:  # float32 and int64 cannot hold what is beyond
+        forms = FORMS_OK
+    else:
+        forms = ["f64", "list"]
+    return as_form(arr, draw(st.sampled_from(FORMS_BAD if bad else forms)), to_int)
+
+
+@st.composite
+def images(draw, bad: bool):
+    h, w = draw(st.integers(1, 40)), draw(st.integers(1, 40))
+    image = draw(hnp.arrays(np.uint8, (h, w, 3), elements=st.integers(0, 255)))
+    if not bad:
+        return image if draw(st.integers(0, 3)) else image[::2, ::-1]  # non-contiguous views are fine
+    kind = draw(st.sampled_from(["float", "gray", "rgba", "empty", "list", "bool"]))
+    return {"float": lambda: image.astype(np.float32), "gray": lambda: image[..., 0],
+            "rgba": lambda: np.dstack([image, image[..., :1]]), "empty": lambda: image[:0], "list": image.tolist,
+            "bool": lambda: image > 127}[kind]()
+
+
+@st.composite
+def overlapping_boxes(draw, n: int, h: int, w: int) -> np.ndarray:
+    """``(n, 4)`` boxes that overlap an ``h x w`` image, from slivers to many times its size."""
+    x1 = draw(hnp.arrays(np.float64, n, elements=st.floats(-50, w - 1e-3)))
+    y1 = draw(hnp.arrays(np.float64, n, elements=st.floats(-50, h - 1e-3)))
+    sx = draw(hnp.arrays(np.float64, n, elements=st.floats(1e-3, 200)))
+    sy = draw(hnp.arrays(np.float64, n, elements=st.floats(1e-3, 200)))
+    return np.stack([x1, y1, np.maximum(x1, 0) + sx, np.maximum(y1, 0) + sy], axis=1).reshape(n, 4)
+
+
+@st.composite
+def rotations(draw, n: int) -> np.ndarray:
+    """``(n, 4)`` finite non-zero quaternions of any norm, from 1e-6 to 1e300 (all valid)."""
+    q = draw(hnp.arrays(np.float64, (n, 4), elements=st.floats(-2, 2)))
+    q[np.linalg.norm(q, axis=1) < 1e-3] = [1.0, 0.0, 0.0, 0.0]
+    return q * draw(st.sampled_from([1.0, 1.0, 1e-6, 1e154, 1e200, 1e300]))
+
+
+@st.composite
+def intrinsics(draw, bad: bool, needed: bool):
+    pinhole = np.array([[draw(st.floats(0.5, 5000)), draw(st.floats(-5, 5)), draw(st.floats(-100, 100))],
+                        [0.0, draw(st.floats(0.5, 5000)), draw(st.floats(-100, 100))], [0.0, 0.0, 1.0]])
+    if not bad:
+        edge = np.array([[session_module.K_MIN_FOCAL, session_module.K_MAX_ABS, -session_module.K_MAX_ABS],
+                         [0.0, session_module.K_MAX_ABS, session_module.K_MAX_ABS], [0.0, 0.0, 1.0]])
+        options = [pinhole, pinhole.tolist(), edge] + ([] if needed else [None])
+        return draw(st.sampled_from(options))
+    kind = draw(st.sampled_from(["odd entry", "any", "ragged", "2x2", "scaled"] + (["none"] if needed else [])))
+    if kind == "odd entry":
+        pinhole[draw(st.integers(0, 2)), draw(st.integers(0, 2))] = draw(ODD_FLOAT)
+        return pinhole
+    return {"any": lambda: draw(hnp.arrays(np.float64, (3, 3), elements=ODD_FLOAT)),
+            "ragged": lambda: [[500.0, 0.0, 20.0], [0.0, 500.0], [0.0, 0.0, 1.0]],
+            "2x2": lambda: np.eye(2), "scaled": lambda: 3.0 * pinhole, "none": lambda: None}[kind]()
+
+
+def count(bad: bool):
+    return st.sampled_from([0, -1, 17, 2.0, True, None, "1", 10**9]) if bad else st.sampled_from([1, 1, 2, np.int64(3)])
+
+
+ARGS = ("image_bgr", "boxes_xyxy", "q_in_wxyz", "K", "iterations", "views")
+
+
+def assert_finite_unit_or_named_error(call, bad: set) -> None:
+    """The property: ``call()`` returns finite unit ``wxyz`` rotations with ``w >= 0``, or raises a ValueError or
+    TypeError that names an argument (not a ModelError: the model is fine). numpy warnings count as failures.
+    With no argument made bad, it must return."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            res = call()
+        except (ValueError, TypeError) as exc:
+            assert bad, f"valid arguments refused: {exc}"
+            assert not isinstance(exc, ModelError), f"a good model reported as broken: {exc}"
+            assert ARGUMENT_NAMES.search(str(exc)), f"the error does not name the argument: {exc}"
+            return
+    for q in (res.q_refined, res.q_out, res.q_in):
+        assert q.dtype == np.float64 and q.ndim == 2 and q.shape == (len(res), 4)
+        assert np.isfinite(q).all(), q
+        np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-9)
+        assert (q[:, 0] >= 0).all()
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_refine_gives_a_finite_unit_rotation_or_names_the_argument(data):
+    # Most examples make none or one argument bad (odd values, dtypes, shapes, ragged lists), some two.
+    bad = data.draw(st.one_of(st.just(set()), st.sets(st.sampled_from(ARGS), min_size=1, max_size=2)))
+    frame = data.draw(st.sampled_from(["camera", "ray"]))
+    n = data.draw(st.sampled_from([1, 2, 5, session_module.SMALL_BATCH + 3, 0]))
+    image = data.draw(images("image_bgr" in bad))
+    h, w = (image.shape[:2]) if isinstance(image, np.ndarray) and image.ndim == 3 and image.size else (20, 20)
+    boxes = data.draw(table(data.draw(overlapping_boxes(n, h, w)), "boxes_xyxy" in bad, box_ints))
+    q_in = data.draw(table(data.draw(rotations(n)), "q_in_wxyz" in bad, rotation_ints))
+    K = data.draw(intrinsics("K" in bad, needed=frame == "ray"))
+    iterations, views = data.draw(count("iterations" in bad)), data.draw(count("views" in bad))
+    sess = fuzz_session(frame)
+    assert_finite_unit_or_named_error(
+        lambda: sess.refine(image, boxes, q_in, iterations=iterations, K=K, views=views), bad)
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_refine_crops_gives_a_finite_unit_rotation_or_names_the_argument(data):
+    bad = data.draw(st.one_of(st.just(set()), st.sets(st.sampled_from(["crops_bgr", "q_in_wxyz", "iterations"]),
+                                                      min_size=1, max_size=2)))
+    n = data.draw(st.sampled_from([1, 3, session_module.SMALL_BATCH + 3, 0]))
+    crops = [data.draw(images(False)) for _ in range(min(n, 4))] + [np.zeros((8, 8, 3), np.uint8)] * max(0, n - 4)
+    form = data.draw(st.sampled_from(["list", "tuple", "array"]))
+    if "crops_bgr" in bad:
+        kind = data.draw(st.sampled_from(["one bad crop", "one crop, no batch", "generator", "dict", "5-d"]))
+        if kind == "one bad crop" and n:
+            crops[data.draw(st.integers(0, min(n, 4) - 1))] = data.draw(images(True))
+        else:
+            crops = {"one crop, no batch": lambda: np.zeros((5, 7, 3), np.uint8), "generator": lambda: iter(crops),
+                     "dict": lambda: {0: crops}, "5-d": lambda: np.zeros((n, 1, 5, 7, 3), np.uint8),
+                     "one bad crop": lambda: [np.zeros((5, 7), np.uint8)]}[kind]()
+    elif form == "tuple":
+        crops = tuple(crops)
+    elif form == "array":
+        crops = np.zeros((n, 5, 7, 3), np.uint8)
+    q_in = data.draw(table(data.draw(rotations(n)), "q_in_wxyz" in bad, rotation_ints))
+    iterations = data.draw(count("iterations" in bad))
+    sess = fuzz_session(data.draw(st.sampled_from(["camera", "ray"])))
+    assert_finite_unit_or_named_error(lambda: sess.refine_crops(crops, q_in, iterations=iterations), bad)
