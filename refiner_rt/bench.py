@@ -106,8 +106,25 @@ class BenchRow:
 
 
 # ---------------------------------------------------------------------------------------------------- machine
+# The vector instruction sets that decide onnxruntime's fp32 and int8 kernels (MLAS picks them at run time).
+_SIMD_FLAG_PREFIXES = ("sse4", "avx", "fma", "f16c", "amx", "vnni")
+
+
+def cpu_flags() -> list[str]:
+    """The CPU's vector-instruction flags from ``/proc/cpuinfo`` (``avx2``, ``avx512f``, ``avx512_vnni``, ``fma``...);
+    empty where that file does not exist (not Linux)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return sorted(f for f in line.split(":", 1)[1].split() if f.startswith(_SIMD_FLAG_PREFIXES))
+    except OSError:
+        pass
+    return []
+
+
 def machine_info() -> dict:
-    """CPU model, core count and library versions of this machine."""
+    """CPU model, its vector-instruction flags, core count and library versions of this machine."""
     import onnxruntime
 
     cpu = platform.processor() or "unknown"
@@ -121,6 +138,7 @@ def machine_info() -> dict:
         pass
     info = {
         "cpu": cpu,
+        "cpu_flags": cpu_flags(),
         "cores": available_cores(),
         "python": platform.python_version(),
         "numpy": np.__version__,
