@@ -44,7 +44,7 @@ import numpy as np
 from refiner_rt import quaternion as rq
 from refiner_rt.errors import ModelError
 from refiner_rt.preprocess import crop_batch, validate_boxes
-from refiner_rt.session import available_cores
+from refiner_rt.session import MAX_BATCH, available_cores
 
 log = logging.getLogger(__name__)
 
@@ -730,6 +730,9 @@ def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, se
     each row next to its roofline bound."""
     if 0 in batches:
         raise click.BadParameter("batch sizes must be >= 1", param_hint="--batch")
+    if max(batches) > MAX_BATCH:
+        raise click.BadParameter(f"batch sizes must be at most {MAX_BATCH} (RefinerSession's MAX_BATCH crops per call)",
+                                 param_hint="--batch")
     machine = machine_info()
 
     def echo(msg):
