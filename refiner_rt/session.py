@@ -67,9 +67,10 @@ _INF = math.inf
 # (12 KB at 64 x 64, 147 KB at 224 x 224) and onnxruntime's activations most of the rest. Measured peak RSS
 # (batch 1 vs 256 vs 1024 crops, shallow and fusion, fp32 and INT8, 64 x 64): about 0.45 MB more per crop, so
 # +450 MB at the limit; a 224 x 224 network (VGG-M) needs roughly (224 / 64)^2 = 12x that per crop (not measured).
-# Split larger requests into several calls: batches beyond ~32 are no faster per box.
+# Split larger requests into several calls; large batches are not faster per box on a CPU (RESULTS.md: fusion INT8
+# ran fewer refinements/s at batch 32 than at batch 8).
 MAX_BATCH = 1024
-# iterations: each one is a network pass; the paper does 1 and the accuracy gain stops after 2-3.
+# iterations: each one is a network pass (the paper does 1); bounded so that a wrong value cannot run for hours.
 MAX_ITERATIONS = 16
 # K: pinhole form, focal lengths in [K_MIN_FOCAL, K_MAX_ABS] pixels and |skew|, |cx|, |cy| <= K_MAX_ABS. With box
 # coordinates within MAX_BOX_COORDINATE these keep the viewing-ray maths far from overflow.
