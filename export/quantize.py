@@ -79,7 +79,9 @@ from onnxruntime.quantization import (
     quantize_static,
 )
 
+from export.defaults import DEFAULT_SCHEME, MAX_MAX_DEG, MAX_MEAN_DEG, SCHEMES  # torch-free: `export --help` reads them
 from export.parity import MIN_PARITY_INPUTS, PARITY_SEED, onnxruntime_outputs, random_inputs
+from models.checkpoint import new_temp_file_beside
 from refiner_rt import quaternion as rq
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, ModelContract, parse_metadata
 
@@ -102,10 +104,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-# The schemes and agreement bounds live in the torch-free export.defaults, which `export --help` reads.
-from export.defaults import DEFAULT_SCHEME, MAX_MAX_DEG, MAX_MEAN_DEG, SCHEMES  # noqa: E402
-from export.files import replace_with_umask  # noqa: E402
 
 QUANTIZED_OP_TYPES = ("MatMul", "Gemm")  # the fully connected layers; convs stay fp32 (see the module docstring)
 CALIBRATION_SIZE = 256  # crops used to calibrate static QDQ activation ranges
@@ -481,17 +479,16 @@ def quantize_model(
         )
 
     data = _quantized_proto(proto, scheme, calibration).SerializeToString()
-    fd, tmp_name = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=".tmp")
-    tmp = Path(tmp_name)
+    tmp = new_temp_file_beside(out_path)  # the user's umask (0644 typically), not mkstemp's 0600
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(tmp, "wb") as f:
             f.write(data)
         _check_loads(tmp, scheme)
         agreement, heldout_agreement = _agreements(fp32_path, tmp, contract.input_size, calibration, n_check, enforce)
         enforced = heldout_agreement if heldout_agreement is not None else agreement
         if enforce and not enforced.passed:
             raise QuantizationError(f"refusing to write {out_path}: {enforced}", enforced)
-        replace_with_umask(tmp, out_path)
+        os.replace(tmp, out_path)
     finally:
         tmp.unlink(missing_ok=True)
     report = QuantizeReport(

@@ -12,6 +12,7 @@ import importlib
 import click
 
 from refiner_rt import __version__
+from refiner_rt.errors import ModelError
 
 # name -> ("module:attribute", one-line help shown by `refiner-rt --help` without importing the module)
 LAZY_COMMANDS = {
@@ -51,6 +52,21 @@ class LazyGroup(click.Group):
             return getattr(module, attr)
         return super().get_command(ctx, cmd_name)
 
+    def invoke(self, ctx):
+        # Safety nets, so that no subcommand prints a traceback for these: a model that cannot be used; and a
+        # training command run in a runtime-only install, which stops at its first import of a training dependency
+        # (torch, onnx, pybullet, tqdm...): name the module and the extra to install.
+        try:
+            return super().invoke(ctx)
+        except ModelError as exc:
+            raise click.ClickException(str(exc)) from None
+        except ModuleNotFoundError as exc:
+            name = ctx.invoked_subcommand or "this command"  # set by the group's invoke once the command is found
+            raise click.ClickException(
+                f"'refiner-rt {name}' needs {exc.name or 'a module'!r}, which is not installed; "
+                f"install the training extra: pip install 'refiner-rt[train]'"
+            ) from None
+
     def format_commands(self, ctx, formatter):
         rows = [(name, self.lazy_commands[name][1]) for name in sorted(self.lazy_commands)]
         if rows:
@@ -58,31 +74,7 @@ class LazyGroup(click.Group):
                 formatter.write_dl(rows)
 
 
-class RefinerGroup(LazyGroup):
-    """The ``refiner-rt`` group: what a command fails on outside the input checks is one line, not a traceback.
-
-    * A training command run in a runtime-only install stops at its first import of a training dependency (torch,
-      onnx, pybullet, tqdm...): the message names the module and the extra to install.
-    * onnxruntime's own exception types (a file that is not ONNX, a graph it cannot run) are shown as one line.
-    """
-
-    def invoke(self, ctx):
-        try:
-            return super().invoke(ctx)
-        except ModuleNotFoundError as exc:
-            name = ctx.invoked_subcommand or "this command"  # set by the group's invoke once the command is found
-            raise click.ClickException(
-                f"'refiner-rt {name}' needs {exc.name or 'a module'!r}, which is not installed; "
-                f"install the training extra: pip install 'refiner-rt[train]'"
-            ) from None
-        except Exception as exc:
-            if not type(exc).__module__.startswith("onnxruntime"):
-                raise
-            first = (str(exc).splitlines() or [type(exc).__name__])[0]
-            raise click.ClickException(f"onnxruntime could not use the model: {first}") from None
-
-
-@click.group(cls=RefinerGroup, lazy_commands=LAZY_COMMANDS)
+@click.group(cls=LazyGroup, lazy_commands=LAZY_COMMANDS)
 @click.version_option(__version__, prog_name="refiner-rt")
 def main():
     """refiner-rt: fast 3D pose refinement from RGB crops.

@@ -127,13 +127,13 @@ def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: 
     from refiner_rt.pretrained import pretrained_models
     from refiner_rt.session import RefinerSession
 
+    image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise click.BadParameter(f"{image_path} is not an image OpenCV can read", param_hint="'--image'")
     shipped = sorted(m.object_id for m in pretrained_models())
     if object_id not in shipped:
         raise click.BadParameter(f"no shipped model for {object_id!r}; shipped: {', '.join(shipped) or 'none'}",
                                  param_hint="'--object'")
-    image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise click.BadParameter(f"{image_path} is not an image OpenCV can read", param_hint="'--image'")
     h, w = image.shape[:2]
     x1, y1, x2, y2 = box
     if not (x1 < x2 and y1 < y2):
