@@ -58,6 +58,8 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.study_cli import write_json  # noqa: E402  (schema version and git commit in every result JSON)
+
 # The two models of every table (the schedules used for the published results; see benchmarks/RESULTS.md).
 # per_object=0 in a recipe: no per-object fine-tuning; the experiment's fine-tune images then join the base
 # training set, so both models see the same images and the same split (the scenes split too). A positive
@@ -531,7 +533,7 @@ def write_result(name: str, exp: Experiment, results: dict, budget: dict, wall_s
                machine=machine_info(), wall_s=wall_s, budget=budget)
     args.results.mkdir(parents=True, exist_ok=True)
     path = args.results / f"{name}.json"
-    path.write_text(json.dumps(doc, indent=2) + "\n")
+    write_json(path, doc)
     print(f"  -> {path} ({wall_s:.0f} s)", flush=True)
 
 

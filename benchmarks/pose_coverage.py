@@ -21,7 +21,6 @@ Symmetries are not folded in (nor are they by the error metric).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import shlex
 import sys
@@ -34,6 +33,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.study_cli import write_json  # noqa: E402
 from refiner_rt import quaternion as rq  # noqa: E402
 from refiner_rt.session import ray_quaternions  # noqa: E402
 
@@ -169,8 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     result = run(args)
     print(table(result))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(args.json, result)
         print(f"wrote {args.json}")
     return 0
 

@@ -38,6 +38,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.memory import MB, _peak_rss_bytes, _rss_bytes, build_model, summarize  # noqa: E402
+from benchmarks.study_cli import write_json  # noqa: E402
 
 DEFAULT_CALLS = 1_000_000
 
@@ -149,8 +150,7 @@ def main(argv=None) -> int:
             **s,
             "samples": result["samples"],
         }
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(record, indent=1))
+        write_json(args.json, record)
         print(f"Wrote {args.json}")
     return 0
 

@@ -2,7 +2,9 @@
 
 ``averaging.py``, ``cross_split.py`` and ``error_breakdown.py`` take checkpoints and rebuild their recorded test
 crops; every study writes the command that produced it and the machine it ran on beside its numbers, so a row of
-``RESULTS.md`` can be traced and rerun.
+``RESULTS.md`` or of a study's README can be traced and rerun. :func:`write_json` also stamps each new file with
+the version of these common fields (:data:`SCHEMA_VERSION`) and the git commit of the code that wrote it; files
+written before that carry neither and are left as they are.
 """
 
 from __future__ import annotations
@@ -11,8 +13,14 @@ import argparse
 import json
 import platform
 import shlex
+import subprocess
 import sys
 from pathlib import Path
+
+# Version of the fields every result JSON carries (schema_version, git_commit, command, machine): 1 = the first
+# stamped files. Bump it when one of them changes meaning.
+SCHEMA_VERSION = 1
+REPO = Path(__file__).resolve().parent.parent
 
 
 def checkpoint_parser(description: str, *, data: bool = True, checkpoints_help: str | None = None,
@@ -53,7 +61,25 @@ def provenance(script: str, argv: list[str] | None, threads: int | None = None, 
             "machine": record}
 
 
+def git_commit(repo: Path = REPO) -> str | None:
+    """The commit checked out in ``repo`` (40 hex digits), with ``-dirty`` when tracked files differ from it; None
+    outside a git checkout or without git."""
+    try:
+        head = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("-dirty" if dirty else "")
+
+
+def stamp(doc: dict) -> dict:
+    """``doc`` with ``schema_version`` and ``git_commit`` first (values already in ``doc`` are kept)."""
+    return {"schema_version": SCHEMA_VERSION, "git_commit": git_commit(), **doc}
+
+
 def write_json(path: Path, doc: dict) -> None:
-    """Write a study's document (indented, one trailing newline), creating its folder."""
+    """Write a study's document, stamped (:func:`stamp`), indented, one trailing newline, creating its folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1) + "\n")
+    path.write_text(json.dumps(stamp(doc), indent=1) + "\n")

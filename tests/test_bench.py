@@ -259,3 +259,14 @@ def test_soak_reports_rss_over_the_calls_from_threads_sharing_one_session(tmp_pa
         assert isinstance(d[key], (int, float))
     with pytest.raises(SystemExit):
         module.main(["--model", str(model), "--calls", "100", "--warmup", "100"])
+
+
+def test_study_json_is_stamped_with_schema_version_and_commit(tmp_path):
+    from benchmarks.study_cli import SCHEMA_VERSION, write_json
+
+    path = tmp_path / "sub" / "r.json"
+    write_json(path, {"rows": [1], "schema_version": SCHEMA_VERSION})
+    d = json.loads(path.read_text())
+    assert list(d)[:2] == ["schema_version", "git_commit"] and d["schema_version"] == SCHEMA_VERSION
+    assert d["rows"] == [1]
+    assert d["git_commit"] is None or len(d["git_commit"].removesuffix("-dirty")) == 40

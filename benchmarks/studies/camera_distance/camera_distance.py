@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
+from benchmarks.study_cli import write_json  # noqa: E402
 from models.data.render import RenderConfig, default_models_dir, render_dataset  # noqa: E402
 
 
@@ -64,7 +65,7 @@ def main(argv=None) -> int:
         rows.append(row)
         print(json.dumps(row))
     if args.json:
-        args.json.write_text(json.dumps({"scenes": args.scenes, "seed": args.seed, "rows": rows}, indent=1) + "\n")
+        write_json(args.json, {"scenes": args.scenes, "seed": args.seed, "rows": rows})
     return 0
 
 
