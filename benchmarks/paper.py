@@ -7,7 +7,7 @@ Training is ``refiner-rt train`` (:func:`models.train_cli.run_training`), evalua
 
 Usage (from the repository root)::
 
-    python benchmarks/paper.py --data /work/data/ycb9 --runs /work/runs/paper_exp            # every experiment
+    python benchmarks/paper.py --data data/ycb9 --runs runs/paper_exp            # every experiment
     python benchmarks/paper.py --data D --runs R --only baseline,scenes --models paper       # a subset
     python benchmarks/paper.py --list                                                        # experiments, status
     python benchmarks/paper.py --report                  # results/*.json -> results/tables.md and PNG plots
@@ -60,7 +60,7 @@ if str(REPO) not in sys.path:
 
 from benchmarks.study_cli import write_json  # noqa: E402  (schema version and git commit in every result JSON)
 
-# The two models of every table (the schedules used for the published results; see benchmarks/RESULTS.md).
+# The two models of every table (the schedules used for the published results; see benchmarks/studies/paper_protocol/README.md).
 # per_object=0 in a recipe: no per-object fine-tuning; the experiment's fine-tune images then join the base
 # training set, so both models see the same images and the same split (the scenes split too). A positive
 # per_object in an experiment's recipe override replaces the experiment's fine-tune size for that model.
@@ -88,7 +88,7 @@ VGGM_REDUCED = dict(base_per_object=200, per_object=200, val_per_object=100, tes
 EPOCH_KEYS = ("epochs_mse", "epochs_geodesic", "ft_epochs_mse", "ft_epochs_geodesic")
 PAPER_SOURCE = "Jain & Dellaert, Fast 3D Pose Refinement with RGB Images, Results (YCB-Video, mean over nine objects)"
 ANGLE_BINS = tuple(range(0, 50, 5))  # input-angle bin edges (degrees) of input_angle
-# The improved refiner's five-conv-block image stage (RESULTS.md, "Five conv blocks on all nine objects").
+# The improved refiner's five-conv-block image stage (benchmarks/studies/heldout_scenes, "Five conv blocks on all nine objects").
 DEEP5 = {"arch_config": {"conv_channels": [16, 32, 64, 128, 128]}}
 BASELINE_DATA = dict(split_mode="frames", base_per_object=3000, per_object=2000, val_per_object=3000, test_per_object=3000,
                      noise="uniform:0:30")
@@ -160,7 +160,7 @@ EXPERIMENTS: dict[str, Experiment] = {
                                              "ft_continue": {"ft_epochs_geodesic": 28, "ft_lr": 2e-5}},
                                    "improved": {"ft_epochs_mse": 2, "ft_epochs_geodesic": 28, "ft_continue": None}}),
     # Beyond the paper: ft_10000 again with fusion fine-tuned at its base rate (1e-3, cosine) for 45 epochs instead
-    # of 5e-4 for 30. On the cracker box this took the validation error at epoch 30 from 3.28 to 2.74 (RESULTS).
+    # of 5e-4 for 30. On the cracker box this took the validation error at epoch 30 from 3.28 to 2.74 (studies/paper_protocol).
     # The paper net's entry: 3x its constant rate, on a cosine schedule.
     "ft_10000_lr": Experiment("beyond the paper: ft_10000 with a higher fine-tuning rate (fusion 1e-3, paper net "
                               "3e-4), cosine, 45 epochs",

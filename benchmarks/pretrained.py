@@ -7,7 +7,7 @@ its model-card metadata, copied into the package and, with ``--commit``, committ
 A rerun skips the objects already shipped with this recipe, so an interrupted build resumes at the object it was on
 (an object's training itself restarts from scratch).
 
-    python benchmarks/pretrained.py build --data /work/data/ycb9_v1 --run /work/runs/v1 \\
+    python benchmarks/pretrained.py build --data data/ycb9_v1 --run runs/v1 \\
         --objects 003_cracker_box,004_sugar_box --commit        # two such commands side by side, one core each
     python benchmarks/pretrained.py speed                        # INT8/fp32 speed of every shipped model
     python benchmarks/pretrained.py card                         # models.json and MODELS.md from the JSON
@@ -45,8 +45,8 @@ OBJECT_FRAME = ("YCB google_16k scan frame (models/data/ycb_models/<id>/textured
                 "not the YCB-Video or BOP model frame")
 SCHEMA = "refiner-rt/pretrained-eval/1"
 
-# The held-out-scenes recipe of the shipped models: the best measured for unseen scenes (benchmarks/RESULTS.md,
-# "Five conv blocks on all nine objects" and the scene-count sections): five conv blocks, box and colour jitter,
+# The held-out-scenes recipe of the shipped models: the best measured for unseen scenes (benchmarks/studies/
+# heldout_scenes, "Five conv blocks on all nine objects", and benchmarks/studies/scene_count): five conv blocks, box and colour jitter,
 # new backgrounds for half the crops, cosine learning rate from 1e-3, the viewing-ray frame, one network per object.
 RECIPE = {
     "name": "heldout-scenes-v1",

@@ -2,7 +2,7 @@
 
 A crop does not show where in the image it was cut, so a model that reads the rotation from the crop's appearance
 is wrong in the camera frame by about that angle unless it works in the viewing-ray frame; a model whose error
-does not grow with the angle has not learned to use the appearance yet (see ``benchmarks/RESULTS.md``).
+does not grow with the angle has not learned to use the appearance yet (see ``benchmarks/studies/paper_protocol/README.md``).
 
 Usage (from the repository root)::
 

@@ -1,7 +1,7 @@
 """The project's improved refiner: the paper's shallow CNN with a rotation-matrix pose input and multiplicative fusion.
 
 Differences from the paper's design (``models.shallow``), each chosen by measurement (see
-``benchmarks/RESULTS.md``):
+``benchmarks/studies/paper_protocol/README.md``):
     * the coarse rotation enters the pose stage as its 3x3 rotation matrix (9 numbers, continuous
       in the rotation and free of the ``q ~ -q`` ambiguity) instead of the raw quaternion;
     * image and pose features are projected to the same width ``d`` and fused as

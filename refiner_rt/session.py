@@ -9,7 +9,7 @@ Conventions (design.md section 2):
     * boxes are ``(x1, y1, x2, y2)`` in pixels, continuous coordinates (pixel ``i`` covers ``[i, i+1)``);
     * the refined rotation is ``q_refined = q_in * q_out`` (the paper's composition).
 
-Speed (issue 6; ``benchmarks/profile_refine.py`` measures it): for up to :data:`SMALL_BATCH` boxes, the
+Speed (``benchmarks/profile_refine.py`` measures it): for up to :data:`SMALL_BATCH` boxes, the
 per-box checks and the quaternion maths run on Python floats, since numpy's fixed cost per call (about a
 microsecond per ufunc on a 4-vector) would otherwise exceed the network's time for the small models. The
 operations and their order are those of :mod:`refiner_rt.quaternion`, so results are bit-identical to the
@@ -67,7 +67,7 @@ _INF = math.inf
 # (12 KB at 64 x 64, 147 KB at 224 x 224) and onnxruntime's activations most of the rest. Measured peak RSS
 # (batch 1 vs 256 vs 1024 crops, shallow and fusion, fp32 and INT8, 64 x 64): about 0.45 MB more per crop, so
 # +450 MB at the limit; a 224 x 224 network (VGG-M) needs roughly (224 / 64)^2 = 12x that per crop (not measured).
-# Split larger requests into several calls; large batches are not faster per box on a CPU (RESULTS.md: fusion INT8
+# Split larger requests into several calls; large batches are not faster per box on a CPU (benchmarks/studies/speed: fusion INT8
 # ran fewer refinements/s at batch 32 than at batch 8).
 MAX_BATCH = 1024
 # iterations: each one is a network pass (the paper does 1); bounded so that a wrong value cannot run for hours.
@@ -347,12 +347,11 @@ class RefinerSession:
     element types, shapes, a dynamic batch axis), and one trial run on a batch of two black crops, which checks
     that the batch axis really is free and that ``q_out`` comes back ``(2, 4)``.
 
-    Default session options, each chosen by measurement (``benchmarks/profile_refine.py`` and the notes in
-    issue 6): graph optimisation ``ORT_ENABLE_ALL`` (``EXTENDED``/``BASIC`` ran 1.2-1.5x slower at batch 1;
-    ALL adds layout transformations such as NCHWc convolutions), CPU memory arena and memory pattern on
-    (turning them off never helped), sequential execution with one inter-op thread (the graph is a chain),
-    intra-op spinning left at onnxruntime's default (on). IOBinding saved 0.5-3.5 us per call, within the
-    noise of the whole call, so the plain ``run`` stays.
+    Default session options, each chosen by measurement (``benchmarks/profile_refine.py``): graph optimisation
+    ``ORT_ENABLE_ALL`` (``EXTENDED``/``BASIC`` ran 1.2-1.5x slower at batch 1; ALL adds layout transformations such
+    as NCHWc convolutions), CPU memory arena and memory pattern on (turning them off never helped), sequential
+    execution with one inter-op thread (the graph is a chain), intra-op spinning left at onnxruntime's default (on).
+    IOBinding saved 0.5-3.5 us per call, within the noise of the whole call, so the plain ``run`` stays.
 
     Raises:
         FileNotFoundError: ``model`` is a path that does not exist.

@@ -175,7 +175,7 @@ def test_cli_export_help():
     assert result.exit_code == 0, result.output
     for text in ("CHECKPOINT", "--output", "--opset", "--lrn", "uint8", "wxyz", "1e-4"):
         assert text in result.output
-    assert "--int8" in result.output  # issue 6: INT8 export is implemented
+    assert "--int8" in result.output  # INT8 export is implemented
 
 
 def test_cli_export_default_shallow(tmp_path):

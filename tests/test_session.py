@@ -226,7 +226,7 @@ def test_importing_runtime_does_not_import_torch():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-# ---------------------------------------------------------------- lean refine() path (issue 6)
+# ---------------------------------------------------------------- lean refine() path
 import onnxruntime as ort  # noqa: E402
 from onnx import TensorProto, helper  # noqa: E402
 
