@@ -1,0 +1,109 @@
+"""The documentation: generated tables match their JSON, relative links and their anchors resolve, no machine
+paths or internal issue numbers, the README's robot-code example runs as written, and CI runs the README's
+commands."""
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from bench_scripts import load_benchmark
+
+from refiner_rt import pretrained as pt
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+DOCS = [README, ROOT / "benchmarks" / "RESULTS.md", ROOT / "benchmarks" / "DATA.md",
+        ROOT / "refiner_rt" / "samples" / "README.md", *sorted((ROOT / "benchmarks" / "studies").glob("**/README.md"))]
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation other than '-' and '_' dropped, spaces to '-'."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    text = re.sub(r"```.*?```", "", path.read_text(), flags=re.S)  # '#' lines in code blocks are not headings
+    return {slug(m.group(1)) for m in re.finditer(r"^#+ (.+)$", text, flags=re.M)}
+
+
+def test_generated_tables_match_their_json():
+    """The paper, Table 1 and speed tables are what their JSON gives. (The shipped-model tables change with every
+    model that lands; `python benchmarks/report.py` rewrites them.)"""
+    report = load_benchmark("report")
+    skip = ("shipped-models", "shipped-models-short")
+    for doc in report.DOCS:
+        text = doc.read_text()
+        assert report.render(text, skip=skip) == text, f"{doc}: run python benchmarks/report.py"
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_relative_links_and_anchors_resolve(doc):
+    for target in LINK.findall(doc.read_text()):
+        if re.match(r"[a-z]+:", target):
+            continue  # https:, mailto:
+        file, _, anchor = target.partition("#")
+        path = (doc.parent / file).resolve() if file else doc
+        assert path.exists(), f"{doc.relative_to(ROOT)}: link to missing {target}"
+        assert ROOT in path.parents or path == ROOT, f"{doc.relative_to(ROOT)}: link leaves the repository: {target}"
+        if anchor:
+            assert anchor in anchors(path), f"{doc.relative_to(ROOT)}: no heading for #{anchor} in {file or doc.name}"
+
+
+def test_no_machine_paths_or_internal_issue_numbers():
+    """Docs and code name paths inside the repository only, and no tracker numbers (JSON records are exempt)."""
+    files = subprocess.run(["git", "-C", str(ROOT), "ls-files", "*.py", "*.md", "*.toml", ".ci/*"],
+                           capture_output=True, text=True).stdout.split()
+    if not files:
+        pytest.skip("not a git checkout")
+    bad = re.compile(r"/work/|\.\./shared|/home/\w|\bissues? #?\d+\b", re.I)
+    hits = []
+    for name in files:
+        if name.startswith("benchmarks/results/") or name == "tests/test_docs.py":
+            continue
+        path = ROOT / name
+        if path.is_file():
+            hits += [f"{name}:{i}: {line.strip()}" for i, line in enumerate(path.read_text().splitlines(), 1)
+                     if bad.search(line)]
+    assert not hits, "\n".join(hits)
+
+
+def _readme_python_block() -> str:
+    text = README.read_text()
+    section = text[text.index("## In robot code"):]
+    return re.search(r"```python\n(.*?)```", section, flags=re.S).group(1)
+
+
+@pytest.mark.skipif("003_cracker_box" not in {m.object_id for m in pt.pretrained_models()},
+                    reason="the README's example uses the shipped cracker-box model, which does not ship here")
+def test_readme_robot_code_runs_as_written(tmp_path):
+    code = _readme_python_block()
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr
+    assert "q_refined" in done.stdout
+
+
+def test_readme_example_uses_a_shipped_model_with_K():
+    code = _readme_python_block()
+    assert 'RefinerSession.pretrained("003_cracker_box"' in code and "K=K" in code
+
+
+def test_ci_runs_the_readme_commands():
+    """.ci/run installs and tests with the README's second command, step by step."""
+    text = README.read_text()
+    block = re.search(r"```bash\n(.*?)```", text, flags=re.S).group(1)
+    full = [line for line in block.splitlines() if "pytest" in line][0]
+    steps = [shlex.split(s.strip()) for s in full.split("#")[0].split("&&")]
+    ci = [shlex.split(line) for line in (ROOT / ".ci" / "run").read_text().splitlines()
+          if line.strip() and not line.lstrip().startswith("#")]
+    for step in steps:
+        if step[:2] == ["python3", "-m"] and "venv" in step:
+            assert any(c[:3] == step[:3] for c in ci), step
+            continue
+        # The same command, CI adding only -q (quiet pip) after 'pip install'.
+        assert any([a for a in c if a != "-q" or "pytest" in c] == [a for a in step if a != "-q" or "pytest" in step]
+                   for c in ci), f"{shlex.join(step)} is not in .ci/run"
