@@ -286,6 +286,26 @@ def _deg(s: dict, key: str = "mean_deg") -> str:
     return "-" if not s.get("n") else f"{s[key]:.2f}"
 
 
+def portable_command(command: str) -> str:
+    """``command`` as the model card prints it: the build machine's folders written ``DATA`` (the ``--data``
+    folder) and ``RUN`` (the folder holding ``--save``), so the card names no path outside the repository; the JSON
+    keeps the command as it ran."""
+    args = shlex.split(command)
+    folders = {}
+    for flag, name in (("--data", "DATA"), ("--save", "RUN")):
+        if flag in args[:-1]:
+            value = Path(args[args.index(flag) + 1])
+            folders[str(value if name == "DATA" else value.parent)] = name
+    out = []
+    for a in args:
+        for folder, name in folders.items():
+            if a == folder or a.startswith(folder + "/"):
+                a = name + a[len(folder):]
+                break
+        out.append(a)
+    return shlex.join(out)
+
+
 def card_markdown(docs: list[dict], speed: dict) -> str:
     lines = [
         "# The shipped refiners",
@@ -325,7 +345,7 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
                   f"training {t['wall_s']:,.0f} s on one thread of {d['machine']['cpu']} "
                   f"({', '.join(d['machine']['isa_flags']) or 'no AVX flags read'}); "
                   f"{d['eval']['int8']['all']['n']} test crops from {d['eval']['test_scenes']} held-out scenes.",
-                  f"  ```bash\n  {d['train_command']}\n  ```"]
+                  f"  ```bash\n  {portable_command(d['train_command'])}\n  ```"]
     if docs:
         lines += ["", "Then, for each: `refiner-rt export CKPT -o OBJ.onnx` and the INT8 sibling (dynamic INT8), "
                   "evaluated through `RefinerSession.refine_crops` on the test crops (`benchmarks/pretrained.py`)."]

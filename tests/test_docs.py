@@ -47,6 +47,8 @@ def test_relative_links_and_anchors_resolve(doc):
             continue  # https:, mailto:
         file, _, anchor = target.partition("#")
         path = (doc.parent / file).resolve() if file else doc
+        if pt.WEIGHTS_DIR.resolve() in path.parents and not pt.pretrained_models():
+            continue  # the model card arrives with the first shipped model
         assert path.exists(), f"{doc.relative_to(ROOT)}: link to missing {target}"
         assert ROOT in path.parents or path == ROOT, f"{doc.relative_to(ROOT)}: link leaves the repository: {target}"
         if anchor:
@@ -107,3 +109,15 @@ def test_ci_runs_the_readme_commands():
         # The same command, CI adding only -q (quiet pip) after 'pip install'.
         assert any([a for a in c if a != "-q" or "pytest" in c] == [a for a in step if a != "-q" or "pytest" in step]
                    for c in ci), f"{shlex.join(step)} is not in .ci/run"
+
+
+def test_model_card_commands_name_no_machine_folders():
+    """The model card prints each model's training command with DATA and RUN for the build machine's folders."""
+    build = load_benchmark("pretrained")
+    cmd = ("python benchmarks/data_scaling.py --data /srv/d/ycb9_v1 --object 003_cracker_box --config "
+           "'{\"conv_channels\": [16, 32]}' --cache /srv/d/ycb9_v1/.crops --save /srv/r/v1/003_cracker_box "
+           "--json /srv/r/v1/003_cracker_box.train.json")
+    assert build.portable_command(cmd) == (
+        "python benchmarks/data_scaling.py --data DATA --object 003_cracker_box --config "
+        "'{\"conv_channels\": [16, 32]}' --cache DATA/.crops --save RUN/003_cracker_box "
+        "--json RUN/003_cracker_box.train.json")
