@@ -235,6 +235,7 @@ def demo_picture(frames: list[SampleFrame], refinements: list[Refinement], outli
         tiles.append(_tile(images[r.frame], frames[r.frame].K, obj, r, outlines.get(obj_id)))
     if not tiles:
         raise ValueError("nothing to draw: no refinements")
+    columns = min(columns, len(tiles))
     rows = -(-len(tiles) // columns)
     gap = np.full((tiles[0].shape[0], 6, 3), 24, np.uint8)
     blank = np.full_like(tiles[0], 24)

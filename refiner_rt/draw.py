@@ -12,6 +12,8 @@ contour of the result is drawn. It is a silhouette up to about half a point spac
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -93,7 +95,7 @@ def draw_axes(canvas: np.ndarray, origin_uv, R: np.ndarray, length_px: float, th
     return canvas
 
 
-def crop_view(image: np.ndarray, box_xyxy, size: int, context: float) -> tuple[np.ndarray, callable]:
+def crop_view(image: np.ndarray, box_xyxy, size: int, context: float) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
     """A ``size x size`` view of the square window around a box (side ``max(w, h) * context``, the crop rule's window)
     and the function mapping image pixel coordinates ``(N, 2)`` into it."""
     m = crop_matrix(box_xyxy, size, context)
