@@ -96,9 +96,9 @@ def _samples(out: Path, seed: int, threads: int) -> None:
     seen = sorted({o.object_id for f in frames for o in f.objects})
     sessions = {obj: RefinerSession.pretrained(obj, int8=True, threads=threads) for obj in seen if obj in shipped}
     refinements = demo.refine_samples(frames, sessions, seed=seed)
-    click.echo(f"{len(refinements)} object instances in {len(frames)} sample frames (rendered scenes no shipped model "
-               f"trained on); coarse rotations U(0, 30) deg around the truth (seed {seed}); INT8 models, "
-               f"{threads or 'all'} thread(s), with K.\n")
+    click.echo(f"{len(refinements)} object instances in {len(frames)} sample frames: rendered scenes no shipped model "
+               f"trained on.\nCoarse rotations U(0, 30) deg around the truth (seed {seed}); the shipped INT8 models, "
+               f"{threads or 'all'} thread{'' if threads == 1 else 's'}, with K.\n")
     head = ("object", "n", "input deg", "refined deg", "ms/refinement")
     rows = []
     for obj in sorted(sessions):
@@ -114,8 +114,8 @@ def _samples(out: Path, seed: int, threads: int) -> None:
         click.echo("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
     skipped = [obj for obj in seen if obj not in sessions]
     if skipped:
-        click.echo(f"\nNo shipped model for {', '.join(skipped)}: skipped.")
-    click.echo("\nErrors: mean geodesic angle to the ground truth; time: median of one refine() call (crop, network, "
+        click.echo(f"\nNo shipped model for these, skipped: {', '.join(skipped)}.")
+    click.echo("\nErrors: mean geodesic angle to the ground truth. Time: median of one refine() call (crop, network,\n"
                "composition) at batch 1.")
     _write(out, demo.demo_picture(frames, refinements, demo.load_outlines()))
     click.echo(f"Wrote {out}: per object, ground truth (white), coarse input (red), refined (green).")
