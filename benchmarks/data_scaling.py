@@ -165,8 +165,14 @@ def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]
         if not kinds:
             continue
         if n > len(train_all):
-            print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
-            continue
+            if n != sizes[-1]:
+                print(f"{mode}: only {len(train_all)} training crops, skipping size {n}", file=sys.stderr)
+                continue
+            # The largest size made the split, which already scaled down to what the object has: train on all of
+            # it (the row records the real number of crops) rather than lose the run.
+            print(f"{mode}: only {len(train_all)} training crops for size {n}; training on all of them",
+                  file=sys.stderr)
+            n = len(train_all)
         runs += [Run(np.sort(order[:n]), None, *kind) for kind in kinds]
     return runs
 
