@@ -21,7 +21,8 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_recipe", "check_masks",
-           "check_inplane_frame", "epoch_plan", "per_object_path", "recipe_path_for", "OBJECT_NAME_PATTERN"]
+           "check_inplane_frame", "epoch_plan", "per_object_path", "recipe_path_for", "OBJECT_NAME_PATTERN",
+           "add_recipe_argument", "recipe_from_arguments"]
 
 SECTIONS = ("data", "model", "optimisation", "augmentation", "run")
 
@@ -361,6 +362,12 @@ NAMED_RECIPES: dict[str, dict] = {
         "split_objects": ["paper"], "per_object": 0, "val_per_object": 400, "test_per_object": 900, "seed": 0,
         "samples": 450_000, "base_per_object": 5000,
     },
+    # The defaults of benchmarks/data_scaling.py (one object, a sample budget, no fine-tuning): the fusion network
+    # in the ray frame with a cosine schedule from 1e-3; the study's runs change the images and augmentations.
+    "data-scaling": {
+        "arch": "fusion", "rotation_frame": "ray", "lr": 1e-3, "lr_schedule": "cosine", "per_object": 0,
+        "val_per_object": 1500, "test_per_object": 3000, "samples": 150_000, "epoch_samples": 3000,
+    },
 }
 
 
@@ -392,3 +399,70 @@ def load_recipe(name_or_path: str | Path) -> TrainRecipe:
 def field_default(f) -> object:
     """A dataclass field's default value (calling its factory)."""
     return f.default_factory() if f.default is MISSING else f.default
+
+
+def _comma_names(text: str) -> list[str]:
+    import argparse
+
+    names = list(_expand(["paper"])) if text.strip() == "paper" else [v.strip() for v in text.split(",") if v.strip()]
+    if not names or not all(OBJECT_NAME_PATTERN.match(n) for n in names):
+        raise argparse.ArgumentTypeError(f"expected object names like 002_master_chef_can,003_cracker_box or 'paper'; "
+                                         f"got {text!r}")
+    return names
+
+
+def parse_json_object(text: str) -> dict:
+    import argparse
+
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"expected a JSON object like '{{\"fuse_width\": 1024}}'; {exc}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object like '{{\"fuse_width\": 1024}}'; got {text!r}")
+    return value
+
+
+# argparse types of the fields whose type the default value does not tell.
+_ARG_TYPES = {"objects": _comma_names, "split_objects": _comma_names, "arch_config": parse_json_object, "data": Path,
+              "init": Path, "base_ckpt": Path, "cache_root": Path, "extra_train": Path, "ft_lr": float,
+              "ft_epochs_mse": int, "ft_epochs_geodesic": int}
+
+
+def add_recipe_argument(parser, flag: str, field_name: str, base: TrainRecipe, *, dest: str | None = None,
+                        help: str | None = None, **overrides) -> None:
+    """Add ``flag`` for the recipe field ``field_name`` to an argparse parser (scripts that drive training runs).
+
+    The argument's default is ``base``'s value and its help the field's, so a script's training options keep one
+    definition; :func:`recipe_from_arguments` turns the parsed values back into a recipe.
+    """
+    f = next(f for f in fields(TrainRecipe) if f.name == field_name)
+    default = getattr(base, field_name)
+    kwargs: dict = {"dest": dest or field_name, "default": copy.deepcopy(default),
+                    "help": help or f.metadata["help"]}
+    if field_name in ("extra_train",):
+        kwargs.update(action="append", type=Path, default=None)
+    elif isinstance(default, bool):
+        kwargs["action"] = "store_true"
+    elif field_name in ("rotation_frame", "split_mode", "lr_schedule", "fmt"):
+        kwargs.update(type=str, choices={"rotation_frame": ("camera", "ray"), "split_mode": ("frames", "scenes"),
+                                         "lr_schedule": ("constant", "cosine"),
+                                         "fmt": ("auto", "bop", "ycbv")}[field_name])
+    else:
+        kwargs["type"] = _ARG_TYPES.get(field_name) or type(default)
+    kwargs.update(overrides)
+    parser.add_argument(flag, **kwargs)
+
+
+def recipe_from_arguments(args, fields_by_dest: dict[str, str], base: TrainRecipe, **more) -> TrainRecipe:
+    """``base`` with the parsed values of :func:`add_recipe_argument`'s arguments (``dest -> field``) and ``more``."""
+    values = {}
+    for dest, name in fields_by_dest.items():
+        value = getattr(args, dest)
+        if isinstance(value, Path):
+            value = str(value)
+        elif isinstance(value, list) and value and isinstance(value[0], Path):
+            value = [str(v) for v in value]
+        values[name] = value
+    values.update(more)
+    return replace(base, **{k: v for k, v in values.items() if not (v is None and k == "extra_train")}).validate()
