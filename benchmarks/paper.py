@@ -2,7 +2,7 @@
 
 Every experiment trains (or reuses) two models under the same protocol: ``paper`` (the paper's shallow refiner and
 recipe) and ``improved`` (this project's ``fusion`` refiner); their recipes are the ``RECIPES`` dict below.
-Training is ``refiner-rt train`` (:func:`models.train_cli.run_training`), evaluation ``refiner-rt eval``
+Training is ``refiner-rt train`` (a :class:`models.recipe.TrainRecipe` run by :func:`models.training.train`), evaluation ``refiner-rt eval``
 (:func:`models.eval_cli.run_eval`), so every number here can be re-made with those commands.
 
 Usage (from the repository root)::
@@ -103,7 +103,7 @@ class Experiment:
     Attributes:
         description: one line for tables and ``--list``.
         reference: the paper's numbers for it (``average_mean_deg`` ...), ``{}`` if the paper has none.
-        train: ``run_training`` options shared by both models (split, images per object, noise); None: eval only.
+        train: TrainRecipe fields shared by both models (split, images per object, noise); None: eval only.
         reuse: the experiment whose trained models an eval-only experiment evaluates.
         recipe: per-model recipe overrides, e.g. ``{"paper": {"arch": "vggm"}}``.
         reduced: VGG-M cost: train at ``VGGM_REDUCED`` unless ``--budget full``.
@@ -222,10 +222,10 @@ EXPERIMENTS: dict[str, Experiment] = {
 
 
 def _train_defaults(data: Path) -> dict:
-    """Every ``refiner-rt train`` option at its default, parsed by the command itself (callbacks included)."""
-    from models.train_cli import train_cmd
+    """Every training option (a :class:`models.recipe.TrainRecipe` field) at the named recipe ``paper``'s value."""
+    from models.recipe import load_recipe
 
-    return train_cmd.make_context("train", ["--data", str(data), "--out", "unused.pt"]).params
+    return {**load_recipe("paper").as_dict(), "data": str(data)}
 
 
 def _scale_epochs(opts: dict, args) -> dict:
@@ -249,7 +249,7 @@ def _reduced(exp: Experiment, args) -> bool:
 
 
 def train_options(exp: Experiment, model: str, args) -> dict:
-    """The ``run_training`` options of ``model`` in ``exp`` (without ``out``, ``data`` and resuming)."""
+    """The TrainRecipe fields of ``model`` in ``exp`` (without ``out``, ``data`` and resuming)."""
     data = dict(exp.train)
     recipe = {**RECIPES[model], **exp.recipe.get(model, {})}
     if _reduced(exp, args):
@@ -328,9 +328,23 @@ def _objects_in(data: Path) -> list[str]:
     return sorted({s.obj_id for s in load_samples(DataSpec(data=str(data)))})
 
 
+def train_recipe(opts: dict, args, defaults: dict):
+    """The :class:`models.recipe.TrainRecipe` of one checkpoint: ``opts`` over ``defaults``, with ``ft_continue`` as
+    a continuation stage when it lengthens the fine-tuning."""
+    from models.recipe import TrainRecipe
+
+    train = {k: (str(v) if isinstance(v, Path) else v) for k, v in opts.items() if k != "ft_continue"}
+    cont = opts.get("ft_continue") or {}
+    # A continuation no longer than the first schedule (e.g. under --max-epochs) adds nothing.
+    extends = opts["per_object"] and cont.get("ft_epochs_geodesic", 0) > train.get("ft_epochs_geodesic", 0)
+    common = {"data": str(args.data), "threads": args.threads, "cache_root": str(args.cache) if args.cache else None}
+    return TrainRecipe.from_dict({**defaults, **train, **common, "stages": [cont] if extends else [],
+                                  "name": "benchmarks/paper.py"})
+
+
 def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
     """Train one checkpoint (resuming an interrupted run) unless its done marker exists."""
-    from models.train_cli import run_training
+    from models.train_cli import run
 
     done = out.with_suffix(".done")
     if done.is_file() and not args.force:
@@ -339,15 +353,9 @@ def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
     state = Path(f"{out.with_suffix('')}.state")
     resume = not args.force and state.is_dir() and any(state.iterdir())
     print(f"    training {opts['arch']} -> {out}{' (resuming)' if resume else ''}", flush=True)
-    train = {k: v for k, v in opts.items() if k != "ft_continue"}
-    common = {"data": args.data, "out": out, "threads": args.threads, "cache_root": args.cache, "quiet": True}
-    run_training(**{**defaults, **train, **common, "resume": resume})
-    cont = opts.get("ft_continue") or {}
-    if opts["per_object"] and cont.get("ft_epochs_geodesic", 0) > train.get("ft_epochs_geodesic", 0):
-        # Objects whose continued fine-tuning already ran further are left as they are by the first call
-        # (their state is past its last epoch), so an interrupted continuation resumes where it stopped.
-        print(f"    continuing the fine-tuning with {cont}", flush=True)
-        run_training(**{**defaults, **train, **common, **cont, "resume": True})
+    # Objects whose continued fine-tuning already ran further are left as they are by the first pass (their state
+    # is past its last epoch), so an interrupted continuation resumes where it stopped.
+    run(train_recipe(opts, args, defaults), out, resume=resume, quiet=True)
     done.write_text(json.dumps({k: v for k, v in opts.items() if k != "objects"}, indent=2, default=str))
     if not args.keep_state:
         shutil.rmtree(state, ignore_errors=True)
