@@ -58,6 +58,8 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from models.paths import per_object_path  # noqa: E402
+
 # The two models of every table (the schedules used for the published results; see benchmarks/RESULTS.md).
 # per_object=0 in a recipe: no per-object fine-tuning; the experiment's fine-tune images then join the base
 # training set, so both models see the same images and the same split (the scenes split too). A positive
@@ -383,7 +385,7 @@ def train_models(exp_name: str, model: str, args) -> None:
         opts["base_ckpt"] = checkpoints(exp.base_from, model, args)[0]
     if exp.protocol == "fine_only":
         for obj in _objects_in(args.data):
-            _train_one({**opts, "objects": [obj]}, d / f"{opts['arch']}.{obj}.pt", args, defaults)
+            _train_one({**opts, "objects": [obj]}, per_object_path(d / f"{opts['arch']}.pt", obj), args, defaults)
     else:
         _train_one(opts, d / f"{opts['arch']}.pt", args, defaults)
 
@@ -432,7 +434,7 @@ def input_angle_errors(ckpt: Path, noise: str, args) -> dict:
     test, _ = checkpoint_test_set(net, info, data=args.data, cache_root=args.cache)
     predictor = {obj: torch_predictor(net) for obj in test.objects}
     for obj in YCBV_CLASSES:
-        sibling = ckpt.with_name(f"{ckpt.stem}.{obj}.pt")
+        sibling = per_object_path(ckpt, obj)
         if obj in predictor and sibling.is_file():
             predictor[obj] = torch_predictor(models.load_checkpoint(sibling)[0])
     errors = evaluate_errors(predictor, test, noise, rotation_frame=info.get("rotation_frame", "camera"))
@@ -462,9 +464,9 @@ def int8_models(ckpt: Path, out_dir: Path) -> tuple[Path, Path]:
     fp32, int8 = out_dir / f"{ckpt.stem}.onnx", int8_path_for(out_dir / f"{ckpt.stem}.onnx")
     jobs = [(ckpt, fp32, int8)]
     for obj in YCBV_CLASSES:
-        sibling = ckpt.with_name(f"{ckpt.stem}.{obj}.pt")
+        sibling = per_object_path(ckpt, obj)
         if sibling.is_file():
-            jobs.append((sibling, fp32.with_name(f"{fp32.stem}.{obj}.onnx"), int8.with_name(f"{int8.stem}.{obj}.onnx")))
+            jobs.append((sibling, per_object_path(fp32, obj), per_object_path(int8, obj)))
     for src, f, q in jobs:
         print(f"    {export_checkpoint(src, f).summary()}", flush=True)
         print(f"    {quantize_model(f, q).summary()}", flush=True)

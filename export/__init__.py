@@ -11,19 +11,16 @@ models (``quantize_model``; schemes, the agreement bound and why dynamic MatMul/
 
 from __future__ import annotations
 
-from export.onnx_export import (
-    DEFAULT_LRN_LOWERING,
-    DEFAULT_OPSET,
-    LRN_LOWERINGS,
-    MIN_OPSET,
-    ExportReport,
-    ParityError,
-    build_model_metadata,
-    export_checkpoint,
-    export_model,
-    to_onnx_proto,
-)
-from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, ParityResult, check_parity
+import importlib
+
+# Lazy, like ``models``: ``export.bench_models`` (the benchmark's model builder behind ``refiner-rt bench``) must
+# import without torch, so that the runtime-only install times ``--model`` files; the exporter loads on first use.
+_EXPORTS = {
+    **dict.fromkeys(["DEFAULT_LRN_LOWERING", "DEFAULT_OPSET", "LRN_LOWERINGS", "MIN_OPSET", "ExportReport",
+                     "ParityError", "build_model_metadata", "export_checkpoint", "export_model", "to_onnx_proto"],
+                    "export.onnx_export"),
+    **dict.fromkeys(["DEFAULT_TOL", "MIN_PARITY_INPUTS", "ParityResult", "check_parity"], "export.parity"),
+}
 
 __all__ = [
     "DEFAULT_LRN_LOWERING",
@@ -41,3 +38,9 @@ __all__ = [
     "export_model",
     "to_onnx_proto",
 ]
+
+
+def __getattr__(name):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'export' has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name]), name)

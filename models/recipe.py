@@ -21,13 +21,13 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_recipe", "check_masks",
-           "check_inplane_frame", "epoch_plan", "per_object_path", "recipe_path_for", "OBJECT_NAME_PATTERN",
+           "check_inplane_frame", "epoch_plan", "OBJECT_NAME_PATTERN",
            "add_recipe_argument", "recipe_from_arguments"]
 
 SECTIONS = ("data", "model", "optimisation", "augmentation", "run")
 
 # An object's name: a YCB id, a mesh folder or file name, or ``obj_NNNNNN`` of a BOP models/ folder.
-OBJECT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
+OBJECT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_+-]*$")
 
 
 class RecipeError(ValueError):
@@ -181,7 +181,7 @@ class TrainRecipe:
             value = getattr(self, name)
             need(value is None or (isinstance(value, list) and value and all(
                 isinstance(v, str) and OBJECT_NAME_PATTERN.match(v) for v in value)), name,
-                "a non-empty list of object names (letters, digits, _ . + -) or null")
+                "a non-empty list of object names (letters, digits, _ + -) or null")
         if self.objects and self.split_objects:
             missing = [o for o in self.objects if o not in _expand(self.split_objects)]
             if missing:
@@ -334,18 +334,6 @@ def epoch_plan(samples: int, n_train: int, epoch_samples: int, batch_size: int) 
     per_epoch = min(n_train, epoch_samples)
     epochs = max(2, math.ceil(samples / per_epoch))
     return 1, epochs - 1, math.ceil(per_epoch / batch_size)
-
-
-def per_object_path(ckpt: str | Path, obj: str, suffix: str | None = None) -> Path:
-    """The per-object sibling of a base file: ``runs/x.pt`` -> ``runs/x.<obj>.pt`` (``suffix`` replaces ``.pt``)."""
-    ckpt = Path(ckpt)
-    return ckpt.with_name(f"{ckpt.stem}.{obj}{ckpt.suffix if suffix is None else suffix}")
-
-
-def recipe_path_for(ckpt: str | Path) -> Path:
-    """Where the resolved recipe of a checkpoint is saved: ``<ckpt stem>.recipe.json`` beside it."""
-    ckpt = Path(ckpt)
-    return ckpt.with_name(f"{ckpt.stem}.recipe.json")
 
 
 # The shipped recipes: name -> the fields that differ from the paper's defaults.

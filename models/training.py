@@ -23,7 +23,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from models.recipe import RecipeError, TrainRecipe, check_masks, per_object_path, recipe_path_for
+from models.paths import per_object_path, recipe_path_for
+from models.recipe import RecipeError, TrainRecipe, check_masks
 
 __all__ = ["train", "resolve_device", "init_distributed", "write_logs", "load_base", "load_init"]
 

@@ -2,6 +2,7 @@
 
 import json
 
+import click
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -9,6 +10,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 import onnx_fixtures as fx
 from bench_scripts import load_benchmark
+from export import bench_models
 from refiner_rt import bench
 from refiner_rt.cli import main
 
@@ -191,7 +193,7 @@ def _disk_with_free(nbytes):
 
 
 def test_bench_says_when_the_disk_cannot_hold_the_model_files(monkeypatch):
-    monkeypatch.setattr(bench.shutil, "disk_usage", _disk_with_free(1 << 20))
+    monkeypatch.setattr(bench_models.shutil, "disk_usage", _disk_with_free(1 << 20))
     args = ["bench", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}", "--seconds", "0.05"]
     res = CliRunner().invoke(main, args)
     assert res.exit_code != 0 and isinstance(res.exception, SystemExit)
@@ -200,10 +202,22 @@ def test_bench_says_when_the_disk_cannot_hold_the_model_files(monkeypatch):
 
 
 def test_a_write_that_fails_on_a_full_disk_is_reported_as_such(tmp_path, monkeypatch):
-    with pytest.raises(bench.click.ClickException, match="not enough free disk space.*DecodeError: Wire format"):
-        with bench._disk_full_is_clear(tmp_path, 1 << 40, "vggm"):
+    with pytest.raises(click.ClickException, match="not enough free disk space.*DecodeError: Wire format"):
+        with bench_models._disk_full_is_clear(tmp_path, 1 << 40, "vggm"):
             raise type("DecodeError", (Exception,), {})("Wire format was corrupt")
     # With room left, the original error is not hidden.
     with pytest.raises(RuntimeError, match="unrelated"):
-        with bench._disk_full_is_clear(tmp_path, 1, "vggm"):
+        with bench_models._disk_full_is_clear(tmp_path, 1, "vggm"):
             raise RuntimeError("unrelated")
+
+
+def test_the_runtime_bench_imports_no_training_code():
+    # The random-weight models are built on the training side (export.bench_models) and handed to the command.
+    import re
+    from pathlib import Path
+
+    source = Path(bench.__file__).read_text()
+    assert not re.search(r"^\s*(import|from) (models|export)\b", source, re.M)
+    assert bench_models.bench_cmd.name == "bench"
+    res = CliRunner().invoke(bench.bench_cmd, ["--archs", "shallow", "--seconds", "0.05"])
+    assert res.exit_code != 0 and "pass exported models with --model" in res.output
