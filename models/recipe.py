@@ -173,6 +173,15 @@ class TrainRecipe:
         need(isinstance(self.bf16, bool) and isinstance(self.augment, bool), "bf16", "true or false")
         need(isinstance(self.arch_config, dict), "arch_config", "a JSON object of architecture config overrides")
         need(isinstance(self.symmetries, dict), "symmetries", "an object of object name -> symmetry")
+        from models.symmetry import validate_symmetry
+
+        for obj, sym in self.symmetries.items():
+            if not sym:
+                continue  # {}: the object trains with the plain loss even when its data records a symmetry
+            try:
+                validate_symmetry(sym, f"symmetries[{obj!r}]")
+            except ValueError as exc:
+                raise RecipeError("symmetries", str(exc)) from None
         need(isinstance(self.stages, list) and all(isinstance(s, dict) for s in self.stages), "stages",
              "a list of objects (field -> value)")
         need(self.device == "auto" or re.fullmatch(r"cpu|mps|cuda(:\d+)?", str(self.device)) is not None, "device",

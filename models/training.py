@@ -298,13 +298,13 @@ def _train_pass(recipe: TrainRecipe, out: Path, *, resume: bool, progress: bool,
 
 def _symmetries(recipe: TrainRecipe, spec) -> dict:
     """Object name -> symmetry (BOP models_info form) of the objects trained: the dataset's record, then the
-    recipe's ``symmetries`` over it."""
+    recipe's ``symmetries`` over it (``{}`` for an object trains it with the plain loss)."""
     from models.data.objects import dataset_objects
 
     recorded = dataset_objects(spec.data)
     out = {o: recorded[o]["symmetry"] for o in spec.object_ids if recorded.get(o, {}).get("symmetry")}
     out.update({o: s for o, s in recipe.symmetries.items() if o in spec.object_ids})
-    return out
+    return {o: s for o, s in out.items() if s}  # an empty entry in the recipe turns a recorded symmetry off
 
 
 def _object_records(spec) -> dict:
