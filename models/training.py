@@ -26,7 +26,8 @@ from pathlib import Path
 from models.paths import per_object_path, recipe_path_for
 from models.recipe import RecipeError, TrainRecipe, check_masks
 
-__all__ = ["train", "resolve_device", "init_distributed", "write_logs", "load_base", "load_init"]
+__all__ = ["train", "resolve_device", "init_distributed", "distributed_backend", "write_logs", "load_base", "load_init",
+           "split_like_base", "check_base_split"]
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +194,6 @@ def _train_pass(recipe: TrainRecipe, out: Path, *, resume: bool, progress: bool,
     import models
     from models.pipeline import cropset_for, load_splits
     from models.train import set_threads, train_refiner
-    from models.train_cli import check_base_split, split_like_base
 
     device = resolve_device(recipe.device)
     rank, world = init_distributed(device)
@@ -315,3 +315,74 @@ def _object_records(spec) -> dict:
     recorded = dataset_objects(spec.data)
     meshes = {o: recorded[o]["mesh"] for o in spec.object_ids if recorded.get(o, {}).get("mesh")}
     return {"meshes": meshes} if meshes else {}
+
+
+def _base_spec(spec, base_info: dict | None):
+    """The base network's recorded data spec when it was split from the same dataset as ``spec``, else None."""
+    from models.pipeline import DataSpec
+
+    recorded = (base_info or {}).get("data")
+    if not recorded or Path(recorded["data"]).resolve() != Path(spec.data).resolve():
+        return None  # no record (an older checkpoint) or other data: there is no split to share
+    return DataSpec.from_dict(recorded)
+
+
+def split_like_base(spec, base_info: dict | None):
+    """``spec``, drawing a ``scenes`` split over the base network's objects when fine-tuning a subset of them.
+
+    The scenes split gives each scene to test, validation or training by all the objects it holds, so a subset
+    split alone would test on scenes the base network was trained on.
+    """
+    base = _base_spec(spec, base_info)
+    if base is not None and spec.split_mode == "scenes":
+        spec.split_objects = base.split_objects_for(spec.object_ids)
+    return spec
+
+
+def check_base_split(spec, splits, base_info: dict | None, base_path) -> None:
+    """Refuse a fine-tuning split whose validation or test crops come from what the base network trained on.
+
+    Those crops would be seen by the network before it is validated and tested on them. In ``scenes`` mode the
+    unit is the scene (an unseen scene is the point of the split), otherwise the frame. Splits that are the
+    same by construction (same mode, seed, filters, validation and test sizes; in ``scenes`` mode also the same
+    objects and training total) are not recomputed.
+
+    Raises:
+        ValueError: some validation or test crops come from the base network's training scenes or frames.
+    """
+    from models.pipeline import load_splits
+
+    base = _base_spec(spec, base_info)
+    if base is None:
+        return
+    same = [getattr(spec, k) == getattr(base, k) for k in ("fmt", "split_mode", "split_seed", "min_visib",
+                                                             "min_box_size", "image_set")]
+    same.append(tuple(spec.sizes[2:]) == tuple(base.sizes[2:]))
+    if spec.split_mode == "scenes":
+        same.append(sum(spec.sizes[:2]) == sum(base.sizes[:2]))
+        same.append(set(spec.drawn_objects) == set(base.drawn_objects))
+    if all(same):
+        return
+    unit = "scene" if base.split_mode == "scenes" else "frame"
+
+    def key(s):
+        return s.scene_key if unit == "scene" else (s.scene_key, s.frame_id)
+
+    trained = {key(s) for s in load_splits(base).train_base}
+    held = splits.val + splits.test
+    leaked = sum(key(s) in trained for s in held)
+    if leaked:
+
+        def described(d):
+            text = (f"--split-mode {d.split_mode} --split-seed {d.split_seed} --min-visib {d.min_visib}, "
+                    f"validation/test {d.sizes[2]}/{d.sizes[3]} per object")
+            if d.split_mode == "scenes":
+                text += f", {sum(d.sizes[:2])} training images per object over {len(d.drawn_objects)} objects"
+            return text
+
+        raise ValueError(
+            f"{leaked} of the {len(held)} validation and test crops of this split come from {unit}s the base "
+            f"network {base_path} was trained on, so they would not be held out. The base was split with "
+            f"{described(base)}; this run asks for {described(spec)} (training images: --base-per-object + "
+            "--per-object). Use the base's values."
+        )

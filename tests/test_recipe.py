@@ -158,3 +158,32 @@ def test_the_heldout_recipe_reproduces_the_data_scaling_command(cubes, tmp_path)
     res = CliRunner().invoke(main, cli, catch_exceptions=False)
     assert res.exit_code == 0, res.output
     assert _same(_weights(study), _weights(tmp_path / "cli" / "m.pt"))
+
+
+def test_devices_and_the_ddp_backend_follow_the_tensors():
+    from models.recipe import RecipeError
+    from models.training import distributed_backend, resolve_device
+
+    assert resolve_device("cpu").type == "cpu"
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else resolve_device("auto").type)
+    assert distributed_backend(torch.device("cuda:0")) == "nccl"
+    assert distributed_backend(torch.device("cpu")) == "gloo" and distributed_backend("mps") == "gloo"
+    if not torch.cuda.is_available():
+        with pytest.raises(RecipeError, match="CUDA is not available"):
+            resolve_device("cuda")
+        res = CliRunner().invoke(main, ["train", "--data", ".", "--out", "x.pt", "--device", "cuda:0"])
+        assert res.exit_code == 2 and "--device" in res.output
+
+
+def test_training_on_a_device_saves_device_free_checkpoints(cubes, tmp_path):
+    # On a machine with CUDA this trains there; everywhere the checkpoint's tensors are on the CPU.
+    import models
+    from models.training import resolve_device
+
+    device = resolve_device("auto")
+    r = _tiny(cubes, per_object=0, device=str(device))
+    out = models.train(r, out=tmp_path / "d.pt", progress=False)
+    state = _weights(out["base"])
+    assert all(v.device.type == "cpu" for v in state.values())
+    model, _ = models.load_checkpoint(out["base"])
+    assert next(model.parameters()).device.type == "cpu"
