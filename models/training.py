@@ -125,7 +125,8 @@ def load_base(recipe: TrainRecipe):
     try:
         model, info = models.load_checkpoint(path)
     except (OSError, ValueError, KeyError) as exc:
-        raise RecipeError("base_ckpt", f"{path}: {exc}") from None
+        message = str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}"
+        raise RecipeError("base_ckpt", message) from None
     stage = info.get("stage")
     if stage != "base":
         raise RecipeError("base_ckpt", f"{path} is a {stage!r} checkpoint; expected a base network (stage 'base', the "
@@ -141,7 +142,8 @@ def load_init(recipe: TrainRecipe):
     try:
         model, info = models.load_checkpoint(recipe.init)
     except (OSError, ValueError, KeyError) as exc:
-        raise RecipeError("init", f"{recipe.init}: {exc}") from None
+        message = str(exc) if str(exc).startswith(str(recipe.init)) else f"{recipe.init}: {exc}"
+        raise RecipeError("init", message) from None
     _check_same_network(recipe, model, info, recipe.init, "init", "--init")
     return model.train()
 

@@ -46,10 +46,17 @@ def test_named_recipes_are_valid_and_paper_is_the_defaults():
     assert (held.arch, held.arch_config, held.rotation_frame, held.lr, held.lr_schedule) == (
         "fusion", {"conv_channels": [16, 32, 64, 128, 128]}, "ray", 1e-3, "cosine")
     assert (held.augment, held.background, held.split_mode, held.val_per_object, held.test_per_object) == (
-        True, 0.5, "scenes", 400, 900)
+        True, 0.5, "scenes", 300, 700)
     assert len(held.merged(data="x").data_spec().drawn_objects) == 9
     for name in NAMED_RECIPES:
         load_recipe(name)
+    # the same values as the build script that trains the shipped models
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.pretrained import RECIPE
+
+    assert (held.val_per_object, held.test_per_object, held.lr, held.background, held.seed) == (
+        RECIPE["val"], RECIPE["test"], RECIPE["lr"], RECIPE["background"], RECIPE["seed"])
+    assert held.arch_config == RECIPE["config"] and held.rotation_frame == RECIPE["rotation_frame"]
 
 
 def test_recipe_files_round_trip_and_toml_reads(tmp_path):
