@@ -56,6 +56,8 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=600)
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--train-crops", type=int, default=400)
+    p.add_argument("--val", type=int, default=50)
+    p.add_argument("--test", type=int, default=100)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
@@ -75,7 +77,7 @@ def main(argv=None) -> int:
     render_dataset(data, args.frames, args.work / "models", cfg, seed=0, progress=False)
     base = TrainRecipe.from_dict(dict(
         data=str(data), objects=[NAME], split_mode="scenes", arch="fusion", arch_config=NET, rotation_frame="ray",
-        base_per_object=args.train_crops, per_object=0, val_per_object=50, test_per_object=100, epochs_mse=1,
+        base_per_object=args.train_crops, per_object=0, val_per_object=args.val, test_per_object=args.test, epochs_mse=1,
         epochs_geodesic=args.epochs - 1, lr=1e-3, lr_schedule="cosine", batch_size=32, augment=True,
         threads=args.threads, cache_root=str(args.work / "cache"), device="cpu", name="symmetric_loss study"))
     rows = {}
