@@ -45,7 +45,7 @@ def jittered_views(crops: np.ndarray, views: int) -> list[np.ndarray]:
     import torch
     import torch.nn.functional as F
 
-    from refiner_rt.session import view_offsets
+    from refiner_rt.geometry import view_offsets
 
     x = torch.from_numpy(np.array(crops)).permute(0, 3, 1, 2).float()
     out = [np.asarray(crops)]

@@ -55,6 +55,46 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.study_cli import provenance, write_json  # noqa: E402
+from models.recipe import RecipeError, add_recipe_argument, load_recipe, recipe_from_arguments  # noqa: E402
+
+# The study's training options: flag -> (argparse dest, TrainRecipe field, help when the study's meaning needs its
+# own words, else None: the field's). Their defaults are the named recipe "data-scaling"; each run's recipe is that
+# recipe with the run's images and augmentations (see ``run``).
+RECIPE_ARGUMENTS = {
+    "--data": ("data", "data", "rendered or real dataset (BOP or YCB-Video layout)"),
+    "--samples": ("samples", "samples", "training samples drawn by every run"),
+    "--epoch-samples": ("epoch_samples", "epoch_samples", "samples per epoch at most (validation after each)"),
+    "--val": ("val", "val_per_object", "validation crops"),
+    "--test": ("test", "test_per_object", "test crops"),
+    "--arch": ("arch", "arch", None),
+    "--config": ("config", "arch_config", "JSON object of architecture config overrides, e.g. '{\"fuse_width\": 1024}'"),
+    "--lr": ("lr", "lr", "peak learning rate of the cosine schedule"),
+    "--rotation-frame": ("rotation_frame", "rotation_frame", None),
+    "--seed": ("seed", "seed", None),
+    "--bf16": ("bf16", "bf16", None),
+    "--ema": ("ema", "ema", None),
+    "--inplane": ("inplane", "inplane", None),
+    "--weight-decay": ("weight_decay", "weight_decay", None),
+    "--split-seed": ("split_seed", "split_seed", None),
+    "--split-objects": ("split_objects", "split_objects",
+                        "draw the split over these objects (comma-separated, or 'paper' for the paper's nine; they "
+                        "must include --object) and train and test --object on its part of it: the scenes split of "
+                        "`refiner-rt train` on those objects, for a comparison on the same test scenes (default: "
+                        "the split of --object alone)"),
+    "--extra-train": ("extra_train", "extra_train", None),
+    "--init": ("init", "init", "start each run from this checkpoint's weights (the same --arch, --config, "
+                               "--rotation-frame and split of --data) instead of a new network"),
+    "--cache": ("cache", "cache_root", "crop cache folder (default: DATA/.crops)"),
+    "--threads": ("threads", "threads", None),
+}
+
+
+def study_recipe(args, mode: str, base_per_object: int):
+    """The recipe of the study's runs in one split mode (before each run's augmentations): the parsed options over
+    the named recipe "data-scaling", one object, ``base_per_object`` training images per object."""
+    fields_by_dest = {dest: name for dest, name, _ in RECIPE_ARGUMENTS.values()}
+    return recipe_from_arguments(args, fields_by_dest, args.recipe, objects=[args.object], split_mode=mode,
+                                 base_per_object=base_per_object, per_object=0, name="data-scaling")
 
 
 def _parse_sizes(text: str, flag: str = "--sizes") -> list[int]:
@@ -67,16 +107,6 @@ def _parse_sizes(text: str, flag: str = "--sizes") -> list[int]:
     return sizes
 
 
-def _parse_config(text: str) -> dict:
-    try:
-        config = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise argparse.ArgumentTypeError(f"expected a JSON object like '{{\"fuse_width\": 1024}}'; {exc}") from None
-    if not isinstance(config, dict):
-        raise argparse.ArgumentTypeError(f"expected a JSON object like '{{\"fuse_width\": 1024}}'; got {text!r}")
-    return config
-
-
 def _parse_probabilities(text: str) -> list[float]:
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
@@ -85,18 +115,6 @@ def _parse_probabilities(text: str) -> list[float]:
     if not values or not all(0 < v <= 1 for v in values):
         raise argparse.ArgumentTypeError(f"expected probabilities in (0, 1], comma-separated; got {text!r}")
     return values
-
-
-def _parse_objects(text: str) -> list[str]:
-    from models.data import PAPER_OBJECTS
-    from models.data.objects import YCBV_CLASSES
-
-    ids = list(PAPER_OBJECTS) if text.strip() == "paper" else [v.strip() for v in text.split(",") if v.strip()]
-    unknown = [i for i in ids if i not in YCBV_CLASSES]
-    if not ids or unknown:
-        raise argparse.ArgumentTypeError(f"expected YCB ids like 002_master_chef_can,003_cracker_box or 'paper'; "
-                                         f"unknown: {unknown or text!r}")
-    return ids
 
 
 def _augment_label(row: dict) -> str:
@@ -212,17 +230,14 @@ def run(args) -> dict:
 
     import models
     from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import DataSpec, cropset_for, load_splits
-    from models.train import TrainConfig, set_threads, train_refiner
+    from models.pipeline import cropset_for, load_splits
+    from models.recipe import check_masks
+    from models.train import set_threads, train_refiner
 
-    if args.inplane and args.rotation_frame != "ray":
-        raise SystemExit(f"--inplane {args.inplane:g} needs --rotation-frame ray (a crop turned about its centre shows "
-                         f"the object turned about the viewing ray); got --rotation-frame {args.rotation_frame}")
-    try:  # the training options' ranges, checked by TrainConfig before any crops are cut
-        TrainConfig(ema=args.ema, inplane=args.inplane, weight_decay=args.weight_decay,
-                    rotation_frame=args.rotation_frame, bf16=args.bf16)
-    except ValueError as exc:
-        raise SystemExit(f"--ema {args.ema:g} --inplane {args.inplane:g} --weight-decay {args.weight_decay:g}: {exc}") from None
+    try:  # the training options' ranges and rules, checked by the recipe before any crops are cut
+        study_recipe(args, args.modes.split(",")[0], _parse_sizes(args.sizes)[-1])
+    except RecipeError as exc:
+        raise SystemExit(str(exc)) from None
     threads = set_threads(args.threads)
     sizes = _parse_sizes(args.sizes)
     augment_sizes = args.augment_sizes or [sizes[-1]]
@@ -234,9 +249,8 @@ def run(args) -> dict:
     rows = []
     t_all = time.perf_counter()
     for mode in args.modes.split(","):
-        spec = DataSpec(data=str(args.data), objects=[args.object], split_mode=mode, split_seed=args.split_seed,
-                        sizes=(sizes[-1], 0, args.val, args.test), split_objects=args.split_objects,
-                        extra_train=[str(d) for d in args.extra_train] if args.extra_train else None)
+        recipe = study_recipe(args, mode, sizes[-1])
+        spec = recipe.data_spec()
         try:
             splits = load_splits(spec)
         except ValueError as exc:
@@ -244,22 +258,19 @@ def run(args) -> dict:
         parts = {p: cropset_for(splits, p, spec, size, context, cache_root=args.cache, progress=not args.quiet)
                  for p in ("train_base", "val", "test")}
         train_all, val, test = parts["train_base"], parts["val"], parts["test"]
-        if (args.background or args.occlude) and train_all.masks is None:
-            flag = "--background" if args.background else "--occlude"
-            raise SystemExit(f"{flag} needs instance masks, but {args.data} has none "
-                             "(BOP mask_visib/; `refiner-rt render` writes them)")
+        try:
+            check_masks(max(args.background, default=0.0), max(args.occlude, default=0.0),
+                        train_all.masks is not None, str(args.data))
+        except RecipeError as exc:
+            raise SystemExit(str(exc)) from None
         scenes = {p: len(set(parts[p].scene_ids.tolist())) for p in parts}
         for r in _runs(args, mode, train_all, sizes, augment_sizes):
             n = len(r.index)
             train = train_all.subset(r.index)
-            per_epoch = min(n, args.epoch_samples)
-            epochs = max(2, math.ceil(args.samples / per_epoch))
-            cfg = TrainConfig(epochs_mse=1, epochs_geodesic=epochs - 1, lr=args.lr, lr_schedule="cosine",
-                              rotation_frame=args.rotation_frame, augment=r.augment, background=r.background,
-                              occlude=r.occlude, relight=r.relight, seed=args.seed, bf16=args.bf16,
-                              ema=args.ema, inplane=args.inplane, weight_decay=args.weight_decay,
-                              decoupled_weight_decay=True,
-                              max_steps_per_epoch=math.ceil(per_epoch / TrainConfig.batch_size))
+            run_recipe = recipe.merged(augment=r.augment, background=r.background, occlude=r.occlude,
+                                       relight=r.relight)
+            cfg = run_recipe.stage_config("base", n)
+            epochs = cfg.epochs
             torch.manual_seed(args.seed)
             model = (_initial_model(args, spec, probe.config) if args.init
                      else models.build_refiner(args.arch, **args.config))
@@ -465,7 +476,9 @@ def plot_comparison(docs: list[dict], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, help="rendered or real dataset (BOP or YCB-Video layout)")
+    base = load_recipe("data-scaling")
+    for flag, (dest, name, help_text) in RECIPE_ARGUMENTS.items():
+        add_recipe_argument(p, flag, name, base, dest=dest, help=help_text)
     p.add_argument("--table", type=Path, nargs="+", metavar="JSON",
                    help="print the Markdown table of a written --json and exit; with several files (one object "
                         "each), one table of all of them with the mean over the objects; files of several "
@@ -475,15 +488,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--object", default="003_cracker_box", help="YCB id of the object to study")
     p.add_argument("--sizes", default="1000,3000,10000", help="training crops per run, comma-separated")
     p.add_argument("--modes", default="frames,scenes", help="split protocols, comma-separated")
-    p.add_argument("--samples", type=int, default=150_000, help="training samples drawn by every run")
-    p.add_argument("--epoch-samples", type=int, default=3000, help="samples per epoch at most (validation after each)")
-    p.add_argument("--val", type=int, default=1500, help="validation crops")
-    p.add_argument("--test", type=int, default=3000, help="test crops")
-    p.add_argument("--arch", default="fusion")
-    p.add_argument("--config", type=_parse_config, default={},
-                   help="JSON object of architecture config overrides, e.g. '{\"fuse_width\": 1024}'")
-    p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of the cosine schedule")
-    p.add_argument("--rotation-frame", default="ray", choices=("camera", "ray"))
     p.add_argument("--augment", action="store_true",
                    help="add a run with colour and box jitter at the largest size (or at each --augment-sizes)")
     p.add_argument("--background", type=_parse_probabilities, default=[], metavar="P[,P...]",
@@ -509,32 +513,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-jitter", action="store_true",
                    help="skip the run with --augment's jitter alone (keep the jitter in the --background/--occlude "
                         "runs)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--bf16", action="store_true",
-                   help="train in mixed precision (bfloat16 forward under torch.autocast; weights, loss and tests float32)")
-    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
-                   help="keep an exponential moving average of the weights (e.g. 0.999) and validate, select and test "
-                        "it (TrainConfig.ema); 0 = off")
-    p.add_argument("--inplane", type=float, default=0.0, metavar="DEG",
-                   help="turn every training crop about its centre by up to DEG degrees, the coarse pose with it "
-                        "(TrainConfig.inplane; needs --rotation-frame ray); 0 = off")
-    p.add_argument("--weight-decay", type=float, default=0.0, metavar="WD",
-                   help="AdamW weight decay (decoupled: the weights shrink by lr * WD per step); 0 = off")
-    p.add_argument("--split-seed", type=int, default=0)
-    p.add_argument("--split-objects", type=_parse_objects, metavar="IDS",
-                   help="draw the split over these YCB ids (comma-separated, or 'paper' for the paper's nine; they "
-                        "must include --object) and train and test --object on its part of it: the scenes split of "
-                        "`refiner-rt train` on those objects, for a comparison on the same test scenes (default: "
-                        "the split of --object alone)")
-    p.add_argument("--extra-train", type=Path, action="append", metavar="DIR",
-                   help="another dataset folder whose crops all join the training part (repeatable); the split and "
-                        "the test crops stay those of --data. Its scene ids must be new: render it with `refiner-rt "
-                        "render --first-scene N` and --data's seed")
-    p.add_argument("--init", type=Path, metavar="CKPT",
-                   help="start each run from this checkpoint's weights (the same --arch, --config, --rotation-frame "
-                        "and split of --data) instead of a new network")
-    p.add_argument("--cache", type=Path, help="crop cache folder (default: DATA/.crops)")
-    p.add_argument("--threads", type=int, default=0)
     p.add_argument("--iterations", type=int, default=1, metavar="N",
                    help="also measure the test error after 2..N refinement passes (default: one pass only)")
     p.add_argument("--save", type=Path, metavar="DIR",
@@ -543,6 +521,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
+    args.recipe = base
     if args.plot and not args.table:
         p.error("--plot draws the results of --table JSON ...: give the files to compare with --table")
     if args.table:

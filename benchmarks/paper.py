@@ -2,7 +2,7 @@
 
 Every experiment trains (or reuses) two models under the same protocol: ``paper`` (the paper's shallow refiner and
 recipe) and ``improved`` (this project's ``fusion`` refiner); their recipes are the ``RECIPES`` dict below.
-Training is ``refiner-rt train`` (:func:`models.train_cli.run_training`), evaluation ``refiner-rt eval``
+Training is ``refiner-rt train`` (a :class:`models.recipe.TrainRecipe` run by :func:`models.training.train`), evaluation ``refiner-rt eval``
 (:func:`models.eval_cli.run_eval`), so every number here can be re-made with those commands.
 
 Usage (from the repository root)::
@@ -59,6 +59,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.study_cli import write_json  # noqa: E402  (schema version and git commit in every result JSON)
+from models.paths import per_object_path  # noqa: E402
 
 # The two models of every table (the schedules used for the published results; see benchmarks/studies/paper_protocol/README.md).
 # per_object=0 in a recipe: no per-object fine-tuning; the experiment's fine-tune images then join the base
@@ -105,7 +106,7 @@ class Experiment:
     Attributes:
         description: one line for tables and ``--list``.
         reference: the paper's numbers for it (``average_mean_deg`` ...), ``{}`` if the paper has none.
-        train: ``run_training`` options shared by both models (split, images per object, noise); None: eval only.
+        train: TrainRecipe fields shared by both models (split, images per object, noise); None: eval only.
         reuse: the experiment whose trained models an eval-only experiment evaluates.
         recipe: per-model recipe overrides, e.g. ``{"paper": {"arch": "vggm"}}``.
         reduced: VGG-M cost: train at ``VGGM_REDUCED`` unless ``--budget full``.
@@ -224,10 +225,10 @@ EXPERIMENTS: dict[str, Experiment] = {
 
 
 def _train_defaults(data: Path) -> dict:
-    """Every ``refiner-rt train`` option at its default, parsed by the command itself (callbacks included)."""
-    from models.train_cli import train_cmd
+    """Every training option (a :class:`models.recipe.TrainRecipe` field) at the named recipe ``paper``'s value."""
+    from models.recipe import load_recipe
 
-    return train_cmd.make_context("train", ["--data", str(data), "--out", "unused.pt"]).params
+    return {**load_recipe("paper").as_dict(), "data": str(data)}
 
 
 def _scale_epochs(opts: dict, args) -> dict:
@@ -251,7 +252,7 @@ def _reduced(exp: Experiment, args) -> bool:
 
 
 def train_options(exp: Experiment, model: str, args) -> dict:
-    """The ``run_training`` options of ``model`` in ``exp`` (without ``out``, ``data`` and resuming)."""
+    """The TrainRecipe fields of ``model`` in ``exp`` (without ``out``, ``data`` and resuming)."""
     data = dict(exp.train)
     recipe = {**RECIPES[model], **exp.recipe.get(model, {})}
     if _reduced(exp, args):
@@ -330,9 +331,23 @@ def _objects_in(data: Path) -> list[str]:
     return sorted({s.obj_id for s in load_samples(DataSpec(data=str(data)))})
 
 
+def train_recipe(opts: dict, args, defaults: dict):
+    """The :class:`models.recipe.TrainRecipe` of one checkpoint: ``opts`` over ``defaults``, with ``ft_continue`` as
+    a continuation stage when it lengthens the fine-tuning."""
+    from models.recipe import TrainRecipe
+
+    train = {k: (str(v) if isinstance(v, Path) else v) for k, v in opts.items() if k != "ft_continue"}
+    cont = opts.get("ft_continue") or {}
+    # A continuation no longer than the first schedule (e.g. under --max-epochs) adds nothing.
+    extends = opts["per_object"] and cont.get("ft_epochs_geodesic", 0) > train.get("ft_epochs_geodesic", 0)
+    common = {"data": str(args.data), "threads": args.threads, "cache_root": str(args.cache) if args.cache else None}
+    return TrainRecipe.from_dict({**defaults, **train, **common, "stages": [cont] if extends else [],
+                                  "name": "benchmarks/paper.py"})
+
+
 def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
     """Train one checkpoint (resuming an interrupted run) unless its done marker exists."""
-    from models.train_cli import run_training
+    from models.train_cli import run
 
     done = out.with_suffix(".done")
     if done.is_file() and not args.force:
@@ -341,15 +356,9 @@ def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
     state = Path(f"{out.with_suffix('')}.state")
     resume = not args.force and state.is_dir() and any(state.iterdir())
     print(f"    training {opts['arch']} -> {out}{' (resuming)' if resume else ''}", flush=True)
-    train = {k: v for k, v in opts.items() if k != "ft_continue"}
-    common = {"data": args.data, "out": out, "threads": args.threads, "cache_root": args.cache, "quiet": True}
-    run_training(**{**defaults, **train, **common, "resume": resume})
-    cont = opts.get("ft_continue") or {}
-    if opts["per_object"] and cont.get("ft_epochs_geodesic", 0) > train.get("ft_epochs_geodesic", 0):
-        # Objects whose continued fine-tuning already ran further are left as they are by the first call
-        # (their state is past its last epoch), so an interrupted continuation resumes where it stopped.
-        print(f"    continuing the fine-tuning with {cont}", flush=True)
-        run_training(**{**defaults, **train, **common, **cont, "resume": True})
+    # Objects whose continued fine-tuning already ran further are left as they are by the first pass (their state
+    # is past its last epoch), so an interrupted continuation resumes where it stopped.
+    run(train_recipe(opts, args, defaults), out, resume=resume, quiet=True)
     done.write_text(json.dumps({k: v for k, v in opts.items() if k != "objects"}, indent=2, default=str))
     if not args.keep_state:
         shutil.rmtree(state, ignore_errors=True)
@@ -377,7 +386,7 @@ def train_models(exp_name: str, model: str, args) -> None:
         opts["base_ckpt"] = checkpoints(exp.base_from, model, args)[0]
     if exp.protocol == "fine_only":
         for obj in _objects_in(args.data):
-            _train_one({**opts, "objects": [obj]}, d / f"{opts['arch']}.{obj}.pt", args, defaults)
+            _train_one({**opts, "objects": [obj]}, per_object_path(d / f"{opts['arch']}.pt", obj), args, defaults)
     else:
         _train_one(opts, d / f"{opts['arch']}.pt", args, defaults)
 
@@ -426,7 +435,7 @@ def input_angle_errors(ckpt: Path, noise: str, args) -> dict:
     test, _ = checkpoint_test_set(net, info, data=args.data, cache_root=args.cache)
     predictor = {obj: torch_predictor(net) for obj in test.objects}
     for obj in YCBV_CLASSES:
-        sibling = ckpt.with_name(f"{ckpt.stem}.{obj}.pt")
+        sibling = per_object_path(ckpt, obj)
         if obj in predictor and sibling.is_file():
             predictor[obj] = torch_predictor(models.load_checkpoint(sibling)[0])
     errors = evaluate_errors(predictor, test, noise, rotation_frame=info.get("rotation_frame", "camera"))
@@ -456,9 +465,9 @@ def int8_models(ckpt: Path, out_dir: Path) -> tuple[Path, Path]:
     fp32, int8 = out_dir / f"{ckpt.stem}.onnx", int8_path_for(out_dir / f"{ckpt.stem}.onnx")
     jobs = [(ckpt, fp32, int8)]
     for obj in YCBV_CLASSES:
-        sibling = ckpt.with_name(f"{ckpt.stem}.{obj}.pt")
+        sibling = per_object_path(ckpt, obj)
         if sibling.is_file():
-            jobs.append((sibling, fp32.with_name(f"{fp32.stem}.{obj}.onnx"), int8.with_name(f"{int8.stem}.{obj}.onnx")))
+            jobs.append((sibling, per_object_path(fp32, obj), per_object_path(int8, obj)))
     for src, f, q in jobs:
         print(f"    {export_checkpoint(src, f).summary()}", flush=True)
         print(f"    {quantize_model(f, q).summary()}", flush=True)

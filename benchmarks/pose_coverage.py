@@ -35,7 +35,7 @@ if str(REPO) not in sys.path:
 
 from benchmarks.study_cli import write_json  # noqa: E402
 from refiner_rt import quaternion as rq  # noqa: E402
-from refiner_rt.session import ray_quaternions  # noqa: E402
+from refiner_rt.geometry import ray_quaternions  # noqa: E402
 
 THRESHOLDS_DEG = (2.0, 5.0, 10.0)
 

@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from benchmarks.data_scaling import _parse_config  # noqa: E402
+from models.recipe import parse_json_object as _parse_config  # noqa: E402
 from benchmarks.study_cli import provenance, write_json  # noqa: E402
 
 FIVE_BLOCKS = {"conv_channels": [16, 32, 64, 128, 128]}

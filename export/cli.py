@@ -26,6 +26,7 @@ from export.defaults import (
     MIN_OPSET,
     SCHEMES,
 )
+from models.paths import per_object_path, per_object_siblings
 
 __all__ = ["export_cmd"]
 
@@ -131,16 +132,8 @@ def export_cmd(
     int8_output = int8_path_for(output)
     jobs = [(checkpoint, output, int8_output)]
     if per_object:
-        from models.data.objects import YCBV_CLASSES
-
-        for obj in YCBV_CLASSES:
-            sibling = checkpoint.with_name(f"{checkpoint.stem}.{obj}{checkpoint.suffix}")
-            if sibling.is_file():
-                jobs.append((
-                    sibling,
-                    output.with_name(f"{output.stem}.{obj}{output.suffix}"),
-                    int8_output.with_name(f"{int8_output.stem}.{obj}{int8_output.suffix}"),
-                ))
+        for obj, sibling in per_object_siblings(checkpoint).items():
+            jobs.append((sibling, per_object_path(output, obj), per_object_path(int8_output, obj)))
     for ckpt, out, out_int8 in jobs:
         try:
             _export_one(ckpt, out, opset, lrn)

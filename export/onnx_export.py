@@ -249,8 +249,9 @@ def build_model_metadata(
 
     Args:
         model: the refiner: ``arch``, ``input_size``, ``channel_order`` and ``config["crop_context"]`` (default 1.2).
-        info: checkpoint info: ``objects`` (list of YCB ids, default ``[]``), ``train_noise`` (default
-            ``"unknown"``), ``rotation_frame`` (``"camera"`` or ``"ray"``, default ``"camera"``).
+        info: checkpoint info: ``objects`` (list of object names, default ``[]``), ``train_noise`` (default
+            ``"unknown"``), ``rotation_frame`` (``"camera"`` or ``"ray"``, default ``"camera"``); ``meshes`` and
+            ``symmetries`` (recorded for rendered and symmetric objects) are copied as JSON when present.
         checkpoint_sha256: SHA-256 of the checkpoint file, ``"none"`` when exporting an in-memory model.
         metadata_extra: additional ``{key: value}`` pairs (non-strings stored as JSON); must not redefine a
             contract key.
@@ -272,6 +273,11 @@ def build_model_metadata(
     reserved = sorted(set(extra) & (set(REQUIRED_KEYS) | {"quantization"}))
     if reserved:
         raise ValueError(f"metadata_extra must not redefine contract key(s) {reserved}; they are set by the exporter")
+    # What a user's own object needs beside its name: the meshes it was rendered from (file, sha256, unit), and its
+    # symmetry, so users know the refined rotation is one of the equivalent poses.
+    for key in ("meshes", "symmetries"):
+        if info.get(key):
+            extra.setdefault(key, info[key])
     return build_metadata(
         arch=model.arch,
         input_size=model.input_size,

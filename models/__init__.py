@@ -5,6 +5,8 @@
     q_out = model(images_uint8_bgr_nhwc, q_in_wxyz)      # (N, 4) unit quaternions, q_refined = q_in * q_out
     models.save_checkpoint(model, "ckpt.pt", objects=["003_cracker_box"], train_noise="uniform:0:30")
     model, info = models.load_checkpoint("ckpt.pt")
+    recipe = models.load_recipe("paper").merged(data="renders/", objects=["003_cracker_box"])
+    models.train(recipe, out="runs/paper.pt")         # a whole run: base, per-object fine-tuning, continuations
 
 Conventions (design.md section 2): quaternions ``wxyz``, rotations object-to-camera, images ``(N, S, S, 3)``
 uint8 NHWC in the model's channel order (BGR by default).
@@ -27,6 +29,10 @@ _EXPORTS = {
     "list_refiners": "models.registry",
     "register_refiner": "models.registry",
     "losses": None,
+    "train": None,  # the module, callable: models.train(recipe, out=...) runs models.training.train
+    "TrainRecipe": "models.recipe",
+    "load_recipe": "models.recipe",
+    "NAMED_RECIPES": "models.recipe",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -5,7 +5,7 @@ cache (``models.data.cache``), and held as a ``(N, S, S, 3)`` uint8 array or mem
 
 Conventions: crops are BGR ``uint8`` NHWC; rotations are ``wxyz`` quaternions mapping object to
 camera coordinates; ``q_ray`` rotates the camera frame onto the viewing-ray frame of each crop
-(``refiner_rt.session.ray_quaternions``), so the rotation a crop shows is ``q_ray^-1 * q_gt``.
+(``refiner_rt.geometry.ray_quaternions``), so the rotation a crop shows is ``q_ray^-1 * q_gt``.
 """
 
 from __future__ import annotations

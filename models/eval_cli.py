@@ -23,18 +23,13 @@ log = logging.getLogger(__name__)
 
 
 def _siblings(model: Path) -> dict[str, Path]:
-    """Per-object fine-tuned models next to ``model``: ``{ycb_id: path}``."""
-    from models.data.objects import YCBV_CLASSES
+    """Per-object fine-tuned models next to ``model``: ``{object: path}``."""
+    from models.paths import per_object_siblings
 
-    out = {}
-    for obj in YCBV_CLASSES:
-        p = model.with_name(f"{model.stem}.{obj}{model.suffix}")
-        if p.is_file():
-            out[obj] = p
-    return out
+    return per_object_siblings(model)
 
 
-def _load(model: Path, threads: int):
+def _load(model: Path, threads: int, device: str = "auto"):
     """``(predictor, contract dict)`` for a checkpoint or an ONNX file."""
     from models.evaluate import onnx_predictor, torch_predictor
 
@@ -49,12 +44,16 @@ def _load(model: Path, threads: int):
             "data": json.loads(meta["data"]) if "data" in meta else None,
             "runtime": "onnxruntime",
             "arch": meta["arch"],
+            "symmetries": json.loads(meta["symmetries"]) if meta.get("symmetries") else {},
         }
     import models
     from models.train import set_threads
 
+    from models.training import resolve_device
+
     set_threads(threads)
     net, info = models.load_checkpoint(model)
+    net.to(resolve_device(device))
     return torch_predictor(net), {
         "input_size": net.input_size,
         "crop_context": net.config["crop_context"],
@@ -63,6 +62,7 @@ def _load(model: Path, threads: int):
         "data": info.get("data"),
         "runtime": "torch",
         "arch": net.arch,
+        "symmetries": info.get("symmetries") or {},
     }
 
 
@@ -83,13 +83,14 @@ def run_eval(
     cache_root: Path | None = None,
     workers: int = 1,
     progress: bool = True,
+    device: str = "auto",
 ) -> dict:
     """Evaluate ``model`` on the test split of ``data``; returns the JSON-ready result (see the module doc)."""
     from models.evaluate import evaluate_errors
     from models.pipeline import DataSpec, cropset_for, load_splits
 
     t0 = time.perf_counter()
-    predictor, c = _load(model, threads)
+    predictor, c = _load(model, threads, device)
     per_object = {} if base_only else _siblings(model)
     recorded = c["data"] or {}
     spec = DataSpec.from_dict({**recorded, "data": str(data)}) if recorded else DataSpec(data=str(data))
@@ -108,17 +109,19 @@ def run_eval(
     test = cropset_for(splits, "test", spec, int(c["input_size"]), float(c["crop_context"]),
                        cache_root=cache_root, workers=workers, progress=progress)
     if per_object:
-        preds = {obj: _load(p, threads)[0] for obj, p in per_object.items() if obj in test.objects}
+        preds = {obj: _load(p, threads, device)[0] for obj, p in per_object.items() if obj in test.objects}
         for obj in test.objects:
             preds.setdefault(obj, predictor)
         predictor_used = preds
     else:
         predictor_used = predictor
     errors = evaluate_errors(predictor_used, test, noise, seed=seed, resample=resample, iterations=iterations,
-                             rotation_frame=c["rotation_frame"])
+                             rotation_frame=c["rotation_frame"], symmetries=c["symmetries"])
     summary = errors.summary()
     return {
         **summary,
+        **({"symmetries": c["symmetries"], "error": "symmetry-aware (closest symmetric pose)"}
+           if c["symmetries"] else {}),
         "model": str(model),
         "arch": c["arch"],
         "runtime": c["runtime"],
@@ -147,13 +150,16 @@ def run_eval(
 @click.option("--split-mode", type=click.Choice(["frames", "scenes"]), help="Override the split recorded in the checkpoint.")
 @click.option("--split-seed", type=int, help="Override the split seed.")
 @click.option("--test-per-object", type=click.IntRange(1), help="Override the test size per object.")
-@click.option("--objects", help="Comma-separated YCB ids (default: the model's).")
+@click.option("--objects", help="Comma-separated object names: YCB ids or your own objects' (default: the model's).")
+@click.option("--device", default="auto", show_default=True,
+              help="Where a .pt checkpoint runs: auto (cuda, then mps, then cpu), cpu, cuda, cuda:N or mps. ONNX models "
+                   "run on onnxruntime's CPU provider.")
 @click.option("--threads", default=0, show_default=True, type=click.IntRange(0), help="Threads (0: all cores).")
 @click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed, base_only, split_mode, split_seed,
-             test_per_object, objects, threads, cache_root, workers, quiet):
+             test_per_object, objects, device, threads, cache_root, workers, quiet):
     """Evaluate MODEL (.pt checkpoint or .onnx) on the test split: per-object mean/std geodesic error (degrees)."""
     from models.metrics import format_markdown, format_table
     from models.noise import NoiseSpec
@@ -167,7 +173,8 @@ def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed,
     try:
         result = run_eval(model, data, noise=noise, resample=resample, iterations=iterations, seed=seed, base_only=base_only,
                           split_mode=split_mode, split_seed=split_seed, test_per_object=test_per_object, objects=obj_list,
-                          threads=threads, cache_root=cache_root, workers=workers, progress=not quiet)
+                          threads=threads, cache_root=cache_root, workers=workers, progress=not quiet,
+                          device=device)
     except (ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     result["command"] = "refiner-rt " + " ".join(shlex.quote(a) for a in sys.argv[1:])

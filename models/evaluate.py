@@ -17,6 +17,7 @@ import numpy as np
 from models.cropset import CropSet
 from models.metrics import summarize_errors
 from models.noise import NoiseSpec, perturb
+from models.symmetry import symmetric_error
 from refiner_rt import quaternion as rq
 
 __all__ = ["EvalErrors", "evaluate_errors", "onnx_predictor", "torch_predictor"]
@@ -50,6 +51,7 @@ def evaluate_errors(
     resample: int = 1,
     iterations: int = 1,
     rotation_frame: str = "camera",
+    symmetries: dict | None = None,
 ) -> EvalErrors:
     """Refine ``data`` from coarse poses ``q_gt * q_noise`` and measure the geodesic error.
 
@@ -62,6 +64,8 @@ def evaluate_errors(
         resample: evaluate each crop with this many different coarse poses (the paper's over-fitting test).
         iterations: refinement iterations (``q <- q * q_out`` repeated).
         rotation_frame: the models' frame, ``"camera"`` or ``"ray"``. Errors are frame-independent.
+        symmetries: object name -> symmetry (BOP ``models_info.json`` form); those objects' errors are to the
+            closest symmetric pose (:func:`models.symmetry.symmetric_error`), the inputs' too.
 
     Returns:
         :class:`EvalErrors` with ``N * resample`` samples.
@@ -90,8 +94,8 @@ def evaluate_errors(
                 q_out = predictor(data.crops, q)
             q = rq.normalize(rq.multiply(q, q_out))
         ids.append(data.obj_ids)
-        e_in.append(rq.geodesic_angle(q_in, q_gt))
-        e_out.append(rq.geodesic_angle(q, q_gt))
+        e_in.append(symmetric_error(q_in, q_gt, data.obj_ids, symmetries))
+        e_out.append(symmetric_error(q, q_gt, data.obj_ids, symmetries))
         qs_in.append(q_in)
         qs_out.append(q)
     return EvalErrors(np.concatenate(ids), np.concatenate(e_in), np.concatenate(e_out),

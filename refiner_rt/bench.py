@@ -32,7 +32,6 @@ import importlib.util
 import json
 import logging
 import platform
-import shutil
 import statistics
 import sys
 import tempfile
@@ -452,100 +451,6 @@ def parse_variant(text: str) -> tuple[str, str, dict]:
     return (label.strip() or f"{arch}:{json.dumps(config, separators=(',', ':'))}"), arch, config
 
 
-def _disk_needed(model, int8: bool) -> int:
-    """Bytes of disk that exporting ``model`` (and quantising it) writes at most, with a margin.
-
-    The fp32 file holds every weight in 4 bytes; quantisation writes a pre-processed fp32 copy and the INT8 file.
-    """
-    weights = 4 * sum(p.numel() for p in model.parameters())
-    return int(weights * (3 if int8 else 1) * 1.2) + (16 << 20)
-
-
-def _space_message(workdir: Path, need: int, label: str) -> str:
-    free = shutil.disk_usage(workdir).free
-    return (f"not enough free disk space in {workdir} for {label}'s ONNX files: they need about {need / 1e6:.0f} MB, "
-            f"{free / 1e6:.0f} MB is free; free some space or point TMPDIR at a folder with more")
-
-
-def _check_free_space(workdir: Path, need: int, label: str) -> None:
-    """Raise a ClickException naming the folder and the sizes when ``need`` bytes do not fit in ``workdir``."""
-    if shutil.disk_usage(workdir).free < need:
-        raise click.ClickException(_space_message(workdir, need, label))
-
-
-class _disk_full_is_clear:
-    """Context manager: an error while writing model files becomes a clear disk-space error when the disk is full.
-
-    A file cut short by a full disk otherwise surfaces later as an unrelated parse error
-    (onnx's ``DecodeError: Wire format was corrupt``) from the step that reads it back.
-    """
-
-    def __init__(self, workdir: Path, need: int, label: str):
-        self.workdir, self.need, self.label = workdir, need, label
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc is None or isinstance(exc, click.ClickException):
-            return False
-        if shutil.disk_usage(self.workdir).free < self.need:
-            message = _space_message(self.workdir, self.need, self.label)
-            raise click.ClickException(f"{message} ({exc_type.__name__}: {exc})") from exc
-        return False
-
-
-def build_default_models(specs, workdir: Path, int8: bool = True, echo=None) -> list[BenchModel]:
-    """Random-weight networks exported to ONNX in ``workdir`` (and their INT8 versions).
-
-    Args:
-        specs: ``(label, arch, config overrides)`` triples.
-        workdir: where the ONNX files go.
-        int8: also quantise each with :data:`export.quantize.DEFAULT_SCHEME`.
-        echo: optional callable for progress lines.
-
-    Returns:
-        The fp32 models (with their PyTorch networks), then the INT8 ones.
-    """
-    try:
-        import torch
-
-        import models
-        from export import export_model
-        from export.quantize import DEFAULT_SCHEME, quantize_model
-    except ModuleNotFoundError as exc:
-        raise click.ClickException(
-            f"building the default benchmark models needs {exc.name!r} (pip install 'refiner-rt[train]'); "
-            "or pass exported models with --model"
-        ) from exc
-    fp32, quantized = [], []
-    for i, (label, arch, config) in enumerate(specs):
-        torch.manual_seed(0)
-        try:
-            model = models.build_refiner(arch, **config).eval()
-        except ValueError as exc:
-            raise click.BadParameter(str(exc), param_hint="'--archs' / '--variant'") from exc
-        path = workdir / f"model{i}.onnx"
-        need = _disk_needed(model, int8)
-        _check_free_space(workdir, need, label)
-        t0 = time.perf_counter()
-        with _disk_full_is_clear(workdir, need, label):
-            export_model(model, path, checkpoint_sha256="random-weights")
-        line = f"  {label}: exported in {time.perf_counter() - t0:.1f} s"
-        fp32.append(BenchModel(label, path, model, config))
-        if int8:
-            # Random weights: the agreement says nothing about a trained model's accuracy, so it is shown, not enforced.
-            with _disk_full_is_clear(workdir, need, label):
-                report = quantize_model(path, workdir / f"model{i}.int8.onnx", scheme=DEFAULT_SCHEME, enforce=False)
-            a = report.agreement
-            line += (f", {DEFAULT_SCHEME} in {report.seconds:.1f} s (vs fp32 with random weights: mean {a.mean_deg:.3f}, "
-                     f"max {a.max_deg:.3f} deg)")
-            quantized.append(BenchModel(label, report.path, None, config))
-        if echo:
-            echo(line)
-    return fp32 + quantized
-
-
 # ---------------------------------------------------------------------------------------------------- benchmark
 def run_bench(
     bench_models: list[BenchModel],
@@ -703,76 +608,88 @@ def _roofline_inputs(bench_models, thread_counts, echo):
     return limits, costs
 
 
-@click.command("bench")
-@click.option("--cpu", "cpu", is_flag=True, default=True, help="Benchmark on the CPU (the only device supported; default).")
-@click.option(
-    "--model",
-    "model_paths",
-    multiple=True,
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="An exported refiner-rt ONNX model (repeatable). Default: random-weight models of --archs and --variant.",
-)
-@click.option("--archs", default=",".join(DEFAULT_ARCHS), show_default=True, help="Registered architectures to build when no --model is given.")
-@click.option(
-    "--variant",
-    "variants",
-    multiple=True,
-    callback=_variants,
-    help="Also build an architecture with config overrides, [LABEL=]ARCH:JSON (repeatable), e.g. "
-    "'shallow-h512=shallow:{\"head_widths\": [512, 256, 64]}' for a first head layer of 512 instead of 1024.",
-)
-@click.option("--int8/--no-int8", "with_int8", default=True, show_default=True, help="Also time each built model quantised to INT8 (export.quantize's default scheme).")
-@click.option("--batch", "batches", default="1,8,32", show_default=True, callback=_int_list, help="Boxes per refine() call.")
-@click.option("--threads", "threads", default="1,all", show_default=True, callback=_threads_list, help="Thread counts ('all' = every core).")
-@click.option("--seconds", default=1.0, show_default=True, type=click.FloatRange(0.05, 600), help="Measuring time per model and cell (at least 3 calls).")
-@click.option("--torch/--no-torch", "with_torch", default=True, show_default=True, help=f"Also time PyTorch eager for the built models at batches up to {TORCH_MAX_BATCH} (when torch is installed).")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows (with the run's context) as a JSON list.")
-def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, seconds, with_torch, json_path):
-    """CPU speed of the full refine() path (crop + inference + compose): models side by side, fp32 and INT8,
-    each row next to its roofline bound."""
-    if 0 in batches:
-        raise click.BadParameter("batch sizes must be >= 1", param_hint="--batch")
-    if max(batches) > MAX_BATCH:
-        raise click.BadParameter(f"batch sizes must be at most {MAX_BATCH} (RefinerSession's MAX_BATCH crops per call)",
-                                 param_hint="--batch")
-    machine = machine_info()
+def bench_command(build_models=None) -> click.Command:
+    """The ``refiner-rt bench`` command. ``build_models(specs, workdir, int8=, echo=)`` builds the random-weight
+    models timed when no ``--model`` is given; the training side supplies it (``export.bench_models``), since the
+    runtime never imports training code. Without it only ``--model`` files can be timed."""
 
-    def echo(msg):
-        click.echo(msg, err=True)
+    @click.command("bench")
+    @click.option("--cpu", "cpu", is_flag=True, default=True, help="Benchmark on the CPU (the only device supported; default).")
+    @click.option(
+        "--model",
+        "model_paths",
+        multiple=True,
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        help="An exported refiner-rt ONNX model (repeatable). Default: random-weight models of --archs and --variant.",
+    )
+    @click.option("--archs", default=",".join(DEFAULT_ARCHS), show_default=True, help="Registered architectures to build when no --model is given.")
+    @click.option(
+        "--variant",
+        "variants",
+        multiple=True,
+        callback=_variants,
+        help="Also build an architecture with config overrides, [LABEL=]ARCH:JSON (repeatable), e.g. "
+        "'shallow-h512=shallow:{\"head_widths\": [512, 256, 64]}' for a first head layer of 512 instead of 1024.",
+    )
+    @click.option("--int8/--no-int8", "with_int8", default=True, show_default=True, help="Also time each built model quantised to INT8 (export.quantize's default scheme).")
+    @click.option("--batch", "batches", default="1,8,32", show_default=True, callback=_int_list, help="Boxes per refine() call.")
+    @click.option("--threads", "threads", default="1,all", show_default=True, callback=_threads_list, help="Thread counts ('all' = every core).")
+    @click.option("--seconds", default=1.0, show_default=True, type=click.FloatRange(0.05, 600), help="Measuring time per model and cell (at least 3 calls).")
+    @click.option("--torch/--no-torch", "with_torch", default=True, show_default=True, help=f"Also time PyTorch eager for the built models at batches up to {TORCH_MAX_BATCH} (when torch is installed).")
+    @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows (with the run's context) as a JSON list.")
+    def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, seconds, with_torch, json_path):
+        """CPU speed of the full refine() path (crop + inference + compose): models side by side, fp32 and INT8,
+        each row next to its roofline bound."""
+        if 0 in batches:
+            raise click.BadParameter("batch sizes must be >= 1", param_hint="--batch")
+        if max(batches) > MAX_BATCH:
+            raise click.BadParameter(f"batch sizes must be at most {MAX_BATCH} (RefinerSession's MAX_BATCH crops per call)",
+                                     param_hint="--batch")
+        machine = machine_info()
 
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="refiner-rt-bench-") as tmp:
-        bench_models, weights = _prepare_models(model_paths, archs, variants, with_int8, Path(tmp), echo)
-        thread_counts = sorted({t or available_cores() for t in threads})
-        limits, costs = _roofline_inputs(bench_models, thread_counts, echo)
-        echo(
-            f"Timing refine() on a {FRAME_W}x{FRAME_H} frame: {len(bench_models)} model(s), batches {batches}, "
-            f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell"
-        )
-        with click.progressbar(length=len(threads) * len(batches), label="cells", file=sys.stderr) as bar:
-            try:
-                rows = run_bench(
-                    bench_models, batches, threads, seconds, with_torch, limits, costs, progress=lambda: bar.update(1)
-                )
-            except ModelError as exc:  # a model that loaded but fails when it runs
-                raise click.ClickException(str(exc)) from None
-    wall = time.perf_counter() - t0
-    click.echo("")
-    click.echo(f"Machine: {machine['cpu']}, {machine['cores']} cores, onnxruntime {machine['onnxruntime']}, torch {machine['torch']}")
-    click.echo(f"Weights: {weights}. Full refine() path, medians over interleaved rounds; wall {wall:.0f} s.")
-    if limits is not None:
-        click.echo(_describe_limits(limits, thread_counts))
-        click.echo("\n".join(describe_roofline(m.label, costs[i], limits, thread_counts) for i, m in enumerate(bench_models)))
-    click.echo(format_table(rows))
-    if json_path:
-        # A list of rows (what machines read); each row carries the run's context.
-        context = {"machine": machine, "weights": weights, "frame": [FRAME_W, FRAME_H], "seconds_per_cell": seconds,
-                   "wall_s": wall, **(limits.as_dict() if limits is not None else {})}
-        json_path.write_text(json.dumps([{**asdict(r), **context} for r in rows], indent=2))
-        click.echo(f"Wrote {json_path}")
+        def echo(msg):
+            click.echo(msg, err=True)
+
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory(prefix="refiner-rt-bench-") as tmp:
+            bench_models, weights = _prepare_models(model_paths, archs, variants, with_int8, Path(tmp), echo,
+                                                     build_models)
+            thread_counts = sorted({t or available_cores() for t in threads})
+            limits, costs = _roofline_inputs(bench_models, thread_counts, echo)
+            echo(
+                f"Timing refine() on a {FRAME_W}x{FRAME_H} frame: {len(bench_models)} model(s), batches {batches}, "
+                f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell"
+            )
+            with click.progressbar(length=len(threads) * len(batches), label="cells", file=sys.stderr) as bar:
+                try:
+                    rows = run_bench(
+                        bench_models, batches, threads, seconds, with_torch, limits, costs, progress=lambda: bar.update(1)
+                    )
+                except ModelError as exc:  # a model that loaded but fails when it runs
+                    raise click.ClickException(str(exc)) from None
+        wall = time.perf_counter() - t0
+        click.echo("")
+        click.echo(f"Machine: {machine['cpu']}, {machine['cores']} cores, onnxruntime {machine['onnxruntime']}, torch {machine['torch']}")
+        click.echo(f"Weights: {weights}. Full refine() path, medians over interleaved rounds; wall {wall:.0f} s.")
+        if limits is not None:
+            click.echo(_describe_limits(limits, thread_counts))
+            click.echo("\n".join(describe_roofline(m.label, costs[i], limits, thread_counts) for i, m in enumerate(bench_models)))
+        click.echo(format_table(rows))
+        if json_path:
+            # A list of rows (what machines read); each row carries the run's context.
+            context = {"machine": machine, "weights": weights, "frame": [FRAME_W, FRAME_H], "seconds_per_cell": seconds,
+                       "wall_s": wall, **(limits.as_dict() if limits is not None else {})}
+            json_path.write_text(json.dumps([{**asdict(r), **context} for r in rows], indent=2))
+            click.echo(f"Wrote {json_path}")
+
+    return bench_cmd
 
 
-def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir: Path, echo) -> tuple[list, str]:
+bench_cmd = bench_command()  # the runtime's own: times --model files
+
+
+def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir: Path, echo,
+                    build_models=None) -> tuple[list, str]:
     """The models to time and a note on their weights: the given files, or random-weight builds (and INT8)."""
     if model_paths:
         from refiner_rt.session import RefinerSession
@@ -795,8 +712,11 @@ def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir:
     labels = [label for label, _, _ in specs]
     if len(set(labels)) != len(labels):
         raise click.BadParameter(f"model labels must be unique; got {labels}", param_hint="'--variant'")
+    if build_models is None:
+        raise click.ClickException("building random-weight models needs the training package (pip install "
+                                   "'refiner-rt[train]'); or pass exported models with --model")
     echo(f"Building random-weight models {labels} (speed does not depend on weight values)...")
-    return build_default_models(specs, workdir, int8=with_int8, echo=echo), "random weights (speed does not depend on weight values)"
+    return build_models(specs, workdir, int8=with_int8, echo=echo), "random weights (speed does not depend on weight values)"
 
 
 def _shipped_models(echo) -> tuple[list, str]:

@@ -8,12 +8,12 @@ import torch
 import models
 from models.cropset import CropSet
 from models.train import TrainConfig, train_refiner
-from models.train_cli import _init_distributed
+from models.training import init_distributed
 from refiner_rt import quaternion as rq
 
 
 def main(out_dir: str) -> None:
-    rank, world = _init_distributed()
+    rank, world = init_distributed("cpu")
     torch.set_num_threads(1)
     torch.manual_seed(0)  # same initial weights on every rank (DDP also broadcasts rank 0's)
     rng = np.random.default_rng(0)

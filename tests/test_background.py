@@ -309,9 +309,9 @@ def test_data_scaling_adds_background_and_occluder_runs(cubes, tmp_path, capsys)
     with pytest.raises(SystemExit):
         study.main(["--data", str(cubes / "masked"), *common, "--augment", "--skip-jitter"])
     assert "--skip-jitter needs --augment with --background or --occlude" in capsys.readouterr().err
-    with pytest.raises(SystemExit, match="--background needs instance masks"):
+    with pytest.raises(SystemExit, match="--background 1 needs instance masks"):
         study.main(["--data", str(cubes / "plain"), *common, "--background", "1"])
-    with pytest.raises(SystemExit, match="--occlude needs instance masks"):
+    with pytest.raises(SystemExit, match="--occlude 1 needs instance masks"):
         study.main(["--data", str(cubes / "plain"), *common, "--occlude", "1"])
 
 

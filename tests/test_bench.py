@@ -2,6 +2,7 @@
 
 import json
 
+import click
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -9,8 +10,8 @@ from onnx import TensorProto, helper, numpy_helper
 
 import onnx_fixtures as fx
 from bench_scripts import load_benchmark
+from export import bench_models
 from test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
-
 from refiner_rt import bench
 from refiner_rt import pretrained as pt
 from refiner_rt.cli import main
@@ -196,7 +197,7 @@ def _disk_with_free(nbytes):
 
 
 def test_bench_says_when_the_disk_cannot_hold_the_model_files(monkeypatch):
-    monkeypatch.setattr(bench.shutil, "disk_usage", _disk_with_free(1 << 20))
+    monkeypatch.setattr(bench_models.shutil, "disk_usage", _disk_with_free(1 << 20))
     args = ["bench", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}", "--seconds", "0.05"]
     res = CliRunner().invoke(main, args)
     assert res.exit_code != 0 and isinstance(res.exception, SystemExit)
@@ -205,12 +206,12 @@ def test_bench_says_when_the_disk_cannot_hold_the_model_files(monkeypatch):
 
 
 def test_a_write_that_fails_on_a_full_disk_is_reported_as_such(tmp_path, monkeypatch):
-    with pytest.raises(bench.click.ClickException, match="not enough free disk space.*DecodeError: Wire format"):
-        with bench._disk_full_is_clear(tmp_path, 1 << 40, "vggm"):
+    with pytest.raises(click.ClickException, match="not enough free disk space.*DecodeError: Wire format"):
+        with bench_models._disk_full_is_clear(tmp_path, 1 << 40, "vggm"):
             raise type("DecodeError", (Exception,), {})("Wire format was corrupt")
     # With room left, the original error is not hidden.
     with pytest.raises(RuntimeError, match="unrelated"):
-        with bench._disk_full_is_clear(tmp_path, 1, "vggm"):
+        with bench_models._disk_full_is_clear(tmp_path, 1, "vggm"):
             raise RuntimeError("unrelated")
 
 
@@ -234,6 +235,16 @@ def test_bench_without_torch_or_shipped_models_is_one_line(tmp_path, monkeypatch
     res = CliRunner().invoke(main, ["bench", "--seconds", "0.05"])
     assert res.exit_code == 1 and "Traceback" not in res.output
     assert "needs torch" in res.output and "pass exported models with --model" in res.output
+def test_the_runtime_bench_imports_no_training_code():
+    # The random-weight models are built on the training side (export.bench_models) and handed to the command.
+    import re
+    from pathlib import Path
+
+    source = Path(bench.__file__).read_text()
+    assert not re.search(r"^\s*(import|from) (models|export)\b", source, re.M)
+    assert bench_models.bench_cmd.name == "bench"
+    res = CliRunner().invoke(bench.bench_cmd, ["--archs", "shallow", "--seconds", "0.05"])
+    assert res.exit_code != 0 and "pass exported models with --model" in res.output
 
 
 def test_machine_info_records_the_cpu_vector_flags():

@@ -112,3 +112,15 @@ def test_extra_train_refuses_scene_ids_it_has_seen(tmp_path):
         load_splits(DataSpec(data=str(first), extra_train=[str(tmp_path / "copy")], **kw))
     with pytest.raises(ValueError, match="extra_train must be a list of dataset folders"):
         load_splits(DataSpec(data=str(first), extra_train=str(more), **kw))
+
+
+def test_the_pipeline_does_not_import_the_onnx_session():
+    # The ray frame lives in the torch-free refiner_rt.geometry, which training and the session both import.
+    import subprocess
+    import sys
+
+    code = "import sys, models.pipeline; assert 'refiner_rt.session' not in sys.modules, 'session imported'"
+    subprocess.run([sys.executable, "-c", code], check=True)
+    from refiner_rt import geometry, session
+
+    assert session.ray_quaternions is geometry.ray_quaternions and session.view_boxes is geometry.view_boxes

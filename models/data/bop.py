@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.data.objects import BOP_YCBV_OBJ_IDS, validate_object_ids
+from models.data.objects import obj_id_map_for, validate_object_ids
 from models.data.sample import (
     Sample,
     check_box,
@@ -215,8 +215,8 @@ def load_bop(
             shorter than this, in pixels.
         rotation_method: re-orthonormalisation of ``cam_R_m2c``: ``"premerlani"`` (the paper's)
             or ``"svd"``.
-        obj_id_map: BOP ``obj_id`` -> YCB id string; default the YCB-V numbering
-            (:data:`models.data.objects.BOP_YCBV_OBJ_IDS`).
+        obj_id_map: BOP ``obj_id`` -> object name; default the split folder's ``objects.json`` record (a render of
+            your own objects) over the YCB-V numbering (:func:`models.data.objects.obj_id_map_for`).
 
     Returns:
         Samples in (scene, im_id, instance) order: ``R`` object to camera (float64,
@@ -233,7 +233,7 @@ def load_bop(
     if box not in BOX_FIELDS:
         raise ValueError(f"box must be one of {sorted(BOX_FIELDS)} (bbox_visib / bbox_obj); got {box!r}")
     check_filter_values(min_visib, min_box_size)
-    id_map = dict(BOP_YCBV_OBJ_IDS if obj_id_map is None else obj_id_map)
+    id_map = dict(obj_id_map_for(split_dir) if obj_id_map is None else obj_id_map)
     wanted = validate_object_ids(objects, known=id_map.values())
     split_dir = Path(split_dir).absolute()
 

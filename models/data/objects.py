@@ -124,3 +124,30 @@ def validate_object_ids(objects: Iterable[str] | None, known: Iterable[str] = YC
         if name not in known:
             raise ValueError(f"unknown object {name!r}; expected YCB ids from: {', '.join(known)}")
     return frozenset(chosen)
+
+
+OBJECTS_FILE = "objects.json"  # a rendered dataset's record of its objects, beside its scene folders
+
+
+def dataset_objects(data) -> dict[str, dict]:
+    """The objects a rendered dataset records in ``<data>/objects.json``: name -> ``{"obj_id": int, "mesh":
+    {"file", "sha256", "unit"}, "symmetry": {...}}``; ``{}`` for a dataset without that file (real data, or
+    renders of the YCB objects from before the file existed, which use the YCB-V numbering)."""
+    import json
+    from pathlib import Path
+
+    path = Path(data) / OBJECTS_FILE
+    if not path.is_file():
+        return {}
+    record = json.loads(path.read_text())
+    if not isinstance(record, dict) or not all(isinstance(v, dict) and isinstance(v.get("obj_id"), int)
+                                               for v in record.values()):
+        raise ValueError(f"{path}: expected an object of name -> {{\"obj_id\": int, ...}}")
+    return record
+
+
+def obj_id_map_for(data) -> dict[int, str]:
+    """BOP ``obj_id`` -> object name of a dataset: its ``objects.json`` record over the YCB-V numbering."""
+    ids = dict(BOP_YCBV_OBJ_IDS)
+    ids.update({v["obj_id"]: name for name, v in dataset_objects(data).items()})
+    return ids

