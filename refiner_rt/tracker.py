@@ -111,7 +111,7 @@ class RefinerTracker:
             )
         self._tracks: dict[str, _Track] = {}
         for object_id, q in q0.items():
-            self.add(object_id, q)
+            self._add(object_id, q, None, f"q0[{object_id!r}]")
         missing = sorted(set(self._per_object) - set(self._tracks))
         if missing:
             log.debug("sessions given for objects without an initial rotation (add them later): %s", missing)
@@ -146,6 +146,9 @@ class RefinerTracker:
             ValueError / TypeError: an id already tracked or not a string, no session for it, a session whose model
                 was not trained for the object, a bad ``q``.
         """
+        self._add(object_id, q, session, "q")
+
+    def _add(self, object_id, q, session, q_name: str) -> None:
         self._check_id(object_id, "object_id")
         if object_id in self._tracks:
             raise ValueError(f"object_id {object_id!r} is already tracked; use reset() to give it a new rotation")
@@ -166,7 +169,7 @@ class RefinerTracker:
                 f"object_id {object_id!r} is not an object its session's model was trained for (metadata objects: "
                 f"{objects}); use that object's model, or name the object '<ycb id>' or '<ycb id>#<instance>'"
             )
-        self._tracks[object_id] = _Track(sess, self._check_q(q, f"q0[{object_id!r}]"))
+        self._tracks[object_id] = _Track(sess, self._check_q(q, q_name))
 
     def drop(self, object_id: str) -> None:
         """Stop tracking an object.

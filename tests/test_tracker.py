@@ -198,3 +198,115 @@ def test_bad_updates_are_named_and_change_nothing(image, boxes, error, match):
     with pytest.raises(error, match=match):
         tracker.update(image, boxes)
     np.testing.assert_array_equal(tracker.rotations["003_cracker_box"], before["003_cracker_box"])
+
+
+# ------------------------------------------------------------------------------ refiner-rt track
+def write_sequence(folder, n=3, q0=Q0[0], extra=None):
+    """``n`` PNG frames, a constant-correction model for the cracker box and a detections file (first frame with q0)."""
+    import json
+
+    import cv2
+
+    frames = folder / "frames"
+    frames.mkdir()
+    for i in range(n):
+        cv2.imwrite(str(frames / f"{i:06d}.png"), np.roll(IMG, 2 * i, axis=1))
+    model = folder / "box.onnx"
+    model.write_bytes(fx.constant_model(Q_OUT, props=fx.contract(objects=["003_cracker_box"], rotation_frame="ray")))
+    doc = {"K": K.tolist(), "frames": {f"{i:06d}.png": {"003_cracker_box": list(BOX_A)} for i in range(n)}}
+    doc["frames"]["000000.png"]["003_cracker_box"] = {"box": BOX_A, "q": list(q0)}
+    doc.update(extra or {})
+    (folder / "detections.json").write_text(json.dumps(doc))
+    return frames, folder / "detections.json", model
+
+
+def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
+    import json
+
+    import cv2
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=4)
+    out, strip = tmp_path / "rot.json", tmp_path / "strip.png"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--video", str(strip), "--strip", "3"])
+    assert res.exit_code == 0, res.output
+    assert "4 frames, 1 objects, 4 refinements" in res.output
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "refiner-rt/track/1" and list(doc["frames"]) == [f"{i:06d}.png" for i in range(4)]
+    for i, name in enumerate(doc["frames"]):
+        assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]), scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (i + 1))
+    image = cv2.imread(str(strip))
+    assert image.shape == (240, 3 * 320, 3)
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--video", str(tmp_path / "v.avi"), "--predict"])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "v.avi").stat().st_size > 0
+
+
+def test_track_command_with_shipped_names_and_a_reset(tmp_path, weights):  # noqa: F811
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, _ = write_sequence(tmp_path, n=3)
+    doc = json.loads(dets.read_text())
+    doc["frames"]["000002.png"]["003_cracker_box"] = {"box": BOX_A, "q": [0, 1, 0, 0]}
+    del doc["K"]
+    dets.write_text(json.dumps(doc))
+    out = tmp_path / "rot.json"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--K", "60,60,31.5,23.5"])
+    assert res.exit_code == 0, res.output
+    rot = json.loads(out.read_text())
+    assert rot["models"]["003_cracker_box"].endswith("003_cracker_box.int8.onnx")
+    # The made-up shipped model corrects by the identity: the rotation is q0 until the reset gives (0, 1, 0, 0).
+    assert_same_rotation(np.array(rot["frames"]["000001.png"]["003_cracker_box"]), scipy_q(Q0[0]))
+    np.testing.assert_allclose(rot["frames"]["000002.png"]["003_cracker_box"], [0, 1, 0, 0], atol=1e-9)
+
+
+@pytest.mark.parametrize("change, args, match", [
+    ({"K": None}, [], "no camera intrinsics"),
+    ({}, ["--K", "1,2,3"], "expected four numbers FX,FY,CX,CY"),
+    ({"frames": {"nope.png": {"003_cracker_box": BOX_A}}}, [], r"frames \['nope.png'\] are not images in"),
+    ({"frames": {"000000.png": {"003_cracker_box": [1, 2]}}}, [], r"box \(x1, y1, x2, y2\) must have shape \(4,\)"),
+    ({"frames": {"000000.png": {"003_cracker_box": {"box": BOX_A, "q": [0, 0, 0, 0]}}}}, [], "000000.png: q must be non-zero"),
+    ({"frames": {"000000.png": {"003_cracker_box": {"box": [500, 500, 510, 510], "q": [1, 0, 0, 0]}}}}, [],
+     r"000000.png: boxes\['003_cracker_box'\]"),
+    ({"frames": {"000001.png": {"003_cracker_box": BOX_A}}}, [], "has a box but no rotation to start from"),
+    ({"frames": {"000000.png": {"011_banana": {"box": BOX_A, "q": [1, 0, 0, 0]}}}}, [],
+     "no pretrained model for object '011_banana'"),
+    ({}, ["--video", "x.gif"], "expected a .mp4 or .avi video or a .png or .jpg image strip"),
+])
+def test_track_command_refuses_bad_input_without_a_traceback(tmp_path, change, args, match):
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path)
+    doc = json.loads(dets.read_text())
+    doc.update(change)
+    if doc["K"] is None:
+        del doc["K"]
+    dets.write_text(json.dumps(doc))
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json"), "--model",
+                                    str(model), *args])
+    assert res.exit_code != 0 and "Traceback" not in res.output
+    assert res.exception is None or isinstance(res.exception, SystemExit)
+    assert __import__("re").search(match, res.output), res.output
+
+
+def test_track_command_refuses_a_file_that_is_not_json(tmp_path):
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path)
+    dets.write_text("{not json")
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json")])
+    assert res.exit_code == 1 and "not a readable JSON detections file" in res.output
