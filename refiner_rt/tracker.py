@@ -23,13 +23,14 @@ frame). Only refined rotations enter ``dq``: the correction of a coarse initial 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping
 
 import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import validate_boxes, validate_image
-from refiner_rt.session import RefinerSession, _validate_K
+from refiner_rt.session import RefinerSession, _conjugate_rows, _multiply_rows, _unit_rows, _validate_K
 
 __all__ = ["RefinerTracker", "INSTANCE_SEPARATOR"]
 
@@ -50,9 +51,9 @@ class _Track:
 
     def __init__(self, session: RefinerSession, q: np.ndarray):
         self.session = session
-        self.q = q  # (4,) float64 wxyz, w >= 0: the current estimate (coarse until the first update)
+        self.q = q  # [w, x, y, z] Python floats, unit, w >= 0: the current estimate (coarse until the first update)
         self.refined = False  # whether q came from the refiner (only then does it count for the velocity)
-        self.velocity = None  # (4,) wxyz rotation change per update in the camera frame, or None
+        self.velocity = None  # [w, x, y, z]: rotation change per update in the camera frame, or None
         self.missed = 0  # updates since this object was last refined (it had no box)
 
 
@@ -125,7 +126,7 @@ class RefinerTracker:
     @property
     def rotations(self) -> dict[str, np.ndarray]:
         """``{object id: (4,) float64 wxyz, w >= 0}``: each object's current object-to-camera rotation (a copy)."""
-        return {k: t.q.copy() for k, t in self._tracks.items()}
+        return {k: np.array(t.q) for k, t in self._tracks.items()}
 
     def __len__(self) -> int:
         return len(self._tracks)
@@ -219,42 +220,37 @@ class RefinerTracker:
         groups: dict[int, tuple[RefinerSession, list[str], list[np.ndarray]]] = {}
         for object_id, box in boxes.items():
             track = self._track(object_id, name="boxes")
-            try:
-                arr = np.asarray(box, dtype=np.float64)
-            except (TypeError, ValueError):
-                raise ValueError(f"boxes[{object_id!r}] must be one numeric box (x1, y1, x2, y2) in pixels; "
-                                 f"got {box!r}") from None
-            if arr.shape != (4,):
-                raise ValueError(f"boxes[{object_id!r}] must be one box (x1, y1, x2, y2) in pixels, shape (4,); "
-                                 f"got shape {arr.shape}")
-            groups.setdefault(id(track.session), (track.session, [], []))
-            _, ids, rows = groups[id(track.session)]
-            ids.append(object_id)
-            rows.append(validate_boxes(arr, image.shape, f"boxes[{object_id!r}]")[0])
+            row = _check_box(box, image.shape, f"boxes[{object_id!r}]")
+            group = groups.get(id(track.session))
+            if group is None:
+                group = groups[id(track.session)] = (track.session, [], [])
+            group[1].append(object_id)
+            group[2].append(row)
         seen = set(boxes)
         for object_id, track in self._tracks.items():
             if object_id not in seen:
                 track.missed += 1
         out = {}
         for sess, ids, rows in groups.values():
-            q_in = np.stack([self._prediction(self._tracks[i]) for i in ids])
-            res = sess.refine(image, np.stack(rows), q_in, iterations=self.iterations, K=self.K, views=self.views)
-            for object_id, q in zip(ids, res.q_refined):
+            q_in = np.array([self._prediction(self._tracks[i]) for i in ids])
+            res = sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K, views=self.views)
+            for object_id, q in zip(ids, res.q_refined.tolist()):
                 track = self._tracks[object_id]
                 if self.predict and track.refined:
-                    step = rq.multiply(q, rq.inverse(track.q))  # camera-frame change over missed + 1 updates
-                    track.velocity = _fraction(step, 1.0 / (track.missed + 1))
+                    # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py)
+                    step = _unit_rows(_multiply_rows([q], _conjugate_rows([track.q])))[0]
+                    track.velocity = step if track.missed == 0 else _fraction(step, 1.0 / (track.missed + 1))
                 track.q, track.refined, track.missed = q, True, 0
-                out[object_id] = q.copy()
+                out[object_id] = np.array(q)
         return out
 
     # ------------------------------------------------------------------ internals
-    def _prediction(self, track: _Track) -> np.ndarray:
+    def _prediction(self, track: _Track) -> list:
         """The coarse rotation for this update: the last one, turned on by the velocity when predicting."""
         if not self.predict or track.velocity is None:
             return track.q
         step = track.velocity if track.missed == 0 else _fraction(track.velocity, track.missed + 1.0)
-        return rq.normalize(rq.multiply(step, track.q))
+        return _unit_rows(_multiply_rows([step], [track.q]))[0]
 
     def _session_of(self, value, name: str) -> RefinerSession:
         if isinstance(value, RefinerSession):
@@ -285,13 +281,29 @@ class RefinerTracker:
         arr = rq.as_quaternion(q, name)
         if arr.shape != (4,):
             raise ValueError(f"{name} must be one rotation of shape (4,), wxyz; got shape {arr.shape}")
-        return rq.normalize(arr)
+        return rq.normalize(arr).tolist()
 
     def __repr__(self) -> str:
         return f"RefinerTracker(objects={self.object_ids}, predict={self.predict}, iterations={self.iterations})"
 
 
-def _fraction(q: np.ndarray, power: float) -> np.ndarray:
-    """``q ** power`` for a unit quaternion (``wxyz``): the same axis, ``power`` times the angle."""
-    axis, angle = rq.to_axis_angle(q)
-    return rq.from_axis_angle(axis, angle * power)
+def _fraction(q: list, power: float) -> list:
+    """``q ** power`` for a unit quaternion ``[w, x, y, z]``: the same axis, ``power`` times the angle."""
+    axis, angle = rq.to_axis_angle(np.array(q))
+    return rq.from_axis_angle(axis, angle * power).tolist()
+
+
+def _check_box(box, image_shape, name: str) -> list:
+    """One box ``(x1, y1, x2, y2)`` in pixels as a list of floats; checked on Python floats when it is well formed,
+    else by :func:`refiner_rt.preprocess.validate_boxes`, which raises the detailed error."""
+    try:
+        arr = np.asarray(box, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be one numeric box (x1, y1, x2, y2) in pixels; got {box!r}") from None
+    if arr.shape != (4,):
+        raise ValueError(f"{name} must be one box (x1, y1, x2, y2) in pixels, shape (4,); got shape {arr.shape}")
+    x1, y1, x2, y2 = row = arr.tolist()
+    if (math.isfinite(x1) and math.isfinite(y1) and math.isfinite(x2) and math.isfinite(y2)
+            and x1 < x2 and y1 < y2 and x2 > 0 and y2 > 0 and x1 < image_shape[1] and y1 < image_shape[0]):
+        return row
+    return validate_boxes(arr, image_shape, name)[0].tolist()
