@@ -310,3 +310,44 @@ def test_track_command_refuses_a_file_that_is_not_json(tmp_path):
     dets.write_text("{not json")
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json")])
     assert res.exit_code == 1 and "not a readable JSON detections file" in res.output
+
+
+# ------------------------------------------------------------------------------ benchmarks/tracking.py
+def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
+    """Two short BOP scenes turning 2 degrees a frame and a model that never corrects: tracking then equals holding
+    the initial pose, and per-frame refinement's error is the drawn coarse error (mean near 15 degrees)."""
+    import json
+
+    from bench_scripts import load_benchmark
+    from data_fixtures import bop_instance, write_bop_scene
+
+    bench = load_benchmark("tracking")
+    data = tmp_path / "data"
+    turn = rq.from_axis_angle([0.0, 0.0, 1.0], 2.0)
+    for scene in (0, 1):
+        q = Q0[scene]
+        frames = {}
+        for f in range(12):
+            frames[f] = [bop_instance(2, rq.to_matrix(q), [0.0, 0.0, 800.0], [20 + f, 10, 30, 30],
+                                      visib_fract=0.1 if (scene, f) == (1, 5) else 0.9)]
+            q = rq.multiply(turn, q)
+        write_bop_scene(data, scene, frames, K * 10 * np.array([[1, 1, 1], [1, 1, 1], [0, 0, 0.1]]), size=(96, 64),
+                        seed=scene)
+    model = tmp_path / "ident.onnx"
+    model.write_bytes(fx.constant_model(rq.identity(), props=fx.contract(objects=["003_cracker_box"], rotation_frame="ray")))
+    out, png = tmp_path / "tracking.json", tmp_path / "tracking.png"
+    assert bench.main(["--data", str(data), "--model", f"003_cracker_box={model}", "--min-frames", "5",
+                       "--json", str(out), "--plot", str(png)]) == 0
+    doc = json.loads(out.read_text())
+    s = doc["summary"]
+    assert doc["sequences_per_object"] == {"003_cracker_box": 2} and doc["steps"] == [1, 2, 4]
+    for step in ("1", "2", "4"):
+        assert s["track"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
+        assert s["track_predict"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
+        assert 5 < s["per_frame"][step]["mean_deg"] < 25
+    assert s["hold"]["1"]["frames"] == 23  # 2 x 12 frames, one below --min-visib
+    # Holding the pose drifts by the 2-degree turn per frame: the curve rises over the sequence.
+    curve = doc["curves"]["hold"]["1"]
+    assert curve[11] > curve[0] + 10
+    assert doc["cost"]["track_step1"]["refinements"] == 23 and doc["machine"]["cpu"]
+    assert png.stat().st_size > 10_000
