@@ -58,8 +58,8 @@ RECIPE = {
     "background": 0.5,
     "split_mode": "scenes",
     "split_objects": "paper",
-    "val": 400,
-    "test": 900,
+    "val": 300,
+    "test": 700,
     "seed": 0,
 }
 MODEL_VERSION = "1"
@@ -96,7 +96,7 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
             "--rotation-frame", r["rotation_frame"], "--lr", str(r["lr"]), "--seed", str(r["seed"]),
             "--augment", "--background", str(r["background"]), "--skip-plain", "--skip-jitter",
             "--samples", str(samples), "--cache", str(cache), "--threads", "1",
-            "--save", str(run / obj), "--json", str(run / f"{obj}.train.json"), "--quiet"]
+            "--save", str(run / obj), "--json", str(run / f"{obj}.train.json")]
 
 
 def _cut_by_border(samples) -> np.ndarray:
@@ -160,6 +160,9 @@ def stamp(path: Path, extra: dict) -> None:
 
 def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, sizes: int, commit: bool,
                 val: int | None = None, test: int | None = None) -> dict:
+    import logging
+
+    logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)  # torchvision ops: n/a
     from export.onnx_export import export_checkpoint
     from export.quantize import quantize_model
 
@@ -412,7 +415,16 @@ def main(argv=None) -> int:
             if d.get("recipe", {}).get("name") == RECIPE["name"] and (WEIGHTS_DIR / d["files"]["int8"]).is_file():
                 print(f"[{obj}] already ships with recipe {RECIPE['name']}; skipped (--force rebuilds)", flush=True)
                 continue
-        ship_object(obj, args.data, args.run, cache, args.samples, args.sizes, args.commit, args.val, args.test)
+        # Builds side by side share one object list: each object is built by whichever build holds its lock.
+        with open(args.run / f"{obj}.lock", "w") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                print(f"[{obj}] being built by another process; skipped", flush=True)
+                continue
+            if done.is_file() and not args.force and json.loads(done.read_text()).get("recipe", {}).get("name") == RECIPE["name"]:
+                continue  # finished by the other build while this one waited
+            ship_object(obj, args.data, args.run, cache, args.samples, args.sizes, args.commit, args.val, args.test)
     return 0
 
 

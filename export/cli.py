@@ -9,6 +9,7 @@ Registered lazily by :mod:`refiner_rt.cli` (``export.cli:export_cmd``), so torch
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import click
@@ -128,6 +129,8 @@ def export_cmd(
     output = output if output is not None else checkpoint.with_suffix(".onnx")
     if not output.parent.is_dir():
         raise click.BadParameter(f"directory {output.parent} does not exist", param_hint="'-o' / '--output'")
+    if not os.access(output.parent, os.W_OK | os.X_OK):
+        raise click.BadParameter(f"directory {output.parent} is not writable", param_hint="'-o' / '--output'")
     # (checkpoint, fp32 output, INT8 output): per-object siblings are named so that `refiner-rt eval` finds them
     # next to either base model (OUT.<id>.onnx beside OUT.onnx, OUT.int8.<id>.onnx beside OUT.int8.onnx).
     int8_output = int8_path_for(output)
@@ -144,9 +147,12 @@ def export_cmd(
                     int8_output.with_name(f"{int8_output.stem}.{obj}{int8_output.suffix}"),
                 ))
     for ckpt, out, out_int8 in jobs:
-        _export_one(ckpt, out, opset, lrn)
-        if int8:
-            _quantize_one(out, out_int8, scheme, calib)
+        try:
+            _export_one(ckpt, out, opset, lrn)
+            if int8:
+                _quantize_one(out, out_int8, scheme, calib)
+        except OSError as exc:  # e.g. the folder became read-only or the disk is full
+            raise click.ClickException(f"cannot write {exc.filename or out}: {exc.strerror or exc}") from None
 
 
 def _quantize_one(fp32: Path, out: Path, scheme: str, calib: Path | None) -> None:

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -61,7 +60,7 @@ from torch.export import Dim
 import refiner_rt
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, PARITY_SEED, check_parity, random_inputs
 from models.blocks import Refiner
-from models.checkpoint import file_sha256, load_checkpoint
+from models.checkpoint import file_sha256, load_checkpoint, new_temp_file_beside
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION, REQUIRED_KEYS, build_metadata
 
 __all__ = [
@@ -348,10 +347,9 @@ def export_model(
     onnx.checker.check_model(proto, full_check=True)
     data = proto.SerializeToString()
 
-    fd, tmp_name = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=".tmp")
-    tmp = Path(tmp_name)
+    tmp = new_temp_file_beside(out_path)  # the user's umask (0644 typically), not mkstemp's 0600
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(tmp, "wb") as f:
             f.write(data)
         result = check_parity(model, tmp, n=n_parity, tol=tol, seed=PARITY_SEED)
         if not result.passed:

@@ -80,6 +80,7 @@ from onnxruntime.quantization import (
 )
 
 from export.parity import MIN_PARITY_INPUTS, PARITY_SEED, onnxruntime_outputs, random_inputs
+from models.checkpoint import new_temp_file_beside
 from refiner_rt import quaternion as rq
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, ModelContract, parse_metadata
 
@@ -481,10 +482,9 @@ def quantize_model(
         )
 
     data = _quantized_proto(proto, scheme, calibration).SerializeToString()
-    fd, tmp_name = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=".tmp")
-    tmp = Path(tmp_name)
+    tmp = new_temp_file_beside(out_path)  # the user's umask (0644 typically), not mkstemp's 0600
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(tmp, "wb") as f:
             f.write(data)
         _check_loads(tmp, scheme)
         agreement, heldout_agreement = _agreements(fp32_path, tmp, contract.input_size, calibration, n_check, enforce)

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from refiner_rt.metadata import CHANNEL_ORDERS
+from refiner_rt.metadata import CHANNEL_ORDERS, MAX_CROP_CONTEXT, MAX_INPUT_SIZE
 from refiner_rt.preprocess import DEFAULT_CONTEXT
 
 __all__ = [
@@ -236,11 +236,11 @@ class Refiner(nn.Module):
     by name. Subclasses that need a different forward keep its signature and contract.
 
     Common config keys (defaults in ``COMMON_CONFIG``):
-        * ``input_size`` (int): side ``S`` of the square crop (set per architecture).
+        * ``input_size`` (int, 1 to ``MAX_INPUT_SIZE`` = 1024): side ``S`` of the square crop (set per architecture).
         * ``channel_order`` (str): ``"BGR"`` (default, cv2's order) or ``"RGB"``: order of the image input.
         * ``mean_rgb``, ``std_rgb`` (3 floats, RGB order, [0, 1] units): normalisation; ImageNet by default.
-        * ``crop_context`` (float >= 1): crop-rule context factor the model is trained with (default 1.2);
-          written to the ONNX metadata.
+        * ``crop_context`` (float from 1 to ``MAX_CROP_CONTEXT`` = 4): crop-rule context factor the model is
+          trained with (default 1.2); written to the ONNX metadata.
         * ``pose_widths`` (list of int): pose stage widths after the 4 inputs; default ``[64, 512, 4096]``.
         * ``head_widths`` (list of int): refinement head hidden widths; default ``[1024, 256, 64]``.
 
@@ -286,15 +286,15 @@ class Refiner(nn.Module):
             )
         cfg = {**defaults, **copy.deepcopy(config)}
         size = cfg["input_size"]
-        if not isinstance(size, int) or isinstance(size, bool) or size <= 0:
-            raise ValueError(f"config['input_size'] must be a positive int; got {size!r}")
+        if not isinstance(size, int) or isinstance(size, bool) or not 1 <= size <= MAX_INPUT_SIZE:
+            raise ValueError(f"config['input_size'] must be an int from 1 to {MAX_INPUT_SIZE}; got {size!r}")
         if cfg["channel_order"] not in CHANNEL_ORDERS:
             raise ValueError(f"config['channel_order'] must be one of {CHANNEL_ORDERS}; got {cfg['channel_order']!r}")
         cfg["mean_rgb"] = validate_float_triple(cfg, "mean_rgb", positive=False)
         cfg["std_rgb"] = validate_float_triple(cfg, "std_rgb", positive=True)
         context = cfg["crop_context"]
-        if not isinstance(context, (int, float)) or isinstance(context, bool) or not context >= 1.0:
-            raise ValueError(f"config['crop_context'] must be a number >= 1; got {context!r}")
+        if not isinstance(context, (int, float)) or isinstance(context, bool) or not 1.0 <= context <= MAX_CROP_CONTEXT:
+            raise ValueError(f"config['crop_context'] must be a number from 1 to {MAX_CROP_CONTEXT:g}; got {context!r}")
         cfg["crop_context"] = float(context)
         cfg["pose_widths"] = validate_int_list(cfg, "pose_widths")
         cfg["head_widths"] = validate_int_list(cfg, "head_widths", min_len=0)

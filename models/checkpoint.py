@@ -17,7 +17,7 @@ import json
 import logging
 import os
 import re
-import tempfile
+import secrets
 from pathlib import Path
 
 import torch
@@ -25,7 +25,7 @@ import torch
 from models.blocks import Refiner
 from models.registry import get_refiner_class
 
-__all__ = ["CHECKPOINT_FORMAT", "file_sha256", "load_checkpoint", "save_checkpoint"]
+__all__ = ["CHECKPOINT_FORMAT", "file_sha256", "load_checkpoint", "new_temp_file_beside", "save_checkpoint"]
 
 logger = logging.getLogger(__name__)
 
@@ -38,6 +38,25 @@ def _require_json(value, what: str) -> None:
         json.dumps(value, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what} must be JSON-serialisable (str, number, bool, None, list, dict); {exc}") from None
+
+
+def new_temp_file_beside(path) -> Path:
+    """A new, empty hidden file in ``path``'s folder for an atomic write: fill it, then ``os.replace`` it onto ``path``.
+
+    Created like any new file (``open(..., "x")``), so it gets the user's umask, typically 0644; a
+    ``tempfile.mkstemp`` file is 0600, and ``os.replace`` would carry that mode over to the written model.
+
+    Raises:
+        OSError: the folder does not exist or is not writable (e.g. ``PermissionError``).
+    """
+    path = Path(path)
+    while True:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+        try:
+            with open(tmp, "xb"):
+                return tmp
+        except FileExistsError:  # a 32-bit random name taken: draw another
+            continue
 
 
 def save_checkpoint(model: Refiner, path, **info) -> Path:
@@ -70,8 +89,7 @@ def save_checkpoint(model: Refiner, path, **info) -> Path:
         "info": info,
     }
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    tmp = new_temp_file_beside(path)
     try:
         torch.save(payload, tmp)
         os.replace(tmp, path)

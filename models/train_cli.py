@@ -200,7 +200,8 @@ def load_base(o: dict):
     try:
         model, info = models.load_checkpoint(path)
     except (OSError, ValueError, KeyError) as exc:
-        raise click.BadParameter(f"{path}: {exc}", param_hint="--base") from None
+        message = str(exc) if str(exc).startswith(str(path)) else f"{path}: {exc}"
+        raise click.BadParameter(message, param_hint="--base") from None
     stage = info.get("stage")
     if stage != "base":
         raise click.BadParameter(f"{path} is a {stage!r} checkpoint; expected a base network (stage 'base', the "

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-__all__ = ["RefinerSession", "RefineResult", "quaternion", "pretrained_models", "__version__"]
+from refiner_rt.errors import ModelError
+
+__all__ = ["ModelError", "RefinerSession", "RefineResult", "quaternion", "pretrained_models", "__version__"]
 
 
 def __getattr__(name):

@@ -42,8 +42,9 @@ import click
 import numpy as np
 
 from refiner_rt import quaternion as rq
+from refiner_rt.errors import ModelError
 from refiner_rt.preprocess import crop_batch, validate_boxes
-from refiner_rt.session import available_cores
+from refiner_rt.session import MAX_BATCH, available_cores
 
 log = logging.getLogger(__name__)
 
@@ -105,8 +106,25 @@ class BenchRow:
 
 
 # ---------------------------------------------------------------------------------------------------- machine
+# The vector instruction sets that decide onnxruntime's fp32 and int8 kernels (MLAS picks them at run time).
+_SIMD_FLAG_PREFIXES = ("sse4", "avx", "fma", "f16c", "amx", "vnni")
+
+
+def cpu_flags() -> list[str]:
+    """The CPU's vector-instruction flags from ``/proc/cpuinfo`` (``avx2``, ``avx512f``, ``avx512_vnni``, ``fma``...);
+    empty where that file does not exist (not Linux)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return sorted(f for f in line.split(":", 1)[1].split() if f.startswith(_SIMD_FLAG_PREFIXES))
+    except OSError:
+        pass
+    return []
+
+
 def machine_info() -> dict:
-    """CPU model, core count and library versions of this machine."""
+    """CPU model, its vector-instruction flags, core count and library versions of this machine."""
     import onnxruntime
 
     cpu = platform.processor() or "unknown"
@@ -120,6 +138,7 @@ def machine_info() -> dict:
         pass
     info = {
         "cpu": cpu,
+        "cpu_flags": cpu_flags(),
         "cores": available_cores(),
         "python": platform.python_version(),
         "numpy": np.__version__,
@@ -673,7 +692,12 @@ def _roofline_inputs(bench_models, thread_counts, echo):
         return None, None
     echo(f"Measuring the roofline limits (numpy copy of {BANDWIDTH_BUFFER_MB} MB; onnxruntime MatMul fp32 and int8)...")
     limits = measure_limits(thread_counts)
-    costs = {i: model_cost(m.path) for i, m in enumerate(bench_models)}
+    costs = {}
+    for i, m in enumerate(bench_models):
+        try:
+            costs[i] = model_cost(m.path)
+        except Exception as exc:  # onnx's shape inference on a graph it cannot follow: that row goes without a bound
+            echo(f"Roofline skipped for {m.label}: its graph cannot be costed ({type(exc).__name__}: {exc})")
     return limits, costs
 
 
@@ -706,6 +730,9 @@ def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, se
     each row next to its roofline bound."""
     if 0 in batches:
         raise click.BadParameter("batch sizes must be >= 1", param_hint="--batch")
+    if max(batches) > MAX_BATCH:
+        raise click.BadParameter(f"batch sizes must be at most {MAX_BATCH} (RefinerSession's MAX_BATCH crops per call)",
+                                 param_hint="--batch")
     machine = machine_info()
 
     def echo(msg):
@@ -721,9 +748,12 @@ def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, se
             f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell"
         )
         with click.progressbar(length=len(threads) * len(batches), label="cells", file=sys.stderr) as bar:
-            rows = run_bench(
-                bench_models, batches, threads, seconds, with_torch, limits, costs, progress=lambda: bar.update(1)
-            )
+            try:
+                rows = run_bench(
+                    bench_models, batches, threads, seconds, with_torch, limits, costs, progress=lambda: bar.update(1)
+                )
+            except ModelError as exc:  # a model that loaded but fails when it runs
+                raise click.ClickException(str(exc)) from None
     wall = time.perf_counter() - t0
     click.echo("")
     click.echo(f"Machine: {machine['cpu']}, {machine['cores']} cores, onnxruntime {machine['onnxruntime']}, torch {machine['torch']}")
@@ -743,8 +773,14 @@ def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, se
 def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir: Path, echo) -> tuple[list, str]:
     """The models to time and a note on their weights: the given files, or random-weight builds (and INT8)."""
     if model_paths:
+        from refiner_rt.session import RefinerSession
+
         seen, bench_models = set(), []
         for p in model_paths:
+            try:  # the whole contract, before any timing: a bad file is a one-line error, not a traceback
+                RefinerSession(p, threads=1)
+            except ModelError as exc:
+                raise click.BadParameter(str(exc), param_hint="'--model'") from None
             label = p.stem if p.stem not in seen else str(p)
             seen.add(label)
             bench_models.append(BenchModel(label, p))

@@ -12,6 +12,7 @@ import importlib
 import click
 
 from refiner_rt import __version__
+from refiner_rt.errors import ModelError
 
 # name -> ("module:attribute", one-line help shown by `refiner-rt --help` without importing the module)
 LAZY_COMMANDS = {
@@ -50,6 +51,13 @@ class LazyGroup(click.Group):
                 ) from exc
             return getattr(module, attr)
         return super().get_command(ctx, cmd_name)
+
+    def invoke(self, ctx):
+        # A safety net: a model that cannot be used is a one-line error in every subcommand, never a traceback.
+        try:
+            return super().invoke(ctx)
+        except ModelError as exc:
+            raise click.ClickException(str(exc)) from None
 
     def format_commands(self, ctx, formatter):
         rows = [(name, self.lazy_commands[name][1]) for name in sorted(self.lazy_commands)]

@@ -47,10 +47,14 @@ def describe(path: Path) -> dict:
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def info_cmd(model: Path, as_json: bool):
     """Print MODEL's metadata contract, inputs/outputs, parameter count and file size."""
+    from refiner_rt.errors import ModelError
+
     try:
         d = describe(model)
+    except ModelError as exc:  # names the file already
+        raise click.ClickException(str(exc)) from None
     except ValueError as exc:
-        raise click.ClickException(f"{model}: {exc}") from exc
+        raise click.ClickException(f"{model}: {exc}") from None
     if as_json:
         click.echo(json.dumps(d, indent=2))
         return

@@ -8,6 +8,7 @@ Names of graph inputs and outputs live here only, so the exporter and the runtim
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 
 __all__ = [
@@ -15,9 +16,12 @@ __all__ = [
     "INPUT_IMAGE",
     "INPUT_QUATERNION",
     "OUTPUT_QUATERNION",
+    "MAX_CROP_CONTEXT",
+    "MAX_INPUT_SIZE",
     "REQUIRED_KEYS",
     "ModelContract",
     "build_metadata",
+    "check_graph",
     "parse_metadata",
 ]
 
@@ -43,6 +47,11 @@ REQUIRED_KEYS = (
 CHANNEL_ORDERS = ("BGR", "RGB")
 ROTATION_FRAMES = ("camera", "ray")
 QUANTIZATIONS = ("none", "dynamic-int8", "static-qdq-int8")
+# Sane ranges, refused outside them on load (and by the training config). input_size: the paper's networks take 64
+# (shallow) and 224 (VGG-M); a 1024 crop is 3 MB per box. crop_context: the window is max(w, h) * context; past 4
+# the object fills under a quarter of the crop, and a huge or infinite value makes every crop black.
+MAX_INPUT_SIZE = 1024
+MAX_CROP_CONTEXT = 4.0
 
 
 @dataclass(frozen=True)
@@ -153,21 +162,23 @@ def parse_metadata(props: dict[str, str]) -> ModelContract:
         input_size = int(props["input_size"])
     except ValueError:
         raise ValueError(f"model metadata key 'input_size' must be a positive integer; got {props['input_size']!r}") from None
-    if input_size <= 0:
-        raise ValueError(f"model metadata key 'input_size' must be a positive integer; got {input_size}")
+    if not 1 <= input_size <= MAX_INPUT_SIZE:
+        raise ValueError(f"model metadata key 'input_size' must be an integer from 1 to {MAX_INPUT_SIZE}; got {input_size}")
     if props["channel_order"] not in CHANNEL_ORDERS:
         raise ValueError(f"model metadata key 'channel_order' must be one of {CHANNEL_ORDERS}; got {props['channel_order']!r}")
     try:
         context = float(props["crop_context"])
     except ValueError:
-        raise ValueError(f"model metadata key 'crop_context' must be a number >= 1; got {props['crop_context']!r}") from None
-    if not context >= 1.0:
-        raise ValueError(f"model metadata key 'crop_context' must be a number >= 1; got {context}")
+        raise ValueError(
+            f"model metadata key 'crop_context' must be a number from 1 to {MAX_CROP_CONTEXT:g}; got {props['crop_context']!r}"
+        ) from None
+    if not (math.isfinite(context) and 1.0 <= context <= MAX_CROP_CONTEXT):
+        raise ValueError(f"model metadata key 'crop_context' must be a number from 1 to {MAX_CROP_CONTEXT:g}; got {context}")
     if props["rotation_frame"] not in ROTATION_FRAMES:
         raise ValueError(f"model metadata key 'rotation_frame' must be one of {ROTATION_FRAMES}; got {props['rotation_frame']!r}")
     try:
         objects = json.loads(props["objects"])
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, RecursionError):
         objects = None
     if not isinstance(objects, list) or not all(isinstance(o, str) for o in objects):
         raise ValueError(f"model metadata key 'objects' must be a JSON list of YCB id strings; got {props['objects']!r}")
@@ -189,3 +200,57 @@ def parse_metadata(props: dict[str, str]) -> ModelContract:
         version=props["refiner_rt.version"],
         extra=extra,
     )
+
+
+def _is_dynamic(dim) -> bool:
+    """Whether a graph dimension (onnxruntime: an int, a symbolic name or None) is left free."""
+    return not isinstance(dim, int)
+
+
+def check_graph(inputs, outputs, input_size: int) -> None:
+    """Check a refiner graph's inputs and outputs against the contract (design.md section 5).
+
+    Expected: exactly the inputs ``image`` ``(batch, S, S, 3)`` ``tensor(uint8)`` and ``q_in`` ``(batch, 4)``
+    ``tensor(float)``, and an output ``q_out`` ``(batch, 4)`` ``tensor(float)`` (other outputs are ignored), with the
+    batch axis dynamic (a symbolic name, not a number) and ``S`` = the metadata's ``input_size``. A dimension left
+    symbolic where a number is expected is accepted here (the runtime's trial run on load checks it).
+
+    Args:
+        inputs, outputs: the graph's inputs and outputs, each with ``.name``, ``.type`` (e.g. ``"tensor(uint8)"``)
+            and ``.shape`` (a list of ints, names or None), as onnxruntime's ``NodeArg``.
+        input_size: ``S`` from the metadata.
+
+    Raises:
+        ValueError: the first violation, naming the input or output, what was expected and what the graph declares.
+    """
+    s = input_size
+    expected_in = {INPUT_IMAGE: ("tensor(uint8)", (None, s, s, 3)), INPUT_QUATERNION: ("tensor(float)", (None, 4))}
+    expected_out = {OUTPUT_QUATERNION: ("tensor(float)", (None, 4))}
+    by_name_in = {i.name: i for i in inputs}
+    by_name_out = {o.name: o for o in outputs}
+    missing = [n for n in expected_in if n not in by_name_in] + [n for n in expected_out if n not in by_name_out]
+    if missing:
+        raise ValueError(
+            f"model graph lacks {missing}: expected inputs {list(expected_in)} and output {OUTPUT_QUATERNION!r}; "
+            f"got inputs {sorted(by_name_in)} and outputs {sorted(by_name_out)}"
+        )
+    extra = sorted(set(by_name_in) - set(expected_in))
+    if extra:
+        raise ValueError(
+            f"model graph has inputs {extra} that the runtime does not feed: expected exactly {list(expected_in)}"
+        )
+    for kind, expected, declared in (("input", expected_in, by_name_in), ("output", expected_out, by_name_out)):
+        for name, (dtype, shape) in expected.items():
+            arg = declared[name]
+            want = "(batch, " + ", ".join(str(d) for d in shape[1:]) + ")"
+            if arg.type != dtype:
+                raise ValueError(f"model {kind} {name!r} must be {dtype} {want}; the graph declares {arg.type}")
+            got = list(arg.shape)
+            if len(got) != len(shape) or any(isinstance(g, int) and g != w for g, w in zip(got[1:], shape[1:])):
+                hint = f" (the metadata's input_size={s} expects {want})" if name == INPUT_IMAGE else ""
+                raise ValueError(f"model {kind} {name!r} must have shape {want}{hint}; the graph declares {got}")
+            if not _is_dynamic(got[0]):
+                raise ValueError(
+                    f"model {kind} {name!r} must have a dynamic batch axis {want}; the graph fixes it to {got[0]} "
+                    "(export with a dynamic batch dimension)"
+                )

@@ -25,7 +25,10 @@ def models_cmd(as_json):
     through the full refine() path (see refiner_rt/weights/MODELS.md for the machine and the commands).
     Load one with RefinerSession.pretrained("<object>").
     """
-    models = pretrained_models()
+    try:
+        models = pretrained_models()
+    except (ValueError, KeyError, TypeError) as exc:
+        raise click.ClickException(f"cannot list the pretrained models: {exc}") from None
     if as_json:
         click.echo(json.dumps([{"object_id": m.object_id, "arch": m.arch, "version": m.version, "files": m.files,
                                 "heldout": m.heldout, "config": m.config, "card": m.card} for m in models], indent=1))

@@ -21,6 +21,7 @@ import numpy as np
 
 __all__ = [
     "DEFAULT_CONTEXT",
+    "MAX_BOX_COORDINATE",
     "crop_window",
     "crop_matrix",
     "crop_to_square",
@@ -31,6 +32,9 @@ __all__ = [
 ]
 
 DEFAULT_CONTEXT = 1.2
+# Box coordinates beyond a million pixels (far past any camera) are refused: they would only make black crops, and
+# past ~1e154 the window's and the viewing ray's arithmetic overflows to inf.
+MAX_BOX_COORDINATE = 1e6
 
 
 def validate_image(image, name: str = "image") -> np.ndarray:
@@ -55,25 +59,39 @@ def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str 
     """Check ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels and return them as float64.
 
     Args:
-        boxes: array-like ``(N, 4)`` (or a single ``(4,)`` box, returned as ``(1, 4)``).
+        boxes: array-like ``(N, 4)`` (or a single ``(4,)`` box, returned as ``(1, 4)``; an empty sequence is
+            ``(0, 4)``, no boxes).
         image_shape: ``(H, W, ...)``; when given, each box must overlap the image.
         name: argument name used in error messages.
 
     Raises:
-        ValueError: wrong shape, non-finite values, empty boxes (``x2 <= x1`` or ``y2 <= y1``), or
-            boxes entirely outside the image.
+        ValueError: a ragged sequence, wrong shape, non-finite values, coordinates beyond
+            ``+-MAX_BOX_COORDINATE``, empty boxes (``x2 <= x1`` or ``y2 <= y1``), or boxes entirely outside the image.
     """
-    arr = np.asarray(boxes)
+    try:
+        arr = np.asarray(boxes)
+    except (ValueError, TypeError) as exc:  # ragged nested lists
+        raise ValueError(
+            f"{name} must be numeric (N, 4) boxes (x1, y1, x2, y2) in pixels; got a ragged sequence ({exc})"
+        ) from None
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"{name} must be numeric (N, 4) boxes (x1, y1, x2, y2) in pixels; got dtype {arr.dtype}")
     arr = arr.astype(np.float64)
     if arr.ndim == 1 and arr.shape[0] == 4:
         arr = arr[None]
+    elif arr.shape == (0,):  # [] : no boxes
+        arr = arr.reshape(0, 4)
     if arr.ndim != 2 or arr.shape[1] != 4:
         raise ValueError(f"{name} must have shape (N, 4) as (x1, y1, x2, y2) in pixels; got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         i = int(np.argwhere(~np.isfinite(arr).all(axis=1))[0, 0])
         raise ValueError(f"{name}[{i}] must be finite; got {arr[i].tolist()}")
+    huge = np.abs(arr).max(axis=1) > MAX_BOX_COORDINATE
+    if np.any(huge):
+        i = int(np.argmax(huge))
+        raise ValueError(
+            f"{name}[{i}] must have coordinates within +-{MAX_BOX_COORDINATE:g} pixels; got {arr[i].tolist()}"
+        )
     empty = (arr[:, 2] <= arr[:, 0]) | (arr[:, 3] <= arr[:, 1])
     if np.any(empty):
         i = int(np.argmax(empty))

@@ -74,9 +74,12 @@ def _index() -> dict:
     path = WEIGHTS_DIR / INDEX_FILE
     if not path.is_file():
         return {"format": INDEX_FORMAT, "models": {}}
-    doc = json.loads(path.read_text())
-    if doc.get("format") != INDEX_FORMAT:
-        raise ValueError(f"{path}: format {doc.get('format')!r} is not {INDEX_FORMAT!r}")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: the pretrained models' index is unreadable ({exc}); reinstall refiner-rt") from None
+    if not isinstance(doc, dict) or doc.get("format") != INDEX_FORMAT or not isinstance(doc.get("models"), dict):
+        raise ValueError(f"{path}: not a pretrained models' index of format {INDEX_FORMAT!r}; reinstall refiner-rt")
     return doc
 
 

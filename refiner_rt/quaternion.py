@@ -51,9 +51,14 @@ def as_quaternion(q, name: str = "q") -> np.ndarray:
         ``np.ndarray`` of shape ``(..., 4)``, float64 (not normalised).
 
     Raises:
-        ValueError: wrong shape, non-finite values or a zero-norm quaternion.
+        ValueError: a ragged sequence, wrong shape, non-finite values or a zero-norm quaternion.
     """
-    arr = np.asarray(q)
+    try:
+        arr = np.asarray(q)
+    except (ValueError, TypeError) as exc:  # ragged nested lists: numpy's "setting an array element with a sequence"
+        raise ValueError(
+            f"{name} must be a numeric array of shape (..., 4) in wxyz order; got a ragged sequence ({exc})"
+        ) from None
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"{name} must be a numeric array of shape (..., 4) in wxyz order; got dtype {arr.dtype}")
     arr = arr.astype(np.float64, copy=False)
@@ -62,7 +67,8 @@ def as_quaternion(q, name: str = "q") -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr).all(axis=-1))
         raise ValueError(f"{name} must be finite; got non-finite values at index {tuple(bad[0])}")
-    norms = np.linalg.norm(arr, axis=-1)
+    with np.errstate(over="ignore"):  # components above ~1e154: the norm is inf (not zero), normalize() handles it
+        norms = np.linalg.norm(arr, axis=-1)
     if np.any(norms < 1e-12):
         bad = np.argwhere(norms < 1e-12)
         raise ValueError(f"{name} must be non-zero quaternions (wxyz); got a zero quaternion at index {tuple(bad[0])}")
@@ -103,11 +109,20 @@ def normalize(q) -> np.ndarray:
     Returns:
         ``(..., 4)`` float64 unit quaternions, ``wxyz``, ``w >= 0``.
 
+    Finite quaternions of any size are handled: where the sum of squares overflows (components above about
+    1e154) the quaternion is first divided by its largest absolute component, which does not change the rotation.
+
     Raises:
         ValueError: non-finite or zero quaternions (never silently replaced).
     """
     q = as_quaternion(q)
-    return canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
+    with np.errstate(over="ignore"):
+        norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if not np.isfinite(norm).all():  # finite components whose squares overflow: scale to max |component| = 1 first
+        big = ~np.isfinite(norm)
+        q = np.where(big, q / np.where(big, np.abs(q).max(axis=-1, keepdims=True), 1.0), q)
+        norm = np.where(big, np.linalg.norm(q, axis=-1, keepdims=True), norm)
+    return canonical(q / norm)
 
 
 def multiply(a, b) -> np.ndarray:

@@ -14,7 +14,17 @@ per-box checks and the quaternion maths run on Python floats, since numpy's fixe
 microsecond per ufunc on a 4-vector) would otherwise exceed the network's time for the small models. The
 operations and their order are those of :mod:`refiner_rt.quaternion`, so results are bit-identical to the
 vectorised path used for larger batches. Crops go into a reusable uint8 batch, one ``cv2.warpAffine`` each.
-A session is not meant to be called from several threads at once (it reuses its buffers): use one per thread.
+
+Threads: one session may be shared by any number of threads (a multi-threaded ROS 2 executor, a web server).
+``refine()`` and ``refine_crops()`` called concurrently return exactly what the same calls return one after the
+other: the reused crop and ``q_in`` buffers are per thread (:class:`threading.local`), and onnxruntime's ``run``
+is thread-safe. Each calling thread keeps its own buffers (at most :data:`MAX_BATCH` crops) until it ends.
+
+Limits, each refused with a ``ValueError`` naming the argument: :data:`MAX_BATCH` crops per call (boxes x views),
+:data:`MAX_ITERATIONS` iterations, :data:`MAX_VIEWS` views, box coordinates within
+:data:`refiner_rt.preprocess.MAX_BOX_COORDINATE` pixels, ``K`` in pinhole form within :data:`K_MAX_ABS`. Any
+finite input inside them gives a finite unit rotation. A model that cannot be read or breaks the contract raises
+:class:`refiner_rt.ModelError` when it is loaded (never an onnxruntime exception type).
 """
 
 from __future__ import annotations
@@ -22,6 +32,8 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,17 +41,19 @@ import numpy as np
 import onnxruntime as ort
 
 from refiner_rt import quaternion as rq
+from refiner_rt.errors import ModelError
 from refiner_rt.metadata import (
     INPUT_IMAGE,
     INPUT_QUATERNION,
     OUTPUT_QUATERNION,
     ModelContract,
+    check_graph,
     parse_metadata,
 )
-from refiner_rt.preprocess import crop_to_square, resize_crop, validate_boxes, validate_image
+from refiner_rt.preprocess import MAX_BOX_COORDINATE, crop_to_square, resize_crop, validate_boxes, validate_image
 
-__all__ = ["RefinerSession", "RefineResult", "SMALL_BATCH", "MAX_VIEWS", "available_cores", "ray_quaternions",
-           "view_boxes", "view_offsets"]
+__all__ = ["RefinerSession", "RefineResult", "ModelError", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS",
+           "K_MAX_ABS", "K_MIN_FOCAL", "available_cores", "ray_quaternions", "view_boxes", "view_offsets"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +62,20 @@ log = logging.getLogger(__name__)
 # 90 us for the numpy path at any N up to 64, so the crossover is near 50 boxes.
 SMALL_BATCH = 32
 _MIN_NORM = 1e-12  # as refiner_rt.quaternion.as_quaternion: a smaller norm is a zero quaternion
+_INF = math.inf
+# Crops per call (boxes x views). Memory grows linearly with it: the crop batch takes S * S * 3 bytes per crop
+# (12 KB at 64 x 64, 147 KB at 224 x 224) and onnxruntime's activations most of the rest. Measured peak RSS
+# (batch 1 vs 256 vs 1024 crops, shallow and fusion, fp32 and INT8, 64 x 64): about 0.45 MB more per crop, so
+# +450 MB at the limit; a 224 x 224 network (VGG-M) needs roughly (224 / 64)^2 = 12x that per crop (not measured).
+# Split larger requests into several calls; large batches are not faster per box on a CPU (RESULTS.md: fusion INT8
+# ran fewer refinements/s at batch 32 than at batch 8).
+MAX_BATCH = 1024
+# iterations: each one is a network pass (the paper does 1); bounded so that a wrong value cannot run for hours.
+MAX_ITERATIONS = 16
+# K: pinhole form, focal lengths in [K_MIN_FOCAL, K_MAX_ABS] pixels and |skew|, |cx|, |cy| <= K_MAX_ABS. With box
+# coordinates within MAX_BOX_COORDINATE these keep the viewing-ray maths far from overflow.
+K_MIN_FOCAL = 1e-3
+K_MAX_ABS = 1e9
 # refine(views=K): the largest K, and the box jitter of the extra views as a fraction of the crop window (the
 # training's --augment box jitter, models.train.TrainConfig.box_jitter).
 MAX_VIEWS = 16
@@ -105,16 +133,15 @@ def _unit_rows(rows: list) -> list | None:
         rows: ``N`` lists ``[w, x, y, z]`` of floats.
 
     Returns:
-        ``N`` lists ``[w, x, y, z]``, or None when a row is non-finite or has a norm below 1e-12 (the caller
-        then takes the numpy path, which raises the detailed error).
+        ``N`` lists ``[w, x, y, z]``, or None when a row is non-finite, has a norm below 1e-12 or one whose
+        square overflows (components above ~1e154) (the caller then takes the numpy path, which raises the
+        detailed error or, for huge finite rows, scales them first).
     """
-    isfinite = math.isfinite
+    sqrt = math.sqrt
     out = []
     for w, x, y, z in rows:
-        if not (isfinite(w) and isfinite(x) and isfinite(y) and isfinite(z)):
-            return None
-        norm = math.sqrt(w * w + x * x + y * y + z * z)
-        if norm < _MIN_NORM:
+        norm = sqrt(w * w + x * x + y * y + z * z)
+        if not _MIN_NORM <= norm < _INF:  # also False for nan (any non-finite component gives nan or inf)
             return None
         w, x, y, z = w / norm, x / norm, y / norm, z / norm
         key = w if w != 0.0 else x if x != 0.0 else y if y != 0.0 else z
@@ -150,20 +177,26 @@ def _small_boxes(boxes, image_shape) -> tuple[np.ndarray, list] | None:
     """Fast path of :func:`validate_boxes` for up to :data:`SMALL_BATCH` well-formed ``(N, 4)`` numeric boxes.
 
     Returns:
-        ``(float64 (N, 4) array, N lists [x1, y1, x2, y2])`` when every box is finite, non-empty and overlaps
-        the image; None otherwise (the caller then runs :func:`validate_boxes`, which raises or converts).
+        ``(float64 (N, 4) array, N lists [x1, y1, x2, y2])`` when every box is finite, within
+        ``+-MAX_BOX_COORDINATE``, non-empty and overlaps the image; None otherwise (the caller then runs
+        :func:`validate_boxes`, which raises or converts).
     """
-    arr = boxes if isinstance(boxes, np.ndarray) else np.asarray(boxes)
+    if isinstance(boxes, np.ndarray):
+        arr = boxes
+    else:
+        try:
+            arr = np.asarray(boxes)
+        except (ValueError, TypeError):  # ragged: validate_boxes names it
+            return None
     if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 4 or len(arr) > SMALL_BATCH:
         return None
     arr = arr.astype(np.float64, copy=False)
     rows = arr.tolist()
     h, w = image_shape[0], image_shape[1]
-    isfinite = math.isfinite
+    lo, hi = -MAX_BOX_COORDINATE, MAX_BOX_COORDINATE
     for x1, y1, x2, y2 in rows:
-        if not (isfinite(x1) and isfinite(y1) and isfinite(x2) and isfinite(y2)):
-            return None
-        if not (x1 < x2 and y1 < y2 and x2 > 0 and y2 > 0 and x1 < w and y1 < h):
+        # chained comparisons are False for nan and inf, so they check finiteness too
+        if not (lo <= x1 < x2 <= hi and lo <= y1 < y2 <= hi and x2 > 0 and y2 > 0 and x1 < w and y1 < h):
             return None
     return arr, rows
 
@@ -248,19 +281,51 @@ def _ray_rows(K: np.ndarray, rows: list) -> list:
     return out
 
 
+_K_FORM = "[[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels"
+
+
 def _validate_K(K) -> np.ndarray:
-    arr = np.asarray(K)
+    """``K`` as a float64 ``(3, 3)`` pinhole matrix, or a ValueError naming ``K`` (see :data:`K_MAX_ABS`)."""
+    try:
+        arr = np.asarray(K)
+    except (ValueError, TypeError):  # ragged nested lists
+        raise ValueError(f"K must be a (3, 3) numeric intrinsics matrix {_K_FORM}; got a ragged sequence") from None
     if arr.dtype.kind not in "fiu" or arr.shape != (3, 3):
-        raise ValueError(f"K must be a (3, 3) numeric intrinsics matrix; got shape {arr.shape}, dtype {arr.dtype}")
+        raise ValueError(
+            f"K must be a (3, 3) numeric intrinsics matrix {_K_FORM}; got shape {arr.shape}, dtype {arr.dtype}"
+        )
     arr = arr.astype(np.float64, copy=False)  # read only from here on
     values = arr.ravel().tolist()  # checked on Python floats: a few times cheaper than numpy at 9 values
-    if not all(map(math.isfinite, values)) or values[0] <= 0 or values[4] <= 0:
-        raise ValueError(f"K must be finite with fx > 0 and fy > 0; got {arr.tolist()}")
+    fx, s, cx, k10, fy, cy, k20, k21, k22 = values
+    if not all(map(math.isfinite, values)):
+        raise ValueError(f"K must be finite, {_K_FORM}; got {arr.tolist()}")
+    if not (fx > 0 and fy > 0):
+        raise ValueError(f"K must have focal lengths fx > 0 and fy > 0, {_K_FORM}; got {arr.tolist()}")
+    if k10 != 0.0 or k20 != 0.0 or k21 != 0.0 or k22 != 1.0:
+        raise ValueError(f"K must have the pinhole form {_K_FORM} (an invertible camera matrix); got {arr.tolist()}")
+    if not (K_MIN_FOCAL <= fx <= K_MAX_ABS and K_MIN_FOCAL <= fy <= K_MAX_ABS and abs(s) <= K_MAX_ABS
+            and abs(cx) <= K_MAX_ABS and abs(cy) <= K_MAX_ABS):
+        raise ValueError(
+            f"K must have fx, fy in [{K_MIN_FOCAL:g}, {K_MAX_ABS:g}] pixels and |s|, |cx|, |cy| <= {K_MAX_ABS:g}; "
+            f"got {arr.tolist()}"
+        )
     return arr
+
+
+def _ort_message(exc: Exception) -> str:
+    """onnxruntime's error text on one line, without its ``[ONNXRuntimeError] : 7 :`` prefix."""
+    text = re.sub(r"^\[ONNXRuntimeError\] : \d+ : ", "", str(exc).strip())
+    text = " ".join(text.split())
+    return text if len(text) <= 400 else text[:400] + "..."
 
 
 class RefinerSession:
     """An onnxruntime session for a refiner-rt ONNX model, with the crop rule and composition built in.
+
+    Thread safety: one session may be called from many threads at once. Concurrent :meth:`refine` and
+    :meth:`refine_crops` calls give bit for bit the results of the same calls made one after the other: the reused
+    crop and ``q_in`` buffers are per calling thread and onnxruntime's ``run`` is thread-safe. There is no need for
+    a session per thread (each would hold its own copy of the weights).
 
     Args:
         model: path to a ``.onnx`` file, or the model's bytes.
@@ -277,6 +342,11 @@ class RefinerSession:
         object_id: the YCB id (or object name) the caller will refine. When given, the model must have been
             trained for it (metadata ``objects``), so one object is never refined with another's model.
 
+    Loading checks the whole contract before the first call: the metadata (:func:`refiner_rt.metadata.parse_metadata`:
+    known values in sane ranges), the graph's inputs and outputs (:func:`refiner_rt.metadata.check_graph`: names,
+    element types, shapes, a dynamic batch axis), and one trial run on a batch of two black crops, which checks
+    that the batch axis really is free and that ``q_out`` comes back ``(2, 4)``.
+
     Default session options, each chosen by measurement (``benchmarks/profile_refine.py`` and the notes in
     issue 6): graph optimisation ``ORT_ENABLE_ALL`` (``EXTENDED``/``BASIC`` ran 1.2-1.5x slower at batch 1;
     ALL adds layout transformations such as NCHWc convolutions), CPU memory arena and memory pattern on
@@ -286,9 +356,11 @@ class RefinerSession:
 
     Raises:
         FileNotFoundError: ``model`` is a path that does not exist.
-        ValueError: the model lacks the refiner-rt metadata contract, declares one this runtime does
-            not understand, or lacks the ``image`` / ``q_in`` inputs or ``q_out`` output; an unknown
-            or unavailable provider; a bad ``threads`` value; ``object_id`` not among the model's objects.
+        ModelError: (a ``ValueError``) the file is unreadable, empty, truncated or not ONNX; the model lacks the
+            refiner-rt metadata contract, declares one this runtime does not understand or with values out of
+            range, breaks the graph contract, or fails its trial run. The message names the file and the cause.
+        ValueError: an unknown or unavailable provider; a bad ``threads`` value; ``object_id`` not among the
+            model's objects.
 
     Example:
         >>> sess = RefinerSession("refiner.onnx", threads=1)
@@ -300,11 +372,23 @@ class RefinerSession:
                  object_id: str | None = None):
         if isinstance(model, (bytes, bytearray)):
             source, self.model_path = bytes(model), None
+            self._label = "<model bytes>"
+            if not source:
+                raise ModelError("<model bytes>: empty (0 bytes), not an ONNX model")
         elif isinstance(model, (str, os.PathLike)):
             path = Path(model)
             if not path.is_file():
                 raise FileNotFoundError(f"model file not found: {path}")
             source, self.model_path = str(path), path
+            self._label = str(path)
+            try:
+                size = path.stat().st_size
+                with open(path, "rb"):  # readable? (onnxruntime's own message for this is less clear)
+                    pass
+            except OSError as exc:
+                raise ModelError(f"{path}: cannot read the model file ({exc.strerror or exc})") from exc
+            if size == 0:
+                raise ModelError(f"{path}: the file is empty (0 bytes), not an ONNX model")
         else:
             raise TypeError(f"model must be a path or the ONNX model's bytes; got {type(model).__name__}")
         if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 0:
@@ -329,32 +413,21 @@ class RefinerSession:
             session_options.log_severity_level = 3
         else:
             self.threads = session_options.intra_op_num_threads
-        self._session = ort.InferenceSession(source, sess_options=session_options, providers=providers)
+        try:
+            self._session = ort.InferenceSession(source, sess_options=session_options, providers=providers)
+        except Exception as exc:  # onnxruntime's InvalidProtobuf, InvalidArgument, Fail, ... (all plain Exceptions)
+            raise ModelError(f"{self._label}: onnxruntime cannot load it as an ONNX model: {_ort_message(exc)}") from exc
 
-        self.contract: ModelContract = parse_metadata(self._session.get_modelmeta().custom_metadata_map)
-        inputs = {i.name: i for i in self._session.get_inputs()}
-        outputs = {o.name: o for o in self._session.get_outputs()}
-        missing = [n for n in (INPUT_IMAGE, INPUT_QUATERNION) if n not in inputs]
-        missing += [n for n in (OUTPUT_QUATERNION,) if n not in outputs]
-        if missing:
-            raise ValueError(
-                f"model graph lacks {missing}: expected inputs {[INPUT_IMAGE, INPUT_QUATERNION]} and output "
-                f"{OUTPUT_QUATERNION!r}; got inputs {sorted(inputs)} and outputs {sorted(outputs)}"
-            )
-        img = inputs[INPUT_IMAGE]
-        if img.type != "tensor(uint8)":
-            raise ValueError(f"model input {INPUT_IMAGE!r} must be uint8 (batch, S, S, 3); the graph declares {img.type}")
-        s = self.contract.input_size
-        declared = list(img.shape)
-        if len(declared) != 4 or any(isinstance(d, int) and d != e for d, e in zip(declared[1:], (s, s, 3))):
-            raise ValueError(
-                f"model input {INPUT_IMAGE!r} has shape {declared}; the metadata's input_size={s} expects (batch, {s}, {s}, 3)"
-            )
-        self._buffer = np.zeros((0, s, s, 3), dtype=np.uint8)
-        self._q32 = np.zeros((0, 4), dtype=np.float32)
+        try:
+            self.contract: ModelContract = parse_metadata(self._session.get_modelmeta().custom_metadata_map)
+            check_graph(self._session.get_inputs(), self._session.get_outputs(), self.contract.input_size)
+        except ValueError as exc:
+            raise ModelError(f"{self._label}: {exc}") from None
         self._output_names = [OUTPUT_QUATERNION]
         self._rgb = self.contract.channel_order == "RGB"
         self._ray = self.contract.rotation_frame == "ray"
+        self._trial_run()
+        self._local = threading.local()  # per-thread reusable buffers (see _buffers)
         if object_id is not None:
             if not isinstance(object_id, str):
                 raise TypeError(f"object_id must be a string such as '003_cracker_box'; got {type(object_id).__name__}")
@@ -410,15 +483,22 @@ class RefinerSession:
     def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, iterations: int = 1, K=None, views: int = 1) -> RefineResult:
         """Refine the rotations of ``N`` objects seen in one image.
 
+        Safe to call from several threads at once on one session (see the class docstring).
+
         Args:
             image_bgr: ``H x W x 3`` ``uint8`` image, **BGR** channel order.
             boxes_xyxy: ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels (float, continuous
-                coordinates); each must be non-empty and overlap the image.
+                coordinates); each must be non-empty, overlap the image and have coordinates within
+                ``+-MAX_BOX_COORDINATE`` (1e6) pixels. ``N * views`` at most :data:`MAX_BATCH` (1024).
             q_in_wxyz: ``(N, 4)`` coarse object-to-camera rotations, ``wxyz``. Finite and
-                non-zero; non-unit quaternions are normalised (their norm carries no rotation).
-            iterations: feed the refined rotation back this many times (``>= 1``; the paper does 1).
-            K: ``(3, 3)`` camera intrinsics. Required by models trained in the viewing-ray frame
-                (metadata ``rotation_frame == "ray"``), unused by ``"camera"`` models.
+                non-zero; non-unit quaternions are normalised (their norm carries no rotation; huge
+                components are scaled down first, so any finite non-zero quaternion works).
+            iterations: feed the refined rotation back this many times (``1`` to :data:`MAX_ITERATIONS`;
+                the paper does 1).
+            K: ``(3, 3)`` camera intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels, finite,
+                ``fx, fy`` in ``[K_MIN_FOCAL, K_MAX_ABS]``, ``|s|, |cx|, |cy| <= K_MAX_ABS``. Required by models
+                trained in the viewing-ray frame (metadata ``rotation_frame == "ray"``), checked but unused by
+                ``"camera"`` models.
             views: refine each object from this many crops and average the corrections (chordal mean,
                 :func:`refiner_rt.quaternion.mean`): the box itself and ``views - 1`` fixed jitters of it (window
                 centre shifted and side scaled by up to 5%, as the training's ``--augment`` box jitter), in one
@@ -426,10 +506,11 @@ class RefinerSession:
                 with ``--augment`` (``benchmarks/averaging.py`` measures it). ``1`` to :data:`MAX_VIEWS`.
 
         Returns:
-            :class:`RefineResult` with ``q_refined`` ``(N, 4)`` float64 ``wxyz``, ``w >= 0``.
+            :class:`RefineResult` with ``q_refined`` ``(N, 4)`` float64 ``wxyz``, ``w >= 0``, finite and unit.
 
         Raises:
             ValueError / TypeError: a bad argument, named with what was expected and what was given.
+            ModelError: the network failed or returned a non-finite or zero ``q_out``.
         """
         image = validate_image(image_bgr, "image_bgr")
         small = _small_boxes(boxes_xyxy, image.shape)
@@ -438,11 +519,15 @@ class RefinerSession:
             rows = boxes
         else:
             boxes, rows = small
-        q_in, q_rows = self._q_in(q_in_wxyz, len(boxes), "boxes_xyxy")
-        if type(iterations) is not int or iterations < 1:
+        if type(iterations) is not int or not 1 <= iterations <= MAX_ITERATIONS:
             iterations = self._validate_iterations(iterations)
         if type(views) is not int or views != 1:
             views = self._validate_views(views)
+        n = len(boxes)
+        if small is None or views > 1:
+            self._check_batch(n, views, "boxes_xyxy")
+        q_in, q_rows = self._q_in(q_in_wxyz, n, "boxes_xyxy")
+        if views > 1:
             q_rows, small = None, None  # the averaged path runs on numpy arrays
         q_frame = None
         if self._ray:
@@ -452,35 +537,38 @@ class RefinerSession:
                     "pass the (3, 3) camera intrinsics"
                 )
             K = _validate_K(K)
-            if small is not None and _is_pinhole(K):
-                q_frame = _ray_rows(K, rows)
-            else:
-                q_frame = ray_quaternions(K, boxes)
+            q_frame = _ray_rows(K, rows) if small is not None else ray_quaternions(K, boxes)
         elif K is not None:
             _validate_K(K)
         size, context = self.contract.input_size, self.contract.crop_context
         if views > 1:
             rows = view_boxes(boxes, views, context)
-        crops = self._crops(len(rows))
+        crops, q_net = self._buffers(len(rows))
         for i, box in enumerate(rows):
             crop_to_square(image, box, size, context, out=crops[i])
-        return self._run(crops, q_in, q_rows, iterations, q_frame, views)
+        return self._run(crops, q_net, q_in, q_rows, iterations, q_frame, views)
 
     def refine_crops(self, crops_bgr, q_in_wxyz, iterations: int = 1) -> RefineResult:
         """Refine rotations from crops that are already cut out (the crop window, any size).
 
         Each crop is resampled to ``S x S`` with the crop rule's warp (``context = 1``: the crop is
         taken to be the whole window; a non-square crop is zero-padded on its short side).
+        Safe to call from several threads at once on one session (see the class docstring).
 
         Args:
-            crops_bgr: a sequence of ``h x w x 3`` ``uint8`` BGR crops, or an ``(N, h, w, 3)`` array.
+            crops_bgr: a sequence of ``h x w x 3`` ``uint8`` BGR crops, or an ``(N, h, w, 3)`` array;
+                ``N`` at most :data:`MAX_BATCH`.
             q_in_wxyz: ``(N, 4)`` coarse rotations, ``wxyz``, in the model's rotation frame (for a
                 ``"ray"`` model: relative to each crop's viewing ray; use :meth:`refine` with ``K``
                 to have that done for you).
-            iterations: refinement iterations (``>= 1``).
+            iterations: refinement iterations (``1`` to :data:`MAX_ITERATIONS`).
 
         Returns:
             :class:`RefineResult`.
+
+        Raises:
+            ValueError / TypeError: a bad argument, named with what was expected and what was given.
+            ModelError: the network failed or returned a non-finite or zero ``q_out``.
         """
         if isinstance(crops_bgr, np.ndarray) and crops_bgr.ndim == 4:
             crops_list = list(crops_bgr)
@@ -492,17 +580,18 @@ class RefinerSession:
                 f"got {type(crops_bgr).__name__}"
                 + (f" of shape {crops_bgr.shape}" if isinstance(crops_bgr, np.ndarray) else "")
             )
+        self._check_batch(len(crops_list), 1, "crops_bgr")
         for i, c in enumerate(crops_list):
             validate_image(c, f"crops_bgr[{i}]")
         q_in, q_rows = self._q_in(q_in_wxyz, len(crops_list), "crops_bgr")
         iterations = self._validate_iterations(iterations)
-        crops = self._crops(len(crops_list))
+        crops, q_net = self._buffers(len(crops_list))
         for i, c in enumerate(crops_list):
             if c.shape[0] == self.input_size and c.shape[1] == self.input_size:
                 crops[i] = c
             else:
                 resize_crop(np.ascontiguousarray(c), self.input_size, out=crops[i])
-        return self._run(crops, q_in, q_rows, iterations, None)
+        return self._run(crops, q_net, q_in, q_rows, iterations, None)
 
     # ------------------------------------------------------------------ internals
     def _q_in(self, q, n: int, other: str) -> tuple[np.ndarray, list | None]:
@@ -510,7 +599,12 @@ class RefinerSession:
         ``0 < n <= SMALL_BATCH`` well-formed input, else None. Anything unusual takes :meth:`_validate_q`, which
         raises the detailed errors."""
         if 0 < n <= SMALL_BATCH:
-            arr = q if isinstance(q, np.ndarray) else np.asarray(q)
+            arr = q
+            if not isinstance(q, np.ndarray):
+                try:
+                    arr = np.asarray(q)
+                except (ValueError, TypeError):  # ragged: _validate_q names it
+                    return self._validate_q(q, n, other), None
             if arr.dtype.kind in "fiu" and arr.shape == (n, 4):
                 rows = _unit_rows(arr.astype(np.float64, copy=False).tolist())
                 if rows is not None:
@@ -518,6 +612,8 @@ class RefinerSession:
         return self._validate_q(q, n, other), None
 
     def _validate_q(self, q, n: int, other: str) -> np.ndarray:
+        if isinstance(q, (list, tuple, np.ndarray)) and len(q) == 0 and np.ndim(q) == 1:
+            q = np.zeros((0, 4))  # [] : no rotations (as boxes_xyxy=[] is no boxes)
         q = rq.as_quaternion(q, "q_in_wxyz")
         if q.ndim == 1:
             q = q[None]
@@ -529,8 +625,9 @@ class RefinerSession:
 
     @staticmethod
     def _validate_iterations(iterations) -> int:
-        if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
-            raise ValueError(f"iterations must be an integer >= 1; got {iterations!r}")
+        if (isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer))
+                or not 1 <= iterations <= MAX_ITERATIONS):
+            raise ValueError(f"iterations must be an integer from 1 to {MAX_ITERATIONS}; got {iterations!r}")
         return int(iterations)
 
     @staticmethod
@@ -539,31 +636,68 @@ class RefinerSession:
             raise ValueError(f"views must be an integer from 1 to {MAX_VIEWS}; got {views!r}")
         return int(views)
 
-    def _crops(self, n: int) -> np.ndarray:
-        """A view of ``n`` crops in the reusable uint8 batch buffer (grown when needed)."""
-        if len(self._buffer) < n:
+    @staticmethod
+    def _check_batch(n: int, views: int, name: str) -> None:
+        if n * views > MAX_BATCH:
+            per = f" x views={views} = {n * views} crops" if views > 1 else ""
+            raise ValueError(
+                f"{name} has {n} entries{per}: at most MAX_BATCH={MAX_BATCH} crops per call (boxes x views); "
+                "split them over several calls"
+            )
+
+    def _buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Views of ``n`` crops and ``n`` float32 ``q_in`` rows in this thread's reusable buffers (grown when
+        needed). Per thread, so that concurrent calls never share them."""
+        try:
+            crops, q32 = self._local.buffers
+        except AttributeError:  # this thread's first call
+            crops = q32 = ()
+        if len(crops) < n:
             s = self.input_size
-            self._buffer = np.zeros((max(n, 2 * len(self._buffer)), s, s, 3), dtype=np.uint8)
-        return self._buffer[:n]
+            crops = np.zeros((max(n, 2 * len(crops)), s, s, 3), dtype=np.uint8)
+            q32 = np.zeros((len(crops), 4), dtype=np.float32)
+            self._local.buffers = crops, q32
+        return crops[:n], q32[:n]
 
-    def _q_net(self, n: int) -> np.ndarray:
-        """A view of ``n`` rows of the reusable float32 ``q_in`` input buffer (grown when needed)."""
-        if len(self._q32) < n:
-            self._q32 = np.zeros((max(n, 2 * len(self._q32)), 4), dtype=np.float32)
-        return self._q32[:n]
+    def _trial_run(self) -> None:
+        """Run the network once on two black crops: the batch axis must be free and ``q_out`` ``(2, 4)`` float32."""
+        s = self.input_size
+        feed = {INPUT_IMAGE: np.zeros((2, s, s, 3), dtype=np.uint8), INPUT_QUATERNION: np.tile(
+            np.array([[1.0, 0.0, 0.0, 0.0]], dtype=np.float32), (2, 1))}
+        try:
+            out = self._session.run(self._output_names, feed)[0]
+        except Exception as exc:  # onnxruntime's own types
+            raise ModelError(
+                f"{self._label}: the network fails on a trial batch of 2 black {s}x{s} crops: {_ort_message(exc)}"
+            ) from exc
+        if not isinstance(out, np.ndarray) or out.shape != (2, 4) or out.dtype != np.float32:
+            got = f"shape {out.shape}, dtype {out.dtype}" if isinstance(out, np.ndarray) else type(out).__name__
+            raise ModelError(
+                f"{self._label}: output {OUTPUT_QUATERNION!r} must be (batch, 4) float32; a trial batch of 2 gave {got}"
+            )
 
-    def _run(self, crops: np.ndarray, q_in: np.ndarray, q_rows: list | None, iterations: int, q_frame,
-             views: int = 1) -> RefineResult:
+    def _bad_output(self, out: np.ndarray) -> ModelError:
+        """The error for a ``q_out`` batch with a non-finite or zero row (found by the fast or numpy path)."""
+        out64 = out.astype(np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            bad = ~np.isfinite(out64).all(axis=1) | ~(np.linalg.norm(out64, axis=1) >= _MIN_NORM)
+        i = int(np.argmax(bad))
+        return ModelError(
+            f"{self._label}: the network returned q_out[{i}] = {out[i].tolist()}: expected a finite, non-zero "
+            "quaternion (wxyz)"
+        )
+
+    def _run(self, crops: np.ndarray, q_net: np.ndarray, q_in: np.ndarray, q_rows: list | None, iterations: int,
+             q_frame, views: int = 1) -> RefineResult:
         """Run the network ``iterations`` times and compose; Python floats when ``q_rows`` is given, else numpy.
         With ``views > 1`` (numpy only) ``crops`` holds ``views`` crops per object, object-major, and each pass
-        averages their corrections."""
+        averages their corrections. ``crops`` and ``q_net`` are this thread's buffers (see :meth:`_buffers`)."""
         n = len(q_in)
         if n == 0:
             empty = np.zeros((0, 4))
             return RefineResult(q_refined=empty, q_out=empty.copy(), q_in=empty.copy())
         if self._rgb:
             crops = np.ascontiguousarray(crops[..., ::-1])
-        q_net = self._q_net(n * views)
         feed = {INPUT_IMAGE: crops, INPUT_QUATERNION: q_net}
         # The network sees rotations in its own frame; for "ray" models q_net = q_ray^-1 * q.
         # q_refined = q_prev * q_out holds in either frame (q_ray * (q_ray^-1 q) * q_out = q * q_out).
@@ -581,18 +715,30 @@ class RefinerSession:
             else:
                 q_cur = rq.multiply(frame_inv, q) if q_rows is None else _multiply_rows(frame_inv, q)
             q_net[...] = q_cur if views == 1 else np.repeat(q_cur, views, axis=0)
-            out = self._session.run(self._output_names, feed)[0]
-            if views > 1:
-                q_out = rq.mean(rq.normalize(out.astype(np.float64)).reshape(n, views, 4), axis=1)
-                q = rq.normalize(rq.multiply(q, q_out))
-            elif q_rows is not None:
+            try:
+                out = self._session.run(self._output_names, feed)[0]
+            except Exception as exc:  # onnxruntime's own types: the inputs were checked, so the model failed
+                raise ModelError(
+                    f"{self._label}: the network failed on a batch of {len(q_net)}: {_ort_message(exc)}"
+                ) from exc
+            if out.shape != q_net.shape:
+                raise ModelError(
+                    f"{self._label}: output {OUTPUT_QUATERNION!r} has shape {out.shape} for a batch of {len(q_net)}; "
+                    f"expected {q_net.shape}"
+                )
+            if q_rows is not None:
                 q_out = _unit_rows(out.tolist())
-                if q_out is None:  # a non-finite or zero model output: rq.normalize raises the detailed error
-                    rq.normalize(out.astype(np.float64))
+                if q_out is None:
+                    raise self._bad_output(out)
                 q = _unit_rows(_multiply_rows(q, q_out))  # unit * unit: always finite and unit
-            else:
+                continue
+            try:
                 q_out = rq.normalize(out.astype(np.float64))
-                q = rq.normalize(rq.multiply(q, q_out))
+            except ValueError:
+                raise self._bad_output(out) from None
+            if views > 1:
+                q_out = rq.mean(q_out.reshape(n, views, 4), axis=1)
+            q = rq.normalize(rq.multiply(q, q_out))
         if q_rows is not None:
             q, q_out = np.array(q), np.array(q_out)
         return RefineResult(q_refined=q, q_out=q_out, q_in=q_in)

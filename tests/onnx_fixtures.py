@@ -97,3 +97,59 @@ def q_echo_model(size: int = 8, props: dict[str, str] | None = None) -> bytes:
     """A model with ``q_out = q_in`` (reveals the rotation the graph was given, e.g. in the ray frame)."""
     nodes = [helper.make_node("Identity", [INPUT_QUATERNION], [OUTPUT_QUATERNION])]
     return _model(nodes, [], size, contract(input_size=size) if props is None else props)
+
+
+def random_weight_model(size: int = 8, hidden: int = 16, seed: int = 0, props: dict[str, str] | None = None) -> bytes:
+    """A small network with fixed random weights: ``q_out = normalize(q_in + tanh(x W1 + q_in W2) W3)``, ``x`` the
+    crop's pixels / 255 flattened.
+
+    Every pixel and every ``q_in`` component reaches the output through float matrix products (onnxruntime's MLAS
+    kernels, as in the real refiners), so a crop or rotation mixed up between two calls changes the result.
+    """
+    rng = np.random.default_rng(seed)
+    n_pix = size * size * 3
+    w1 = (rng.standard_normal((n_pix, hidden)) / np.sqrt(n_pix)).astype(np.float32)
+    w2 = rng.standard_normal((4, hidden)).astype(np.float32)
+    w3 = (0.3 * rng.standard_normal((hidden, 4))).astype(np.float32)
+    inits = [
+        helper.make_tensor("flat", TensorProto.INT64, [2], [0, -1]),
+        helper.make_tensor("scale", TensorProto.FLOAT, [1], [1.0 / 255.0]),
+        helper.make_tensor("w1", TensorProto.FLOAT, list(w1.shape), w1.ravel().tolist()),
+        helper.make_tensor("w2", TensorProto.FLOAT, list(w2.shape), w2.ravel().tolist()),
+        helper.make_tensor("w3", TensorProto.FLOAT, list(w3.shape), w3.ravel().tolist()),
+        helper.make_tensor("last", TensorProto.INT64, [1], [1]),
+    ]
+    nodes = [
+        helper.make_node("Cast", [INPUT_IMAGE], ["imgf"], to=TensorProto.FLOAT),
+        helper.make_node("Reshape", ["imgf", "flat"], ["x0"]),
+        helper.make_node("Mul", ["x0", "scale"], ["x"]),
+        helper.make_node("MatMul", ["x", "w1"], ["h_img"]),
+        helper.make_node("MatMul", [INPUT_QUATERNION, "w2"], ["h_q"]),
+        helper.make_node("Add", ["h_img", "h_q"], ["h_sum"]),
+        helper.make_node("Tanh", ["h_sum"], ["h"]),
+        helper.make_node("MatMul", ["h", "w3"], ["dq"]),
+        helper.make_node("Add", [INPUT_QUATERNION, "dq"], ["q"]),
+        helper.make_node("ReduceL2", ["q", "last"], ["n"], keepdims=1),
+        helper.make_node("Div", ["q", "n"], [OUTPUT_QUATERNION]),
+    ]
+    return _model(nodes, inits, size, contract(input_size=size) if props is None else props)
+
+
+def graph_model(nodes, inputs, outputs, initializers=(), props: dict[str, str] | None = None) -> bytes:
+    """A model with any inputs and outputs, each ``(name, TensorProto type, shape)``: for contract-breaking tests.
+
+    ``props`` defaults to a valid contract for ``input_size=8``.
+    """
+    graph = helper.make_graph(
+        nodes,
+        "test_graph",
+        [helper.make_tensor_value_info(n, t, s) for n, t, s in inputs],
+        [helper.make_tensor_value_info(n, t, s) for n, t, s in outputs],
+        initializer=list(initializers),
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    for k, v in (contract() if props is None else props).items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = k, v
+    return model.SerializeToString()

@@ -176,6 +176,8 @@ def test_bench_help_and_bad_options():
     assert res.exit_code != 0 and "ARCH:JSON" in res.output
     res = CliRunner().invoke(main, ["bench", "--archs", ""])
     assert res.exit_code != 0 and "nothing to benchmark" in res.output
+    res = CliRunner().invoke(main, ["bench", "--batch", "1,2000"])
+    assert res.exit_code == 2 and "at most 1024" in res.output
 
 
 def _disk_with_free(nbytes):
@@ -207,3 +209,28 @@ def test_a_write_that_fails_on_a_full_disk_is_reported_as_such(tmp_path, monkeyp
     with pytest.raises(RuntimeError, match="unrelated"):
         with bench._disk_full_is_clear(tmp_path, 1, "vggm"):
             raise RuntimeError("unrelated")
+
+
+def test_machine_info_records_the_cpu_vector_flags():
+    flags = bench.machine_info()["cpu_flags"]
+    assert isinstance(flags, list) and all(f.startswith(bench._SIMD_FLAG_PREFIXES) for f in flags)
+
+
+def test_soak_reports_rss_over_the_calls_from_threads_sharing_one_session(tmp_path, capsys):
+    module = load_benchmark("soak")
+    model = tmp_path / "m.onnx"
+    model.write_bytes(fx.random_weight_model(size=16, props=fx.contract(input_size=16)))
+    out = tmp_path / "soak.json"
+    argv = ["--model", str(model), "--calls", "600", "--warmup", "200", "--every", "50", "--callers", "3",
+            "--json", str(out)]
+    assert module.main(argv) == 0
+    assert "growth after warm-up" in capsys.readouterr().out
+    d = json.loads(out.read_text())
+    assert d["calls"] == 600 and d["callers"] == 3 and d["torch_imported"] is False
+    assert d["results_differing_from_the_first"] == 0
+    assert [i for i, _ in d["samples"]] == list(range(50, 601, 50))
+    assert "cpu_flags" in d["machine"] and d["rss_end"] > 0 and d["peak_rss"] > 0
+    for key in ("growth_after_warmup", "growth_second_half", "slope_bytes_per_1000_calls", "calls_per_s"):
+        assert isinstance(d[key], (int, float))
+    with pytest.raises(SystemExit):
+        module.main(["--model", str(model), "--calls", "100", "--warmup", "100"])

@@ -70,3 +70,101 @@ def test_bench_rejects_bad_options():
     assert res.exit_code != 0 and "batch" in res.output
     res = CliRunner().invoke(main, ["bench", "--threads", "many"])
     assert res.exit_code != 0 and "thread counts" in res.output
+
+
+# ---------------------------------------------------------------- bad files: a one-line error, never a traceback
+import numpy as np  # noqa: E402
+from onnx import TensorProto, helper  # noqa: E402
+
+from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION  # noqa: E402
+
+
+def _fixed_batch_model() -> bytes:
+    """A refiner whose batch axis is fixed to 1: it loads in onnxruntime but breaks the contract."""
+    graph = helper.make_graph(
+        [helper.make_node("Identity", [INPUT_QUATERNION], [OUTPUT_QUATERNION])],
+        "fixed_batch",
+        [helper.make_tensor_value_info(INPUT_IMAGE, TensorProto.UINT8, [1, 8, 8, 3]),
+         helper.make_tensor_value_info(INPUT_QUATERNION, TensorProto.FLOAT, [1, 4])],
+        [helper.make_tensor_value_info(OUTPUT_QUATERNION, TensorProto.FLOAT, [1, 4])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    helper.set_model_props(model, fx.contract())
+    return model.SerializeToString()
+
+
+@pytest.fixture(scope="module")
+def bad_files(tmp_path_factory):
+    """Corrupt inputs of every kind a subcommand reads: ``{name: path}`` (and an empty dataset folder)."""
+    d = tmp_path_factory.mktemp("bad")
+    rng = np.random.default_rng(39)
+    files = {
+        "random.onnx": rng.integers(0, 256, 4096, dtype=np.uint8).tobytes(),
+        "empty.onnx": b"",
+        "truncated.onnx": fx.constant_model([1, 0, 0, 0])[:200],
+        "fixed_batch.onnx": _fixed_batch_model(),
+        "random.pt": rng.integers(0, 256, 4096, dtype=np.uint8).tobytes(),
+    }
+    out = {}
+    for name, data in files.items():
+        out[name] = d / name
+        out[name].write_bytes(data)
+    out["data"] = d / "data"
+    out["data"].mkdir()
+    scene = d / "bop" / "000000"  # a BOP split whose ground truth is not JSON
+    scene.mkdir(parents=True)
+    (scene / "scene_gt.json").write_text("{not json")
+    out["bop"] = scene.parent
+    mesh = d / "meshes" / "003_cracker_box"  # a YCB-Video-style mesh folder whose mesh is random bytes
+    mesh.mkdir(parents=True)
+    (mesh / "textured_simple.obj").write_bytes(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    out["meshes"] = mesh.parent
+    out["tmp"] = d
+    return out
+
+
+# (subcommand arguments with {placeholders}, the file the error line must name)
+BAD_INVOCATIONS = [
+    (["info", "{random.onnx}"], "random.onnx"),
+    (["info", "{empty.onnx}"], "empty.onnx"),
+    (["info", "{truncated.onnx}"], "truncated.onnx"),
+    (["info", "{random.pt}"], "random.pt"),
+    (["info", "{fixed_batch.onnx}"], "fixed_batch.onnx"),
+    (["bench", "--model", "{random.onnx}", "--batch", "1", "--threads", "1", "--seconds", "0.05", "--no-torch"],
+     "random.onnx"),
+    (["bench", "--model", "{fixed_batch.onnx}", "--batch", "1", "--threads", "1", "--seconds", "0.05", "--no-torch"],
+     "fixed_batch.onnx"),
+    (["eval", "{random.onnx}", "--data", "{data}"], "random.onnx"),
+    (["eval", "{truncated.onnx}", "--data", "{data}"], "truncated.onnx"),
+    (["eval", "{random.pt}", "--data", "{data}"], "random.pt"),
+    (["export", "{random.pt}"], "random.pt"),
+    (["train", "--data", "{data}", "--out", "{tmp}/o.pt", "--base", "{random.pt}"], "random.pt"),
+    (["train", "--data", "{bop}", "--out", "{tmp}/o.pt"], "scene_gt.json"),
+    (["render", "--preview", "{tmp}/p.png", "--data", "{bop}"], "scene_gt.json"),
+    (["render", "--out", "{tmp}/scenes", "--frames", "1", "--models", "{meshes}", "--objects", "003_cracker_box",
+      "--width", "64", "--height", "48", "--quiet"], "textured_simple.obj"),
+]
+
+
+@pytest.mark.parametrize("args,names", BAD_INVOCATIONS, ids=lambda v: " ".join(v[:2]) if isinstance(v, list) else v)
+def test_every_subcommand_fed_a_bad_file_fails_with_one_error_line(bad_files, args, names):
+    argv = []
+    for a in args:
+        for key, path in bad_files.items():
+            a = a.replace("{" + key + "}", str(path))
+        argv.append(a)
+    res = CliRunner().invoke(main, argv)
+    assert res.exit_code != 0, res.output
+    assert isinstance(res.exception, SystemExit), f"uncaught {type(res.exception).__name__}: {res.exception}"
+    assert "Traceback" not in res.output
+    errors = [line for line in res.output.splitlines() if line.startswith("Error:")]
+    assert len(errors) == 1 and names in errors[0], res.output
+
+
+# Subcommands that read no file of the user's; their bad-input tests live beside their module's tests.
+NO_USER_FILE = {"models"}  # the package's own index: tests/test_pretrained.py feeds it a corrupt one
+
+
+def test_every_subcommand_is_covered_by_a_bad_file_test():
+    assert {args[0] for args, _ in BAD_INVOCATIONS} == set(LAZY_COMMANDS) - NO_USER_FILE

@@ -1,5 +1,8 @@
 """export: ONNX graph contract, metadata, parity (enforced), OpenCV cv2.dnn agreement, and `refiner-rt export`."""
 
+import os
+import stat
+
 import numpy as np
 import onnx
 import onnxruntime as ort
@@ -10,7 +13,7 @@ from test_models import small_config
 
 import export
 import models
-from export import parity
+from export import onnx_export, parity
 from models.checkpoint import file_sha256
 from refiner_rt import __version__
 from refiner_rt.cli import main as cli_main
@@ -176,10 +179,16 @@ def test_cli_export_help():
 
 def test_cli_export_default_shallow(tmp_path):
     torch.manual_seed(0)
-    ckpt = models.save_checkpoint(models.build_refiner("shallow"), tmp_path / "paper.pt", **INFO)
-    out = tmp_path / "paper_fp32.onnx"
-    result = CliRunner().invoke(cli_main, ["export", str(ckpt), "-o", str(out), "--opset", "18"])
+    previous = os.umask(0o022)
+    try:
+        ckpt = models.save_checkpoint(models.build_refiner("shallow"), tmp_path / "paper.pt", **INFO)
+        out = tmp_path / "paper_fp32.onnx"
+        result = CliRunner().invoke(cli_main, ["export", str(ckpt), "-o", str(out), "--opset", "18"])
+    finally:
+        os.umask(previous)
     assert result.exit_code == 0, result.output
+    # written with the user's umask, as any new file (tempfile.mkstemp's 0600 would leave them private)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o644 and stat.S_IMODE(ckpt.stat().st_mode) == 0o644
     assert "parity OK: max |dq| = " in result.output and str(out) in result.output and " MB" in result.output
     proto = onnx.load(str(out), load_external_data=False)
     contract = parse_metadata({p.key: p.value for p in proto.metadata_props})
@@ -204,6 +213,33 @@ def test_cli_export_errors(tmp_path):
     result = runner.invoke(cli_main, ["export", str(ckpt), "-o", str(tmp_path / "nodir" / "m.onnx")])
     assert result.exit_code == 2 and "does not exist" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.pt", "s.pt"]
+
+
+def test_cli_export_into_an_unwritable_folder_is_one_error_line(monkeypatch, tmp_path):
+    runner = CliRunner()
+    ckpt = models.save_checkpoint(models.build_refiner("shallow", **small_config("shallow")), tmp_path / "s.pt")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        with monkeypatch.context() as m:
+            if os.access(locked, os.W_OK):  # root writes anywhere: let the check see the folder as others do
+                real = os.access
+                m.setattr(os, "access", lambda path, mode, **kw: str(path) != str(locked) and real(path, mode, **kw))
+            result = runner.invoke(cli_main, ["export", str(ckpt), "-o", str(locked / "m.onnx")])
+        assert result.exit_code == 2 and "is not writable" in result.output, result.output
+        assert "Traceback" not in result.output and list(locked.iterdir()) == []
+    finally:
+        locked.chmod(0o700)
+
+    def refuse(path):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    # the folder passes the check but the write fails (a read-only mount, a race): still one line, exit 1
+    monkeypatch.setattr(onnx_export, "new_temp_file_beside", refuse)
+    result = runner.invoke(cli_main, ["export", str(ckpt), "-o", str(tmp_path / "m.onnx")])
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
+    assert "Traceback" not in result.output and "cannot write" in result.output and "Permission denied" in result.output
 
 
 def test_cli_export_parity_failure_exits_nonzero(monkeypatch, tmp_path):

@@ -108,3 +108,13 @@ def test_every_shipped_model_loads_and_refines(model):
         res = sess.refine(image, [[250.0, 160.0, 390.0, 330.0]], q_in, K=K)
         assert res.q_refined.shape == (1, 4) and np.isfinite(res.q_refined).all()
         assert abs(np.linalg.norm(res.q_refined) - 1) < 1e-9 and res.q_refined[0, 0] >= 0
+
+
+def test_a_corrupt_index_is_one_error_line(tmp_path, monkeypatch):
+    (tmp_path / pt.INDEX_FILE).write_text("{not json")
+    monkeypatch.setattr(pt, "WEIGHTS_DIR", tmp_path)
+    with pytest.raises(ValueError, match="models.json: the pretrained models' index is unreadable"):
+        pt.pretrained_models()
+    res = CliRunner().invoke(main, ["models"])
+    assert res.exit_code == 1 and isinstance(res.exception, SystemExit) and "Traceback" not in res.output
+    assert res.output.startswith("Error: cannot list the pretrained models:") and "models.json" in res.output

@@ -176,7 +176,7 @@ def test_empty_batch_returns_empty_result():
         (dict(q_in_wxyz=np.zeros((3, 4))), "zero quaternion"),
         (dict(q_in_wxyz=np.full((3, 4), np.nan)), "finite"),
         (dict(q_in_wxyz=np.ones((3, 3))), r"shape \(\.\.\., 4\)"),
-        (dict(iterations=0), "iterations must be an integer >= 1"),
+        (dict(iterations=0), "iterations must be an integer from 1 to 16"),
         (dict(views=0), "views must be an integer from 1 to 16"),
         (dict(views=17), "views must be an integer from 1 to 16"),
         (dict(views=2.0), "views must be an integer from 1 to 16"),
@@ -344,8 +344,8 @@ def test_lean_path_accepts_lists_and_other_numeric_dtypes():
         (dict(q_in_wxyz=[[1, 0, 0, 0], [1, 0, 0, np.inf], [1, 0, 0, 0]]), "finite"),
         (dict(q_in_wxyz=[[1, 0, 0, 0], [0, 0, 0, 1e-13], [1, 0, 0, 0]]), "zero quaternion"),
         (dict(q_in_wxyz=np.array([[True, False, False, False]] * 3)), "numeric"),
-        (dict(iterations=1.0), "iterations must be an integer >= 1"),
-        (dict(iterations=True), "iterations must be an integer >= 1"),
+        (dict(iterations=1.0), "iterations must be an integer from 1 to 16"),
+        (dict(iterations=True), "iterations must be an integer from 1 to 16"),
     ],
 )
 def test_fast_paths_fall_back_to_the_detailed_errors(kwargs, match):
@@ -383,3 +383,453 @@ def test_threads_does_what_it_says():
     options.intra_op_num_threads = 3
     assert RefinerSession(model, threads=1, session_options=options).threads == 3
     del one, two, every
+
+
+# ---------------------------------------------------------------- one session shared by many threads
+import threading  # noqa: E402
+
+
+def _thread_calls(count: int, seed: int, ray: bool) -> list[tuple]:
+    """``count`` distinct calls: mostly batch 1 (the fast path), some 3 boxes with 2 iterations, 37 boxes (the
+    numpy path), 3 views, and refine_crops on crops of other sizes; each with its own image, boxes and rotations."""
+    rng = np.random.default_rng(seed)
+    K = K_TEST if ray else None
+    calls = []
+    for i in range(count):
+        image = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+        kind = i % 10
+        n = {7: 3, 8: session_module.SMALL_BATCH + 5}.get(kind, 1 if kind != 9 else 2)
+        side = rng.uniform(6, 30, n)
+        cx, cy = rng.uniform(0, 64, n), rng.uniform(0, 48, n)
+        boxes = np.stack([cx - side / 2, cy - side / 2, cx + side / 2, cy + side * 0.4], axis=1)
+        q_in = rng.standard_normal((n, 4))
+        if kind == 9:
+            crops = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for h, w in rng.integers(4, 20, (n, 2))]
+            calls.append(("refine_crops", (crops, q_in), {}))
+        elif kind == 6:
+            calls.append(("refine", (image, boxes, q_in), dict(K=K, views=3)))
+        else:
+            calls.append(("refine", (image, boxes, q_in), dict(K=K, iterations=2 if kind == 7 else 1)))
+    return calls
+
+
+@pytest.mark.parametrize("frame,order", [("camera", "BGR"), ("ray", "RGB")])
+def test_one_session_shared_by_8_threads_gives_the_serial_results_bit_for_bit(frame, order):
+    sess = RefinerSession(fx.random_weight_model(size=16, props=fx.contract(input_size=16, rotation_frame=frame,
+                                                                                channel_order=order)))
+    calls = _thread_calls(400, seed=3, ray=frame == "ray")
+    serial = [getattr(sess, name)(*args, **kwargs) for name, args, kwargs in calls]
+    threads, results, errors = 8, [None] * len(calls), []
+    start = threading.Barrier(threads)
+
+    def worker(t):
+        try:
+            start.wait()
+            for _ in range(2):  # twice: the second round runs on buffers grown by the first
+                for i in range(t, len(calls), threads):
+                    name, args, kwargs = calls[i]
+                    results[i] = getattr(sess, name)(*args, **kwargs)
+        except Exception as exc:  # surfaced below, with the thread's traceback kept in the exception
+            errors.append(exc)
+
+    pool = [threading.Thread(target=worker, args=(t,)) for t in range(threads)]
+    for th in pool:
+        th.start()
+    for th in pool:
+        th.join()
+    assert not errors, errors[0]
+    for i, (got, want) in enumerate(zip(results, serial)):
+        for a, b in zip((got.q_refined, got.q_out, got.q_in), (want.q_refined, want.q_out, want.q_in)):
+            np.testing.assert_array_equal(a, b, err_msg=f"call {i}: {calls[i][0]} {calls[i][2]}")
+
+
+# ---------------------------------------------------------------- models that cannot be used: one error type
+from refiner_rt import ModelError  # noqa: E402
+
+U8, F32, F64 = TensorProto.UINT8, TensorProto.FLOAT, TensorProto.DOUBLE
+
+
+def _regroup(width: int) -> list:
+    """Nodes ``q_out = reshape(reshape(q_in, (-1, width)), (-1, 4))``: shape inference cannot see that this fails
+    unless ``4 * batch`` is a multiple of ``width`` (needs the initializers ``w{width}`` and ``w4``)."""
+    return [helper.make_node("Reshape", [INPUT_QUATERNION, f"w{width}"], ["grouped"]),
+            helper.make_node("Reshape", ["grouped", "w4"], [OUTPUT_QUATERNION])]
+
+
+def _shape_inits() -> list:
+    return [helper.make_tensor("one_row", TensorProto.INT64, [2], [1, 4])] + [
+        helper.make_tensor(n, TensorProto.INT64, [1], [v]) for n, v in (("s0", 0), ("s3", 3), ("s1", 1))] + [
+        helper.make_tensor(f"w{w}", TensorProto.INT64, [2], [-1, w]) for w in (4, 8, 12)]
+IMAGE_IN = (INPUT_IMAGE, U8, ["batch", 8, 8, 3])
+Q_IN = (INPUT_QUATERNION, F32, ["batch", 4])
+Q_OUT = (OUTPUT_QUATERNION, F32, ["batch", 4])
+ECHO = [helper.make_node("Identity", [INPUT_QUATERNION], [OUTPUT_QUATERNION])]
+
+
+def _bad_bytes() -> dict[str, bytes]:
+    rng = np.random.default_rng(39)
+    good = fx.constant_model([1, 0, 0, 0])
+    return {
+        "empty": b"",
+        "random": rng.integers(0, 256, 4096, dtype=np.uint8).tobytes(),
+        "truncated": good[: len(good) // 2],
+        "text": b"this is not an onnx model\n" * 10,
+        "one byte": b"\x08",
+    }
+
+
+@pytest.mark.parametrize("kind", list(_bad_bytes()))
+@pytest.mark.parametrize("as_file", [False, True])
+def test_unreadable_models_raise_model_error_naming_the_file(kind, as_file, tmp_path):
+    data = _bad_bytes()[kind]
+    source = data
+    if as_file:
+        source = tmp_path / f"{kind.replace(' ', '_')}.onnx"
+        source.write_bytes(data)
+    with pytest.raises(ModelError) as info:
+        RefinerSession(source)
+    assert type(info.value) is ModelError and isinstance(info.value, ValueError)
+    assert str(source if as_file else "<model bytes>") in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads files whatever their mode")
+def test_a_model_file_without_read_permission_is_a_model_error(tmp_path):
+    path = tmp_path / "m.onnx"
+    path.write_bytes(fx.constant_model([1, 0, 0, 0]))
+    path.chmod(0)
+    with pytest.raises(ModelError, match="cannot read"):
+        RefinerSession(path)
+
+
+@pytest.mark.parametrize(
+    "nodes,inputs,outputs,match",
+    [
+        (ECHO, [(INPUT_IMAGE, U8, ["batch", 8, 8, 4]), Q_IN], [Q_OUT], r"'image' must have shape \(batch, 8, 8, 3\)"),
+        (ECHO, [(INPUT_IMAGE, F32, ["batch", 8, 8, 3]), Q_IN], [Q_OUT], r"'image' must be tensor\(uint8\)"),
+        (ECHO, [(INPUT_IMAGE, U8, [1, 8, 8, 3]), (INPUT_QUATERNION, F32, [1, 4])],
+         [(OUTPUT_QUATERNION, F32, [1, 4])], "'image' must have a dynamic batch axis"),
+        ([helper.make_node("Identity", [INPUT_QUATERNION], [OUTPUT_QUATERNION])], [IMAGE_IN, (INPUT_QUATERNION, F32,
+         ["batch", 3])], [(OUTPUT_QUATERNION, F32, ["batch", 3])], r"'q_in' must have shape \(batch, 4\)"),
+        (ECHO, [IMAGE_IN, (INPUT_QUATERNION, F64, ["batch", 4])], [(OUTPUT_QUATERNION, F64, ["batch", 4])],
+         r"'q_in' must be tensor\(float\)"),
+        ([helper.make_node("Slice", [INPUT_QUATERNION, "s0", "s3", "s1"], [OUTPUT_QUATERNION])], [IMAGE_IN, Q_IN],
+         [(OUTPUT_QUATERNION, F32, ["batch", 3])], r"'q_out' must have shape \(batch, 4\)"),
+        (ECHO, [IMAGE_IN, Q_IN, ("mask", U8, ["batch", 8, 8])], [Q_OUT], r"inputs \['mask'\]"),
+        ([helper.make_node("Identity", [INPUT_QUATERNION], ["out"])], [IMAGE_IN, Q_IN],
+         [("out", F32, ["batch", 4])], r"lacks \['q_out'\]"),
+        # a batch axis fixed inside the graph: onnxruntime's shape inference shows it
+        ([helper.make_node("Reshape", [INPUT_QUATERNION, "one_row"], [OUTPUT_QUATERNION])], [IMAGE_IN, Q_IN],
+         [Q_OUT], "'q_out' must have a dynamic batch axis"),
+        # a graph that only works for batches of 3, 6, ...: the trial run on two crops finds it
+        (_regroup(12), [IMAGE_IN, Q_IN], [Q_OUT], "fails on a trial batch of 2 black 8x8 crops"),
+        # declared (batch, 4) but gives three components
+        ([helper.make_node("Slice", [INPUT_QUATERNION, "s0", "s3", "s1"], [OUTPUT_QUATERNION])], [IMAGE_IN, Q_IN],
+         [Q_OUT], r"must be \(batch, 4\) float32; a trial batch of 2 gave shape \(2, 3\)"),
+    ],
+)
+def test_contract_breaking_graphs_are_refused_on_load_naming_the_input_or_output(nodes, inputs, outputs, match):
+    with pytest.raises(ModelError, match=match) as info:
+        RefinerSession(fx.graph_model(nodes, inputs, outputs, _shape_inits()))
+    assert type(info.value) is ModelError
+
+
+@pytest.mark.parametrize("key,value", [("crop_context", "inf"), ("crop_context", "1e308"), ("input_size", "0"),
+                                       ("quaternion_order", "xyzw")])
+def test_metadata_out_of_range_is_refused_on_load(key, value):
+    props = fx.contract()
+    props[key] = value
+    with pytest.raises(ModelError, match=f"'{key}'"):
+        RefinerSession(fx.constant_model([1, 0, 0, 0], props=props))
+
+
+def test_a_network_that_fails_at_run_time_raises_model_error_not_an_onnxruntime_type():
+    # works for even batches only: it passes the trial run on two crops and fails on one or three
+    sess = RefinerSession(fx.graph_model(_regroup(8), [IMAGE_IN, Q_IN], [Q_OUT], _shape_inits()))
+    sess.refine(IMG, BOXES[:2], rq.identity((2,)))
+    with pytest.raises(ModelError, match="the network failed on a batch of 3") as info:
+        sess.refine(IMG, BOXES, rq.identity((3,)))
+    assert type(info.value) is ModelError
+    nan = RefinerSession(fx.constant_model([float("nan"), 0, 0, 0]))
+    for n in (1, 40):  # the Python-float path and the numpy path
+        with pytest.raises(ModelError, match=r"returned q_out\[0\] = \[nan, 0.0, 0.0, 0.0\]"):
+            nan.refine(IMG, np.tile(BOXES[:1], (n, 1)), rq.identity((n,)))
+    with pytest.raises(ModelError, match="q_out"):
+        RefinerSession(fx.constant_model([0, 0, 0, 0])).refine(IMG, BOXES, rq.identity((3,)), views=2)
+
+
+# ---------------------------------------------------------------- every bad input named, every result finite
+@pytest.mark.parametrize("n,views", [(3, 1), (40, 1), (3, 2)])  # the Python-float path, the numpy path, views
+def test_huge_finite_q_in_gives_the_rotation_of_its_direction(n, views):
+    sess = RefinerSession(mix_model())
+    rng = np.random.default_rng(n)
+    direction = rng.standard_normal((n, 4))
+    boxes = np.tile(BOXES[:1], (n, 1))
+    ref = sess.refine(IMG, boxes, direction, views=views)
+    for scale in (1e154, 1e200, 1e308 / 4):
+        res = sess.refine(IMG, boxes, direction * scale, views=views)
+        assert np.isfinite(res.q_refined).all() and res.q_refined.dtype == np.float64
+        np.testing.assert_allclose(np.linalg.norm(res.q_refined, axis=1), 1.0, atol=1e-12)
+        np.testing.assert_allclose(res.q_refined, ref.q_refined, atol=1e-6)
+
+
+K_RAY = K_TEST
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(boxes_xyxy=[[5, 6, 25, 30], [30.5, 10, 60], [-4, 20, 10, 47]]), r"boxes_xyxy must be numeric.*ragged"),
+        (dict(boxes_xyxy=[["a", "b", "c", "d"]] * 3), "boxes_xyxy must be numeric"),
+        (dict(boxes_xyxy=[[5, 6, 25, 2e6]] * 3), r"boxes_xyxy\[0\] must have coordinates within \+-1e\+06"),
+        (dict(boxes_xyxy=[[-1e300, 6, 25, 30]] * 3), r"boxes_xyxy\[0\] must have coordinates within"),
+        (dict(q_in_wxyz=[[1, 0, 0, 0], [1, 0, 0], [1, 0, 0, 0]]), r"q_in_wxyz must be .*ragged"),
+        (dict(q_in_wxyz=np.array([[1, 0, 0, 0]] * 3, dtype=object)), "q_in_wxyz must be a numeric"),
+        (dict(q_in_wxyz=[[1, 0, 0, 0]] * 3 + [[1, 0, 0, 0]]), "q_in_wxyz has 4 rotations but boxes_xyxy has 3"),
+        (dict(q_in_wxyz=np.full((3, 4), 1e-200)), "zero quaternion"),
+        (dict(iterations=17), "iterations must be an integer from 1 to 16"),
+        (dict(iterations=10**9), "iterations must be an integer from 1 to 16"),
+        (dict(iterations=np.int64(-1)), "iterations must be an integer from 1 to 16"),
+        (dict(K=[[500, 0, 31.5], [0, 500, 23.5], [0, 0]]), r"K must be a \(3, 3\).*ragged"),
+        (dict(K=np.zeros((3, 3))), "K must have focal lengths fx > 0 and fy > 0"),
+        (dict(K=[[500, 0, 31.5], [0, 500, 23.5], [0, 0, 0]]), "K must have the pinhole form"),
+        (dict(K=[[500, 0, 31.5], [0, 500, 23.5], [0, 0, 3]]), "K must have the pinhole form"),
+        (dict(K=[[500, 0, 31.5], [7, 500, 23.5], [0, 0, 1]]), "K must have the pinhole form"),
+        (dict(K=np.diag([1e-300, 500, 1])), r"K must have fx, fy in \[0.001, 1e\+09\]"),
+        (dict(K=[[500, 0, 1e300], [0, 500, 23.5], [0, 0, 1]]), r"\|cx\|, \|cy\| <= 1e\+09"),
+        (dict(K=[["500", 0, 1], [0, 500, 1], [0, 0, 1]]), r"K must be a \(3, 3\) numeric"),
+        (dict(image_bgr=IMG.tolist()), "image_bgr must be a numpy array"),
+        (dict(image_bgr=np.zeros((0, 5, 3), np.uint8)), "image_bgr must not be empty"),
+    ],
+)
+def test_more_bad_inputs_are_named_with_expected_and_got(kwargs, match):
+    sess = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
+    args = dict(image_bgr=IMG, boxes_xyxy=BOXES, q_in_wxyz=rq.identity((3,)), K=K_RAY)
+    args.update(kwargs)
+    with pytest.raises((ValueError, TypeError), match=match) as info:
+        sess.refine(**args)
+    assert not isinstance(info.value, ModelError)
+
+
+def test_limits_are_documented_constants_and_hold_at_their_edge():
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    one = BOXES[:1]
+    assert sess.refine(IMG, one, rq.identity((1,)), iterations=session_module.MAX_ITERATIONS).q_refined.shape == (1, 4)
+    edge = session_module.MAX_BATCH
+    boxes = np.tile(one, (edge, 1))
+    assert len(sess.refine(IMG, boxes, rq.identity((edge,)))) == edge
+    with pytest.raises(ValueError, match=f"boxes_xyxy has {edge + 1} entries: at most MAX_BATCH={edge}"):
+        sess.refine(IMG, np.tile(one, (edge + 1, 1)), rq.identity((edge + 1,)))
+    half = edge // 2 + 1
+    with pytest.raises(ValueError, match=f"boxes_xyxy has {half} entries x views=2 = {2 * half} crops"):
+        sess.refine(IMG, np.tile(one, (half, 1)), rq.identity((half,)), views=2)
+    crops = np.zeros((edge + 1, 8, 8, 3), np.uint8)
+    with pytest.raises(ValueError, match=f"crops_bgr has {edge + 1} entries"):
+        sess.refine_crops(crops, rq.identity((edge + 1,)))
+    with pytest.raises(ValueError, match="iterations must be an integer from 1 to 16"):
+        sess.refine_crops(crops[:1], rq.identity((1,)), iterations=17)
+    # the widest box and K the limits allow still give a finite unit rotation in the viewing-ray frame
+    ray = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
+    big = session_module.MAX_BOX_COORDINATE
+    K = np.array([[session_module.K_MIN_FOCAL, session_module.K_MAX_ABS, session_module.K_MAX_ABS],
+                  [0, session_module.K_MIN_FOCAL, -session_module.K_MAX_ABS], [0, 0, 1]])
+    for boxes in ([[-big, -big, big, big]], [[-big, -big, 1, 1]] * 40):
+        res = ray.refine(IMG, boxes, rq.identity((len(boxes),)), K=K, views=2 if len(boxes) == 1 else 1)
+        assert np.isfinite(res.q_refined).all()
+        np.testing.assert_allclose(np.linalg.norm(res.q_refined, axis=1), 1.0, atol=1e-12)
+
+
+# ---------------------------------------------------------------- property fuzzing: a finite unit rotation or a named error
+import re  # noqa: E402
+import warnings  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra import numpy as hnp  # noqa: E402
+
+ARGUMENT_NAMES = re.compile(r"\b(image_bgr|boxes_xyxy|q_in_wxyz|K|iterations|views|crops_bgr)\b")
+# derandomize: the same examples every run (a fixed seed); a few seconds in all
+FUZZ = settings(max_examples=300, deadline=None, derandomize=True, database=None,
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+_FUZZ_SESSIONS = {}
+
+
+def fuzz_session(frame: str) -> RefinerSession:
+    """One random-weight session per rotation frame, shared by all examples (the ray one takes RGB)."""
+    if frame not in _FUZZ_SESSIONS:
+        props = fx.contract(rotation_frame=frame, channel_order="RGB" if frame == "ray" else "BGR")
+        _FUZZ_SESSIONS[frame] = RefinerSession(fx.random_weight_model(props=props))
+    return _FUZZ_SESSIONS[frame]
+
+
+# odd floats: extreme but finite, tiny, zero, non-finite
+ODD_FLOAT = st.one_of(
+    st.sampled_from([0.0, -0.0, 5e-324, 1e-200, 1e-13, 1e154, -1e200, 1e300, 1.7e308, -1.7e308, np.nan, np.inf]),
+    st.floats(allow_nan=True, allow_infinity=True),
+)
+FORMS_OK = ["f64", "f32", "int", "list"]
+FORMS_BAD = ["ragged", "object", "strings", "3 columns", "rows+1", "3-d", "scalar"]
+
+
+def box_ints(boxes: np.ndarray) -> np.ndarray:
+    """Boxes on whole pixels, grown outwards (so they stay non-empty and overlapping)."""
+    return np.concatenate([np.floor(boxes[:, :2]), np.ceil(boxes[:, 2:])], axis=1).astype(np.int64)
+
+
+def rotation_ints(q: np.ndarray) -> np.ndarray:
+    """Quaternions as integers (scaled to a largest component of +-1000: the same rotations)."""
+    return np.rint(q / np.abs(q).max(axis=1, keepdims=True) * 1000).astype(np.int64) if len(q) else q.astype(np.int64)
+
+
+def as_form(arr: np.ndarray, form: str, to_int):
+    """``arr`` (``(n, 4)`` float64) as a user might pass it: an array of some dtype (``to_int`` makes the integer
+    one), a list, or a broken form."""
+    with np.errstate(all="ignore"):
+        if form == "f32":
+            return arr.astype(np.float32)
+        if form == "int":
+            return to_int(arr)
+    return {
+        "f64": lambda: arr,
+        "list": arr.tolist,
+        "ragged": lambda: [r[: 4 - (i % 2)] for i, r in enumerate(arr.tolist())] or [[1.0, 2.0], [3.0]],
+        "object": lambda: arr.astype(object),
+        "strings": lambda: arr.astype(str),
+        "3 columns": lambda: arr[:, :3],
+        "rows+1": lambda: np.vstack([arr, np.ones((1, 4))]),
+        "3-d": lambda: arr[None],
+        "scalar": lambda: 1.0,
+    }[form]()
+
+
+@st.composite
+def table(draw, valid: np.ndarray, bad: bool, to_int):
+    """``valid`` as given in one of the accepted forms, or (``bad``) with an odd value or in a broken form."""
+    arr = valid.copy()
+    if bad and len(arr) and draw(st.booleans()):
+        arr[draw(st.integers(0, len(arr) - 1)), draw(st.integers(0, 3))] = draw(ODD_FLOAT)
+        return as_form(arr, draw(st.sampled_from(["f64", "list"])), to_int)
+    if not valid.size or np.abs(valid).max() < 1e18:  # float32 and int64 cannot hold what is beyond
+        forms = FORMS_OK
+    else:
+        forms = ["f64", "list"]
+    return as_form(arr, draw(st.sampled_from(FORMS_BAD if bad else forms)), to_int)
+
+
+@st.composite
+def images(draw, bad: bool):
+    h, w = draw(st.integers(1, 40)), draw(st.integers(1, 40))
+    image = draw(hnp.arrays(np.uint8, (h, w, 3), elements=st.integers(0, 255)))
+    if not bad:
+        return image if draw(st.integers(0, 3)) else image[::2, ::-1]  # non-contiguous views are fine
+    kind = draw(st.sampled_from(["float", "gray", "rgba", "empty", "list", "bool"]))
+    return {"float": lambda: image.astype(np.float32), "gray": lambda: image[..., 0],
+            "rgba": lambda: np.dstack([image, image[..., :1]]), "empty": lambda: image[:0], "list": image.tolist,
+            "bool": lambda: image > 127}[kind]()
+
+
+@st.composite
+def overlapping_boxes(draw, n: int, h: int, w: int) -> np.ndarray:
+    """``(n, 4)`` boxes that overlap an ``h x w`` image, from slivers to many times its size."""
+    x1 = draw(hnp.arrays(np.float64, n, elements=st.floats(-50, w - 1e-3)))
+    y1 = draw(hnp.arrays(np.float64, n, elements=st.floats(-50, h - 1e-3)))
+    sx = draw(hnp.arrays(np.float64, n, elements=st.floats(1e-3, 200)))
+    sy = draw(hnp.arrays(np.float64, n, elements=st.floats(1e-3, 200)))
+    return np.stack([x1, y1, np.maximum(x1, 0) + sx, np.maximum(y1, 0) + sy], axis=1).reshape(n, 4)
+
+
+@st.composite
+def rotations(draw, n: int) -> np.ndarray:
+    """``(n, 4)`` finite non-zero quaternions of any norm, from 1e-6 to 1e300 (all valid)."""
+    q = draw(hnp.arrays(np.float64, (n, 4), elements=st.floats(-2, 2)))
+    q[np.linalg.norm(q, axis=1) < 1e-3] = [1.0, 0.0, 0.0, 0.0]
+    return q * draw(st.sampled_from([1.0, 1.0, 1e-6, 1e154, 1e200, 1e300]))
+
+
+@st.composite
+def intrinsics(draw, bad: bool, needed: bool):
+    pinhole = np.array([[draw(st.floats(0.5, 5000)), draw(st.floats(-5, 5)), draw(st.floats(-100, 100))],
+                        [0.0, draw(st.floats(0.5, 5000)), draw(st.floats(-100, 100))], [0.0, 0.0, 1.0]])
+    if not bad:
+        edge = np.array([[session_module.K_MIN_FOCAL, session_module.K_MAX_ABS, -session_module.K_MAX_ABS],
+                         [0.0, session_module.K_MAX_ABS, session_module.K_MAX_ABS], [0.0, 0.0, 1.0]])
+        options = [pinhole, pinhole.tolist(), edge] + ([] if needed else [None])
+        return draw(st.sampled_from(options))
+    kind = draw(st.sampled_from(["odd entry", "any", "ragged", "2x2", "scaled"] + (["none"] if needed else [])))
+    if kind == "odd entry":
+        pinhole[draw(st.integers(0, 2)), draw(st.integers(0, 2))] = draw(ODD_FLOAT)
+        return pinhole
+    return {"any": lambda: draw(hnp.arrays(np.float64, (3, 3), elements=ODD_FLOAT)),
+            "ragged": lambda: [[500.0, 0.0, 20.0], [0.0, 500.0], [0.0, 0.0, 1.0]],
+            "2x2": lambda: np.eye(2), "scaled": lambda: 3.0 * pinhole, "none": lambda: None}[kind]()
+
+
+def count(bad: bool):
+    return st.sampled_from([0, -1, 17, 2.0, True, None, "1", 10**9]) if bad else st.sampled_from([1, 1, 2, np.int64(3)])
+
+
+ARGS = ("image_bgr", "boxes_xyxy", "q_in_wxyz", "K", "iterations", "views")
+
+
+def assert_finite_unit_or_named_error(call, bad: set) -> None:
+    """The property: ``call()`` returns finite unit ``wxyz`` rotations with ``w >= 0``, or raises a ValueError or
+    TypeError that names an argument (not a ModelError: the model is fine). numpy warnings count as failures.
+    With no argument made bad, it must return."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            res = call()
+        except (ValueError, TypeError) as exc:
+            assert bad, f"valid arguments refused: {exc}"
+            assert not isinstance(exc, ModelError), f"a good model reported as broken: {exc}"
+            assert ARGUMENT_NAMES.search(str(exc)), f"the error does not name the argument: {exc}"
+            return
+    for q in (res.q_refined, res.q_out, res.q_in):
+        assert q.dtype == np.float64 and q.ndim == 2 and q.shape == (len(res), 4)
+        assert np.isfinite(q).all(), q
+        np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-9)
+        assert (q[:, 0] >= 0).all()
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_refine_gives_a_finite_unit_rotation_or_names_the_argument(data):
+    # Most examples make none or one argument bad (odd values, dtypes, shapes, ragged lists), some two.
+    bad = data.draw(st.one_of(st.just(set()), st.sets(st.sampled_from(ARGS), min_size=1, max_size=2)))
+    frame = data.draw(st.sampled_from(["camera", "ray"]))
+    n = data.draw(st.sampled_from([1, 2, 5, session_module.SMALL_BATCH + 3, 0]))
+    image = data.draw(images("image_bgr" in bad))
+    h, w = (image.shape[:2]) if isinstance(image, np.ndarray) and image.ndim == 3 and image.size else (20, 20)
+    boxes = data.draw(table(data.draw(overlapping_boxes(n, h, w)), "boxes_xyxy" in bad, box_ints))
+    q_in = data.draw(table(data.draw(rotations(n)), "q_in_wxyz" in bad, rotation_ints))
+    K = data.draw(intrinsics("K" in bad, needed=frame == "ray"))
+    iterations, views = data.draw(count("iterations" in bad)), data.draw(count("views" in bad))
+    sess = fuzz_session(frame)
+    assert_finite_unit_or_named_error(
+        lambda: sess.refine(image, boxes, q_in, iterations=iterations, K=K, views=views), bad)
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_refine_crops_gives_a_finite_unit_rotation_or_names_the_argument(data):
+    bad = data.draw(st.one_of(st.just(set()), st.sets(st.sampled_from(["crops_bgr", "q_in_wxyz", "iterations"]),
+                                                      min_size=1, max_size=2)))
+    n = data.draw(st.sampled_from([1, 3, session_module.SMALL_BATCH + 3, 0]))
+    crops = [data.draw(images(False)) for _ in range(min(n, 4))] + [np.zeros((8, 8, 3), np.uint8)] * max(0, n - 4)
+    form = data.draw(st.sampled_from(["list", "tuple", "array"]))
+    if "crops_bgr" in bad:
+        kind = data.draw(st.sampled_from(["one bad crop", "one crop, no batch", "generator", "dict", "5-d"]))
+        if kind == "one bad crop" and n:
+            crops[data.draw(st.integers(0, min(n, 4) - 1))] = data.draw(images(True))
+        else:
+            crops = {"one crop, no batch": lambda: np.zeros((5, 7, 3), np.uint8), "generator": lambda: iter(crops),
+                     "dict": lambda: {0: crops}, "5-d": lambda: np.zeros((n, 1, 5, 7, 3), np.uint8),
+                     "one bad crop": lambda: [np.zeros((5, 7), np.uint8)]}[kind]()
+    elif form == "tuple":
+        crops = tuple(crops)
+    elif form == "array":
+        crops = np.zeros((n, 5, 7, 3), np.uint8)
+    q_in = data.draw(table(data.draw(rotations(n)), "q_in_wxyz" in bad, rotation_ints))
+    iterations = data.draw(count("iterations" in bad))
+    sess = fuzz_session(data.draw(st.sampled_from(["camera", "ray"])))
+    assert_finite_unit_or_named_error(lambda: sess.refine_crops(crops, q_in, iterations=iterations), bad)

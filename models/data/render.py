@@ -912,5 +912,8 @@ def render_cmd(out, frames, models_dir, builtin, seed, workers, first_scene, obj
         from models.data.preview import contact_sheet
 
         data = out if out is not None else preview_data
-        contact_sheet(load_bop(data, min_visib=0.3), preview_png, seed=seed)
+        try:
+            contact_sheet(load_bop(data, min_visib=0.3), preview_png, seed=seed)
+        except (FileNotFoundError, ValueError) as exc:  # a missing or corrupt scene file: one line, no traceback
+            raise click.ClickException(str(exc)) from None
         click.echo(f"Wrote {preview_png}")

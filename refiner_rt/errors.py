@@ -1,0 +1,16 @@
+"""The runtime's own exception type for model files: one type to catch, whatever onnxruntime raised underneath."""
+
+from __future__ import annotations
+
+__all__ = ["ModelError"]
+
+
+class ModelError(ValueError):
+    """A model that cannot be used: the file is unreadable, empty, not ONNX, or breaks the refiner-rt contract
+    (metadata values, graph input/output names, element types, shapes, a dynamic batch axis), or the network
+    fails or returns a non-finite rotation when it runs.
+
+    The message names the model (its path, or ``<model bytes>``) and the cause. A ``ValueError`` subclass, so
+    code that catches ``ValueError`` for bad input keeps working; onnxruntime's own exception types never escape
+    :class:`refiner_rt.RefinerSession` (the original is kept as ``__cause__`` for debugging).
+    """
