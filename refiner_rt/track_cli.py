@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from refiner_rt import quaternion as rq
+from refiner_rt.session import MAX_ITERATIONS
 
 __all__ = ["track_cmd", "read_detections", "frame_files", "annotate", "OUTPUT_FORMAT"]
 
@@ -197,7 +198,7 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
 @click.option("--fp32", is_flag=True, help="Use the shipped fp32 models instead of INT8.")
 @click.option("--K", "K_text", metavar="FX,FY,CX,CY", help="Camera intrinsics in pixels (instead of the file's \"K\").")
 @click.option("--predict", is_flag=True, help="Predict each rotation with a constant angular velocity first.")
-@click.option("--iterations", type=click.IntRange(1, 16), default=1, show_default=True,
+@click.option("--iterations", type=click.IntRange(1, MAX_ITERATIONS), default=1, show_default=True,
               help="Refinement passes per object and frame.")
 @click.option("--threads", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Threads each network runs on.")

@@ -23,14 +23,20 @@ frame). Only refined rotations enter ``dq``: the correction of a coarse initial 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Mapping
 
 import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import validate_boxes, validate_image
-from refiner_rt.session import RefinerSession, _conjugate_rows, _multiply_rows, _unit_rows, _validate_K
+from refiner_rt.session import (
+    RefinerSession,
+    _conjugate_rows,
+    _multiply_rows,
+    _small_boxes,
+    _unit_rows,
+    _validate_K,
+)
 
 __all__ = ["RefinerTracker", "INSTANCE_SEPARATOR"]
 
@@ -294,16 +300,15 @@ def _fraction(q: list, power: float) -> list:
 
 
 def _check_box(box, image_shape, name: str) -> list:
-    """One box ``(x1, y1, x2, y2)`` in pixels as a list of floats; checked on Python floats when it is well formed,
-    else by :func:`refiner_rt.preprocess.validate_boxes`, which raises the detailed error."""
+    """One box ``(x1, y1, x2, y2)`` in pixels as a list of floats, checked by the session's rules (its fast path for a
+    well-formed box, else :func:`refiner_rt.preprocess.validate_boxes`, which raises the detailed error)."""
     try:
         arr = np.asarray(box, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be one numeric box (x1, y1, x2, y2) in pixels; got {box!r}") from None
     if arr.shape != (4,):
         raise ValueError(f"{name} must be one box (x1, y1, x2, y2) in pixels, shape (4,); got shape {arr.shape}")
-    x1, y1, x2, y2 = row = arr.tolist()
-    if (math.isfinite(x1) and math.isfinite(y1) and math.isfinite(x2) and math.isfinite(y2)
-            and x1 < x2 and y1 < y2 and x2 > 0 and y2 > 0 and x1 < image_shape[1] and y1 < image_shape[0]):
-        return row
+    fast = _small_boxes(arr[None], image_shape)
+    if fast is not None:
+        return fast[1][0]
     return validate_boxes(arr, image_shape, name)[0].tolist()

@@ -158,7 +158,7 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(q0={3: [1, 0, 0, 0]}), TypeError, "object ids must be non-empty strings"),
     (dict(session=3), TypeError, "session must be a RefinerSession or a pretrained model name"),
     (dict(predict="yes"), TypeError, "predict must be True or False"),
-    (dict(iterations=0), ValueError, "iterations must be an integer >= 1"),
+    (dict(iterations=0), ValueError, "iterations must be an integer from 1 to"),
     (dict(views=99), ValueError, "views must be an integer from 1 to"),
 ])
 def test_bad_construction_is_named(kwargs, error, match):
@@ -301,12 +301,15 @@ def test_track_command_refuses_bad_input_without_a_traceback(tmp_path, change, a
     assert __import__("re").search(match, res.output), res.output
 
 
-def test_track_command_refuses_a_file_that_is_not_json(tmp_path):
+def test_track_command_refuses_a_file_that_is_not_json_and_a_model_that_is_not_onnx(tmp_path):
     from click.testing import CliRunner
 
     from refiner_rt.cli import main
 
     frames, dets, model = write_sequence(tmp_path)
+    model.write_bytes(b"not a model")
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json"), "--model", str(model)])
+    assert res.exit_code == 1 and "Traceback" not in res.output and "box.onnx" in res.output, res.output
     dets.write_text("{not json")
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json")])
     assert res.exit_code == 1 and "not a readable JSON detections file" in res.output
