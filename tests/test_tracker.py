@@ -340,7 +340,7 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     model.write_bytes(fx.constant_model(rq.identity(), props=fx.contract(objects=["003_cracker_box"], rotation_frame="ray")))
     out, png = tmp_path / "tracking.json", tmp_path / "tracking.png"
     assert bench.main(["--data", str(data), "--model", f"003_cracker_box={model}", "--min-frames", "5",
-                       "--json", str(out), "--plot", str(png)]) == 0
+                       "--json", str(out), "--plot", str(png), "--detections-out", str(tmp_path / "dets")]) == 0
     doc = json.loads(out.read_text())
     s = doc["summary"]
     assert doc["sequences_per_object"] == {"003_cracker_box": 2} and doc["steps"] == [1, 2, 4]
@@ -354,3 +354,16 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     assert curve[11] > curve[0] + 10
     assert doc["cost"]["track_step1"]["refinements"] == 23 and doc["machine"]["cpu"]
     assert png.stat().st_size > 10_000
+    # The detections it writes run through `refiner-rt track`: with this model the rotation stays the initial pose.
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    res = CliRunner().invoke(main, ["track", str(data / "000001" / "rgb"), str(tmp_path / "dets" / "000001.json"),
+                                    "-o", str(tmp_path / "rot.json"), "--model", str(model)])
+    assert res.exit_code == 0, res.output
+    rot = json.loads((tmp_path / "rot.json").read_text())["frames"]
+    assert len(rot) == 12 and rot["000005.png"] == {}  # frame 5 had no box
+    truth0 = Q0[1]
+    held = [rq.geodesic_angle(q["003_cracker_box"], truth0) for q in rot.values() if q]
+    assert np.ptp(held) < 1e-6 and held[0] <= 30.0 + 1e-6
