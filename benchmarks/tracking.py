@@ -93,7 +93,7 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 
 
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
-              n_frames: int, timing: dict) -> dict:
+              n_frames: int, timing: dict, methods=METHODS) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
     start_noise = {s.object_id: rq.sample_rotation_noise(1, "uniform", 0, 30, rng[s.object_id])[0] for s in seqs}
@@ -108,17 +108,19 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
     if missing:
         raise FileNotFoundError(f"{any_path.parent}: cannot read frames {missing[:5]}")
     K = seqs[0].K
-    out = {m: {st: {} for st in steps} for m in METHODS}
+    out = {m: {st: {} for st in steps} for m in methods}
 
     # (b) per frame, every visible frame once (each step scores its own frames from these).
     per_frame = {}
-    for s in seqs:
+    for s in seqs if "per_frame" in methods else []:
         err = {}
         for f in sorted(s.images):
             q_in = rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])[None]
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             res = sessions[s.object_id].refine(images[f], s.boxes[f][None], q_in, K=K)
             timing["per_frame"]["seconds"] += time.perf_counter() - t0
+            timing["per_frame"]["cpu_seconds"] += time.process_time() - c0
+            timing["per_frame"]["updates"] += 1
             timing["per_frame"]["refinements"] += 1
             err[f] = float(rq.geodesic_angle(res.q_refined[0], s.q_gt[f]))
         per_frame[s.object_id] = err
@@ -130,13 +132,14 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
         q_start = {s.object_id: rq.multiply(s.q_gt[start[s.object_id]], start_noise[s.object_id]) for s in live}
         for s in live:
             f0 = start[s.object_id]
-            for m in METHODS:
+            for m in methods:
                 out[m][step][s.object_id] = np.full(n_frames, np.nan)
             for f in grid:
                 if f >= f0 and f in s.images:
                     out["hold"][step][s.object_id][f - f0] = rq.geodesic_angle(q_start[s.object_id], s.q_gt[f])
-                    out["per_frame"][step][s.object_id][f - f0] = per_frame[s.object_id][f]
-        for method, predict in (("track", False), ("track_predict", True)):
+                    if "per_frame" in methods:
+                        out["per_frame"][step][s.object_id][f - f0] = per_frame[s.object_id][f]
+        for method, predict in [(m, m == "track_predict") for m in ("track", "track_predict") if m in methods]:
             tracker = RefinerTracker({s.object_id: sessions[s.object_id] for s in live}, K, {}, predict=predict)
             key = f"{method}_step{step}"
             for f in grid:
@@ -144,9 +147,10 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                     if start[s.object_id] == f:
                         tracker.add(s.object_id, q_start[s.object_id])
                 boxes = {s.object_id: s.boxes[f] for s in live if s.object_id in tracker and f in s.images}
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 q = tracker.update(images[f], boxes)
                 timing[key]["seconds"] += time.perf_counter() - t0
+                timing[key]["cpu_seconds"] += time.process_time() - c0
                 timing[key]["updates"] += 1
                 timing[key]["refinements"] += len(q)
                 for s in live:
@@ -221,7 +225,7 @@ def plot(doc: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, len(steps), figsize=(4.6 * len(steps), 3.6), sharey=True, squeeze=False)
     colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange"}
     for ax, step in zip(axes[0], steps):
-        for m in METHODS:
+        for m in [m for m in METHODS if m in doc["curves"]]:
             y = np.array([np.nan if v is None else v for v in doc["curves"][m][str(step)]])
             x = np.arange(len(y))
             ok = ~np.isnan(y)
@@ -233,7 +237,7 @@ def plot(doc: dict, path: Path) -> None:
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("mean rotation error (deg)")
     axes[0][-1].legend(fontsize=7, loc="upper right")
-    n = doc["summary"]["track"]["1"]["sequences"]
+    n = doc["summary"]["hold"][str(steps[0])]["sequences"]
     fig.suptitle(f"Tracking on rendered video: {n} sequences, {', '.join(doc['objects'])}", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -253,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-frames", type=int, default=20, help="leave out sequences with fewer visible frames")
     p.add_argument("--scenes", type=int, default=0, help="use only the first N scenes (0: all)")
     p.add_argument("--seed", type=int, default=0, help="seed of the coarse poses")
+    p.add_argument("--methods", default=",".join(METHODS), help=f"what to measure (default {','.join(METHODS)})")
     p.add_argument("--json", type=Path, help="write the results here")
     p.add_argument("--plot", type=Path, help="write the error-vs-frame plot here (PNG)")
     p.add_argument("--detections-out", type=Path, metavar="DIR",
@@ -262,6 +267,9 @@ def main(argv: list[str] | None = None) -> int:
     steps = [int(v) for v in args.steps.split(",")]
     if not args.data.is_dir():
         p.error(f"--data {args.data}: no such folder")
+    methods = tuple(m for m in METHODS if m in args.methods.split(","))
+    if set(args.methods.split(",")) - set(METHODS) or "hold" not in methods:
+        p.error(f"--methods must list some of {','.join(METHODS)}, hold included; got {args.methods!r}")
     if any(s < 1 for s in steps):
         p.error(f"--steps must be positive integers; got {args.steps!r}")
 
@@ -297,16 +305,16 @@ def main(argv: list[str] | None = None) -> int:
     if not seqs:
         p.error(f"no sequence of {objects} in {args.data} with >= {args.min_frames} frames at visib >= {args.min_visib}")
     n_frames = max(max(s.images) for s in seqs) + 1
-    timing = defaultdict(lambda: {"seconds": 0.0, "updates": 0, "refinements": 0})
-    errors = {m: {st: [] for st in steps} for m in METHODS}
-    per_object = {m: {st: defaultdict(list) for st in steps} for m in METHODS}
+    timing = defaultdict(lambda: {"seconds": 0.0, "cpu_seconds": 0.0, "updates": 0, "refinements": 0})
+    errors = {m: {st: [] for st in steps} for m in methods}
+    per_object = {m: {st: defaultdict(list) for st in steps} for m in methods}
     t_start = time.perf_counter()
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
-        res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing)
+        res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods)
         if args.detections_out:
             write_detections(scene_seqs, args.seed, args.detections_out / f"{scene}.json")
-        for m in METHODS:
+        for m in methods:
             for st in steps:
                 for obj, e in res[m][st].items():
                     errors[m][st].append(e)
@@ -314,13 +322,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"scene {scene} ({i + 1}/{len(scenes)}): {len(scene_seqs)} sequences, "
               f"{time.perf_counter() - t_start:.0f} s", file=sys.stderr)
 
-    summary = {m: {str(st): summarise(errors[m][st]) for st in steps} for m in METHODS}
+    summary = {m: {str(st): summarise(errors[m][st]) for st in steps} for m in methods}
     objects_table = {m: {str(st): {o: summarise(v) for o, v in sorted(per_object[m][st].items())} for st in steps}
-                     for m in METHODS}
+                     for m in methods}
+    # CPU time of this process (threads=1: the network's own time) is the cost; wall time also counts the waits
+    # for cores that other processes held, which on a shared machine can be most of it.
     cost = {}
     for key, t in sorted(timing.items()):
-        cost[key] = {"ms_per_update": round(1e3 * t["seconds"] / t["updates"], 4) if t["updates"] else None,
-                     "ms_per_refinement": round(1e3 * t["seconds"] / t["refinements"], 4) if t["refinements"] else None,
+        cost[key] = {"cpu_ms_per_update": round(1e3 * t["cpu_seconds"] / t["updates"], 4) if t["updates"] else None,
+                     "cpu_ms_per_refinement": round(1e3 * t["cpu_seconds"] / t["refinements"], 4)
+                     if t["refinements"] else None,
+                     "wall_ms_per_update": round(1e3 * t["seconds"] / t["updates"], 4) if t["updates"] else None,
                      **{k: (round(v, 3) if isinstance(v, float) else v) for k, v in t.items()}}
     machine["load_average_1min_at_end"] = round(os.getloadavg()[0], 2)
     render = args.data / "render_config.json"
@@ -338,12 +350,12 @@ def main(argv: list[str] | None = None) -> int:
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed,
         "summary": summary, "per_object": objects_table,
-        "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in METHODS},
+        "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
         "cost": cost, "machine": machine, "wall_s": round(time.perf_counter() - t_start, 1),
     }
     for st in steps:
         row = "  ".join(f"{m} {summary[m][str(st)]['mean_deg']:6.2f} (last {summary[m][str(st)]['last_frame_mean_deg']:5.2f}, "
-                        f"div {100 * summary[m][str(st)]['diverged_share']:4.1f}%)" for m in METHODS)
+                        f"div {100 * summary[m][str(st)]['diverged_share']:4.1f}%)" for m in methods)
         print(f"step {st}: {row}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
