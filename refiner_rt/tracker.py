@@ -283,7 +283,7 @@ class RefinerTracker:
                             f"got {object_id!r}")
 
     @staticmethod
-    def _check_q(q, name: str) -> np.ndarray:
+    def _check_q(q, name: str) -> list:
         arr = rq.as_quaternion(q, name)
         if arr.shape != (4,):
             raise ValueError(f"{name} must be one rotation of shape (4,), wxyz; got shape {arr.shape}")
