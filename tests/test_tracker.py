@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 import onnx_fixtures as fx
 from refiner_rt import RefinerSession
 from refiner_rt import quaternion as rq
-from refiner_rt.tracker import RefinerTracker
+from refiner_rt import RefinerTracker
 from test_pretrained import weights  # noqa: F401  (the made-up shipped models)
 
 RNG = np.random.default_rng(0)
