@@ -8,7 +8,9 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
 * ``per_frame``: the paper's setting, every frame refined once from a fresh coarse pose drawn U(0, 30) around its truth;
 * ``track``: :class:`refiner_rt.tracker.RefinerTracker` started from the ``hold`` pose, one refinement per frame,
   each from the previous frame's result;
-* ``track_predict``: the same with the constant-angular-velocity prediction.
+* ``track_predict``: the same with the constant-angular-velocity prediction;
+* ``track_redetect``: ``track`` with a detector's pose every ``--redetect`` frames (a slow detector and a fast
+  tracker): :meth:`~refiner_rt.tracker.RefinerTracker.reset` to the same fresh draw ``per_frame`` refines there.
 
 Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
@@ -50,9 +52,10 @@ from refiner_rt import quaternion as rq  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
 from refiner_rt.tracker import RefinerTracker  # noqa: E402
 
-METHODS = ("hold", "per_frame", "track", "track_predict")
+METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect")
 LABELS = {"hold": "(a) hold the initial coarse pose", "per_frame": "(b) refine each frame from U(0, 30)",
-          "track": "(c) track from an initial U(0, 30)", "track_predict": "(c) + constant-velocity prediction"}
+          "track": "(c) track from an initial U(0, 30)", "track_predict": "(c) + constant-velocity prediction",
+          "track_redetect": "(c) + a detector's U(0, 30) pose every N frames"}
 DIVERGED_DEG = 30.0
 
 
@@ -93,7 +96,7 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 
 
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
-              n_frames: int, timing: dict, methods=METHODS) -> dict:
+              n_frames: int, timing: dict, methods=METHODS, redetect: int = 10) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
     start_noise = {s.object_id: rq.sample_rotation_noise(1, "uniform", 0, 30, rng[s.object_id])[0] for s in seqs}
@@ -139,13 +142,21 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                     out["hold"][step][s.object_id][f - f0] = rq.geodesic_angle(q_start[s.object_id], s.q_gt[f])
                     if "per_frame" in methods:
                         out["per_frame"][step][s.object_id][f - f0] = per_frame[s.object_id][f]
-        for method, predict in [(m, m == "track_predict") for m in ("track", "track_predict") if m in methods]:
-            tracker = RefinerTracker({s.object_id: sessions[s.object_id] for s in live}, K, {}, predict=predict)
+        for method in [m for m in ("track", "track_predict", "track_redetect") if m in methods]:
+            tracker = RefinerTracker({s.object_id: sessions[s.object_id] for s in live}, K, {},
+                                     predict=method == "track_predict")
             key = f"{method}_step{step}"
+            last_detection = {}
             for f in grid:
                 for s in live:
                     if start[s.object_id] == f:
                         tracker.add(s.object_id, q_start[s.object_id])
+                        last_detection[s.object_id] = f
+                    elif (method == "track_redetect" and s.object_id in tracker and f in s.images
+                          and f - last_detection[s.object_id] >= redetect):
+                        # a detector's pose: the same fresh draw around the truth as per_frame's on this frame
+                        tracker.reset(s.object_id, rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames]))
+                        last_detection[s.object_id] = f
                 boxes = {s.object_id: s.boxes[f] for s in live if s.object_id in tracker and f in s.images}
                 t0, c0 = time.perf_counter(), time.process_time()
                 q = tracker.update(images[f], boxes)
@@ -229,14 +240,15 @@ def plot(doc: dict, path: Path) -> None:
 
     steps = doc["steps"]
     fig, axes = plt.subplots(1, len(steps), figsize=(4.6 * len(steps), 3.6), sharey=True, squeeze=False)
-    colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange"}
+    colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange",
+               "track_redetect": "tab:green"}
     for ax, step in zip(axes[0], steps):
         for m in [m for m in METHODS if m in doc["curves"]]:
             y = np.array([np.nan if v is None else v for v in doc["curves"][m][str(step)]])
             x = np.arange(len(y))
             ok = ~np.isnan(y)
-            ax.plot(x[ok], y[ok], color=colours[m], label=LABELS[m], lw=1.4,
-                    ls="--" if m == "track_predict" else "-")
+            label = LABELS[m].replace("every N", f"every {doc['redetect']}")
+            ax.plot(x[ok], y[ok], color=colours[m], label=label, lw=1.4, ls="--" if m == "track_predict" else "-")
         ax.set_title({1: "step 1 (every frame)", 2: "step 2 (every 2nd frame)"}.get(step, f"step {step} (every {step}th frame)"))
         ax.set_xlabel("frames since the track began")
         ax.set_ylim(0, 40)
@@ -264,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", type=int, default=0, help="use only the first N scenes (0: all)")
     p.add_argument("--seed", type=int, default=0, help="seed of the coarse poses")
     p.add_argument("--methods", default=",".join(METHODS), help=f"what to measure (default {','.join(METHODS)})")
+    p.add_argument("--redetect", type=int, default=10,
+                   help="track_redetect: frames between a detector's poses (default 10, e.g. 3 Hz in 30 Hz video)")
     p.add_argument("--json", type=Path, help="write the results here")
     p.add_argument("--plot", type=Path, help="write the error-vs-frame plot here (PNG)")
     p.add_argument("--detections-out", type=Path, metavar="DIR",
@@ -318,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
-        res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods)
+        res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods, args.redetect)
         if args.detections_out:
             write_detections(scene_seqs, args.seed, args.detections_out / f"{scene}.json")
         for m in methods:
@@ -355,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
         "data": str(args.data), "render_seed": render_record.get("seed"), "scenes": len(scenes),
         "sequences_per_object": {o: len(v) for o, v in sorted(per_object["track"][steps[0]].items())},
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
-        "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed,
+        "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
         "summary": summary, "per_object": objects_table,
         "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
         "cost": cost, "machine": machine, "wall_s": round(time.perf_counter() - t_start, 1),

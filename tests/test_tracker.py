@@ -339,7 +339,7 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     model = tmp_path / "ident.onnx"
     model.write_bytes(fx.constant_model(rq.identity(), props=fx.contract(objects=["003_cracker_box"], rotation_frame="ray")))
     out, png = tmp_path / "tracking.json", tmp_path / "tracking.png"
-    assert bench.main(["--data", str(data), "--model", f"003_cracker_box={model}", "--min-frames", "5",
+    assert bench.main(["--data", str(data), "--model", f"003_cracker_box={model}", "--min-frames", "5", "--redetect", "4",
                        "--json", str(out), "--plot", str(png), "--detections-out", str(tmp_path / "dets")]) == 0
     doc = json.loads(out.read_text())
     s = doc["summary"]
@@ -347,6 +347,7 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     for step in ("1", "2", "4"):
         assert s["track"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
         assert s["track_predict"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
+        assert s["track_redetect"][step]["mean_deg"] < s["hold"][step]["mean_deg"]  # reset to fresh draws
         assert 5 < s["per_frame"][step]["mean_deg"] < 25
     assert s["hold"]["1"]["frames"] == 23  # 2 x 12 frames, one below --min-visib
     # Holding the pose drifts by the 2-degree turn per frame: the curve rises over the sequence.
