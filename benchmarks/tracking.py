@@ -198,12 +198,15 @@ def summarise(errors: list[np.ndarray]) -> dict:
             "diverged": int(sum(diverged)), "sequences": len(errors), "frames": int(scored.size)}
 
 
-def curve(errors: list[np.ndarray]) -> list[float | None]:
-    """Mean error per frame index since the start, over the sequences scored there (None where none is)."""
+def curve(errors: list[np.ndarray], stat=np.mean) -> list[float | None]:
+    """``stat`` (mean or median) of the error per frame index since the start, over the sequences scored there (None
+    where none is)."""
     stack = np.stack(errors)
-    counts = (~np.isnan(stack)).sum(axis=0)
-    sums = np.nansum(stack, axis=0)
-    return [round(float(s / c), 3) if c else None for s, c in zip(sums, counts)]
+    out = []
+    for column in stack.T:
+        scored = column[~np.isnan(column)]
+        out.append(round(float(stat(scored)), 3) if scored.size else None)
+    return out
 
 
 def cpu_record() -> dict:
@@ -239,21 +242,25 @@ def plot(doc: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     steps = doc["steps"]
-    fig, axes = plt.subplots(1, len(steps), figsize=(4.6 * len(steps), 3.6), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(2, len(steps), figsize=(4.6 * len(steps), 6.6), sharey="row", squeeze=False)
     colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange",
                "track_redetect": "tab:green"}
-    for ax, step in zip(axes[0], steps):
-        for m in [m for m in METHODS if m in doc["curves"]]:
-            y = np.array([np.nan if v is None else v for v in doc["curves"][m][str(step)]])
-            x = np.arange(len(y))
-            ok = ~np.isnan(y)
-            label = LABELS[m].replace("every N", f"every {doc['redetect']}")
-            ax.plot(x[ok], y[ok], color=colours[m], label=label, lw=1.4, ls="--" if m == "track_predict" else "-")
-        ax.set_title({1: "step 1 (every frame)", 2: "step 2 (every 2nd frame)"}.get(step, f"step {step} (every {step}th frame)"))
-        ax.set_xlabel("frames since the track began")
-        ax.set_ylim(0, 40)
-        ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("mean rotation error (deg)")
+    for row, (key, stat) in enumerate((("curves", "mean"), ("curves_median", "median"))):
+        for ax, step in zip(axes[row], steps):
+            for m in [m for m in METHODS if m in doc[key]]:
+                y = np.array([np.nan if v is None else v for v in doc[key][m][str(step)]])
+                x = np.arange(len(y))
+                ok = ~np.isnan(y)
+                label = LABELS[m].replace("every N", f"every {doc['redetect']}")
+                ax.plot(x[ok], y[ok], color=colours[m], label=label, lw=1.3, ls="--" if m == "track_predict" else "-")
+            if row == 0:
+                ax.set_title({1: "step 1 (every frame)", 2: "step 2 (every 2nd frame)"}.get(
+                    step, f"step {step} (every {step}th frame)"))
+            else:
+                ax.set_xlabel("frames since the track began")
+            ax.set_ylim(0, 40 if row == 0 else 20)
+            ax.grid(alpha=0.3)
+        axes[row][0].set_ylabel(f"{stat} rotation error (deg)")
     axes[0][-1].legend(fontsize=7, loc="upper right")
     n = doc["summary"]["hold"][str(steps[0])]["sequences"]
     fig.suptitle(f"Tracking on rendered video: {n} sequences, {', '.join(doc['objects'])}", fontsize=9)
@@ -344,6 +351,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{time.perf_counter() - t_start:.0f} s", file=sys.stderr)
 
     summary = {m: {str(st): summarise(errors[m][st]) for st in steps} for m in methods}
+    if "per_frame" in methods:  # per sequence: does the method's mean beat refining each frame from a fresh pose?
+        for m in methods:
+            for st in steps:
+                better = [np.nanmean(a) < np.nanmean(b) for a, b in zip(errors[m][st], errors["per_frame"][st])]
+                summary[m][str(st)]["beats_per_frame_share"] = round(float(np.mean(better)), 4)
     objects_table = {m: {str(st): {o: summarise(v) for o, v in sorted(per_object[m][st].items())} for st in steps}
                      for m in methods}
     # CPU time of this process (threads=1: the network's own time) is the cost; wall time also counts the waits
@@ -372,6 +384,7 @@ def main(argv: list[str] | None = None) -> int:
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
         "summary": summary, "per_object": objects_table,
         "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
+        "curves_median": {m: {str(st): curve(errors[m][st], np.median) for st in steps} for m in methods},
         "cost": cost, "machine": machine, "wall_s": round(time.perf_counter() - t_start, 1),
     }
     for st in steps:
