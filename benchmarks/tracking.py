@@ -335,11 +335,19 @@ def main(argv: list[str] | None = None) -> int:
     n_frames = max(max(s.images) for s in seqs) + 1
     timing = defaultdict(lambda: {"seconds": 0.0, "cpu_seconds": 0.0, "updates": 0, "refinements": 0})
     errors = {m: {st: [] for st in steps} for m in methods}
+    per_sequence = []  # step 1 (the first step), one row per sequence: its mean and largest error per method
     per_object = {m: {st: defaultdict(list) for st in steps} for m in methods}
     t_start = time.perf_counter()
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
         res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods, args.redetect)
+        for s in scene_seqs:
+            if s.object_id in res["hold"][steps[0]]:
+                row = {"scene": scene, "object": s.object_id, "frames": len(s.images)}
+                for m in methods:
+                    e = res[m][steps[0]][s.object_id]
+                    row[m] = {"mean_deg": round(float(np.nanmean(e)), 2), "max_deg": round(float(np.nanmax(e)), 2)}
+                per_sequence.append(row)
         if args.detections_out:
             write_detections(scene_seqs, args.seed, args.detections_out / f"{scene}.json")
         for m in methods:
@@ -382,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
         "sequences_per_object": {o: len(v) for o, v in sorted(per_object["track"][steps[0]].items())},
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
-        "summary": summary, "per_object": objects_table,
+        "summary": summary, "per_object": objects_table, "per_sequence_first_step": per_sequence,
         "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
         "curves_median": {m: {str(st): curve(errors[m][st], np.median) for st in steps} for m in methods},
         "cost": cost, "machine": machine, "wall_s": round(time.perf_counter() - t_start, 1),
