@@ -368,3 +368,24 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     truth0 = Q0[1]
     held = [rq.geodesic_angle(q["003_cracker_box"], truth0) for q in rot.values() if q]
     assert np.ptp(held) < 1e-6 and held[0] <= 30.0 + 1e-6
+
+
+# ------------------------------------------------------------------------------ the models that really ship
+def _shipped():
+    from refiner_rt import pretrained_models
+
+    return pretrained_models()
+
+
+@pytest.mark.skipif(not _shipped(), reason="no pretrained model ships in this checkout")
+def test_every_shipped_model_tracks_by_name():
+    """All shipped objects in one tracker, each by its name: one update refines each, unit wxyz with w >= 0."""
+    names = [m.object_id for m in _shipped()]
+    K_ycbv = np.array([[1066.8, 0, 313.0], [0, 1067.5, 241.3], [0, 0, 1]])
+    image = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    tracker = RefinerTracker({n: n for n in names}, K_ycbv, {n: Q0[0] for n in names}, predict=True)
+    for _ in range(3):
+        out = tracker.update(image, {n: [250.0, 160.0, 390.0, 330.0] for n in names})
+    assert sorted(out) == sorted(names)
+    for q in out.values():
+        assert q.shape == (4,) and np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-9 and q[0] >= 0
