@@ -270,9 +270,27 @@ def plot(doc: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def report(doc: dict) -> str:
+    """The Markdown table of a results file: one row per frame step and method."""
+    short = {"hold": "(a) hold initial pose", "per_frame": "(b) refine each frame from U(0, 30)",
+             "track": "(c) track", "track_predict": "(c) track + constant velocity",
+             "track_redetect": f"(c) track + detector every {doc['redetect']} frames"}
+    lines = ["| step | method | mean | median | last frame | diverged (> 30 deg) | beats (b) per sequence |",
+             "|---:|---|---:|---:|---:|---:|---:|"]
+    for st in doc["steps"]:
+        for m in [m for m in METHODS if m in doc["summary"]]:
+            r = doc["summary"][m][str(st)]
+            beats = "" if m == "per_frame" or "beats_per_frame_share" not in r else f"{100 * r['beats_per_frame_share']:.0f}%"
+            lines.append(f"| {st} | {short[m]} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} | "
+                         f"{r['last_frame_mean_deg']:.2f} | {100 * r['diverged_share']:.1f}% ({r['diverged']}/{r['sequences']}) "
+                         f"| {beats} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, required=True, help="rendered BOP folder (refiner-rt render --out)")
+    p.add_argument("--data", type=Path, help="rendered BOP folder (refiner-rt render --out)")
+    p.add_argument("--report", type=Path, metavar="JSON", help="print the Markdown table of a results file and exit")
     p.add_argument("--objects", help="comma-separated YCB ids (default: every object with a shipped model)")
     p.add_argument("--model", action="append", default=[], metavar="OBJ=FILE",
                    help="an ONNX file to measure for an object instead of its shipped model (repeatable)")
@@ -291,8 +309,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="also write DIR/<scene>.json, each scene's boxes and initial coarse poses as a "
                         "`refiner-rt track` detections file")
     args = p.parse_args(argv)
+    if args.report:
+        print(report(json.loads(args.report.read_text())))
+        return 0
     steps = [int(v) for v in args.steps.split(",")]
-    if not args.data.is_dir():
+    if args.data is None or not args.data.is_dir():
         p.error(f"--data {args.data}: no such folder")
     methods = tuple(m for m in METHODS if m in args.methods.split(","))
     if set(args.methods.split(",")) - set(METHODS) or "hold" not in methods:
