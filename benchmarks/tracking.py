@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shlex
 import sys
 import time
@@ -210,23 +209,12 @@ def curve(errors: list[np.ndarray], stat=np.mean) -> list[float | None]:
 
 
 def cpu_record() -> dict:
-    """CPU model, cores, the vector-extension flags from ``/proc/cpuinfo`` (AVX*, FMA, F16C, AMX) and the load."""
-    model, flags = platform.processor() or platform.machine(), []
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        for line in text.splitlines():
-            if line.startswith("model name") and model in ("", platform.processor() or platform.machine()):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = sorted(f for f in line.split(":", 1)[1].split()
-                               if f.startswith(("avx", "amx")) or f in ("fma", "f16c"))
-                break
-    except OSError:
-        pass
-    import onnxruntime
+    """The machine (:func:`refiner_rt.bench.machine_info`), its vector-instruction flags and the load average."""
+    from refiner_rt.bench import cpu_flags, machine_info
 
-    return {"cpu": model, "vector_flags": flags, "cores": len(os.sched_getaffinity(0)), "python": platform.python_version(),
-            "onnxruntime": onnxruntime.__version__, "load_average_1min_at_start": round(os.getloadavg()[0], 2)}
+    info = machine_info()
+    return {"cpu": info["cpu"], "vector_flags": cpu_flags(), "cores": info["cores"], "python": info["python"],
+            "onnxruntime": info["onnxruntime"], "load_average_1min_at_start": round(os.getloadavg()[0], 2)}
 
 
 def _sha256(path: Path) -> str:
