@@ -11,7 +11,8 @@ __version__ = "0.1.0"
 
 from refiner_rt.errors import ModelError
 
-__all__ = ["ModelError", "RefinerSession", "RefineResult", "quaternion", "pretrained_models", "__version__"]
+__all__ = ["ModelError", "RefinerSession", "RefineResult", "RefinerTracker", "quaternion", "pretrained_models",
+           "__version__"]
 
 
 def __getattr__(name):
@@ -20,6 +21,10 @@ def __getattr__(name):
         from refiner_rt import session
 
         return getattr(session, name)
+    if name == "RefinerTracker":
+        from refiner_rt.tracker import RefinerTracker
+
+        return RefinerTracker
     if name == "pretrained_models":
         from refiner_rt.pretrained import pretrained_models
 

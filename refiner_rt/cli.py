@@ -20,6 +20,7 @@ LAZY_COMMANDS = {
     "info": ("refiner_rt.info:info_cmd", "Print a model's metadata contract, inputs/outputs and size."),
     "models": ("refiner_rt.models_cli:models_cmd", "List the pretrained refiners that ship in the package."),
     "demo": ("refiner_rt.demo_cli:demo_cmd", "Refine sample frames (or your image) with the shipped models; draw it."),
+    "track": ("refiner_rt.track_cli:track_cmd", "Track object rotations through a folder of frames with boxes."),
     "bench": ("export.bench_models:bench_cmd", "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8."),
     "render": ("models.data.render:render_cmd", "Render BOP-format training scenes of YCB objects on the CPU."),
     "train": ("models.train_cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning)."),

@@ -168,6 +168,7 @@ BAD_INVOCATIONS = [
     (["eval", "{truncated.onnx}", "--data", "{data}"], "truncated.onnx"),
     (["eval", "{random.pt}", "--data", "{data}"], "random.pt"),
     (["export", "{random.pt}"], "random.pt"),
+    (["track", "{data}", "{random.pt}", "-o", "{tmp}/r.json"], "random.pt"),
     (["train", "--data", "{data}", "--out", "{tmp}/o.pt", "--base", "{random.pt}"], "random.pt"),
     (["train", "--data", "{bop}", "--out", "{tmp}/o.pt"], "scene_gt.json"),
     (["render", "--preview", "{tmp}/p.png", "--data", "{bop}"], "scene_gt.json"),

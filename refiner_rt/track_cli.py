@@ -1,0 +1,286 @@
+"""``refiner-rt track``: run a :class:`~refiner_rt.tracker.RefinerTracker` over a folder of frames (torch-free).
+
+Input: a folder of images (``.png`` / ``.jpg``, taken in file-name order) and a detections file (JSON)::
+
+    {
+      "K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+      "frames": {
+        "000000.png": {"003_cracker_box": {"box": [x1, y1, x2, y2], "q": [w, x, y, z]}},
+        "000001.png": {"003_cracker_box": [x1, y1, x2, y2]}
+      }
+    }
+
+A detection is a box, or a box with a coarse rotation ``q`` (a detector's pose): ``q`` starts tracking the object,
+or re-initialises it. Frames without an entry have no detections (the tracked objects keep their rotations).
+Output: the refined rotation of every object in every frame where it had a box, as JSON
+``{"frames": {"000000.png": {"003_cracker_box": [w, x, y, z]}}, ...}``.
+
+Conventions (design.md section 2): quaternions ``wxyz`` (scalar first), object-to-camera; boxes ``(x1, y1, x2,
+y2)`` in pixels, continuous coordinates; ``K`` in pixels (OpenCV convention).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+import cv2
+import numpy as np
+
+from refiner_rt import quaternion as rq
+from refiner_rt.session import MAX_ITERATIONS
+
+__all__ = ["track_cmd", "read_detections", "frame_files", "annotate", "OUTPUT_FORMAT"]
+
+OUTPUT_FORMAT = "refiner-rt/track/1"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}
+STRIP_SUFFIXES = (".png", ".jpg")
+STRIP_WIDTH = 320  # pixels per frame in an image strip
+AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 0, 0))  # BGR: x red, y green, z blue
+
+
+def frame_files(folder: Path) -> list[Path]:
+    """The images in ``folder`` (``.png``, ``.jpg``, ``.jpeg``), sorted by file name."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def read_detections(path: Path) -> tuple[np.ndarray | None, dict[str, dict[str, dict]]]:
+    """Parse a detections file (module docstring).
+
+    Returns:
+        ``(K or None, {frame file name: {object id: {"box": (4,) float64, "q": (4,) float64 wxyz or None}}})``.
+
+    Raises:
+        ValueError: not JSON, or an entry of the wrong form (the message names the file and the entry).
+    """
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable JSON detections file ({exc})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("frames"), dict):
+        raise ValueError(f"{path}: expected an object with \"frames\": {{frame file name: {{object id: box}}}}")
+    K = doc.get("K")
+    frames = {}
+    for frame, detections in doc["frames"].items():
+        if not isinstance(detections, dict):
+            raise ValueError(f"{path}: frames[{frame!r}] must map object ids to boxes; got {type(detections).__name__}")
+        frames[frame] = {}
+        for object_id, det in detections.items():
+            where = f"{path}: frames[{frame!r}][{object_id!r}]"
+            q = None
+            if isinstance(det, dict):
+                unknown = sorted(set(det) - {"box", "q"})
+                if unknown or "box" not in det:
+                    raise ValueError(f"{where} must be [x1, y1, x2, y2] or {{\"box\": [...], \"q\": [w, x, y, z]}}; "
+                                     f"got keys {sorted(det)}")
+                box, q = det["box"], det.get("q")
+            else:
+                box = det
+            frames[frame][object_id] = {"box": _numbers(box, 4, f"{where} box (x1, y1, x2, y2)"),
+                                        "q": None if q is None else _numbers(q, 4, f"{where} q (w, x, y, z)")}
+    return (None if K is None else _numbers(K, (3, 3), f"{path}: K")), frames
+
+
+def _numbers(value, shape, what: str) -> np.ndarray:
+    shape = (shape,) if isinstance(shape, int) else shape
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be numbers of shape {shape}; got {value!r}") from None
+    if arr.shape != shape:
+        raise ValueError(f"{what} must have shape {shape}; got {value!r}")
+    return arr
+
+
+def annotate(image: np.ndarray, boxes: dict, rotations: dict) -> np.ndarray:
+    """A copy of ``image`` (BGR) with each object's box and its rotation's axes drawn at the box centre.
+
+    The axes are the columns of the object-to-camera rotation matrix, drawn orthographically (camera ``x`` right,
+    ``y`` down) with half the box's shorter side as length: x red, y green, z blue.
+    """
+    out = image.copy()
+    for object_id, q in rotations.items():
+        x1, y1, x2, y2 = boxes[object_id]
+        cv2.rectangle(out, (int(x1), int(y1)), (int(x2), int(y2)), (255, 255, 255), 1, cv2.LINE_AA)
+        centre = np.array([(x1 + x2) / 2, (y1 + y2) / 2])
+        length = 0.5 * min(x2 - x1, y2 - y1)
+        R = rq.to_matrix(q)
+        for axis in np.argsort(R[2])[::-1]:  # the axis pointing farthest away first, so nearer ones stay on top
+            tip = centre + length * R[:2, axis]
+            cv2.line(out, tuple(np.round(centre).astype(int)), tuple(np.round(tip).astype(int)),
+                     AXIS_COLOURS[axis], 2, cv2.LINE_AA)
+        cv2.putText(out, object_id, (int(x1), max(int(y1) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+class _VideoOutput:
+    """Annotated frames to a video file (``.mp4``, ``.avi``) or an image strip (``.png``, ``.jpg``)."""
+
+    def __init__(self, path: Path, n_frames: int, strip_frames: int, fps: float):
+        self.path, self.writer, self.tiles = path, None, []
+        suffix = path.suffix.lower()
+        if suffix not in VIDEO_CODECS and suffix not in STRIP_SUFFIXES:
+            raise click.BadParameter(f"expected a .mp4 or .avi video or a .png or .jpg image strip; got {path.name!r}",
+                                     param_hint="'--video'")
+        self.strip = suffix in STRIP_SUFFIXES
+        self.fps = fps
+        count = max(1, min(strip_frames, n_frames))
+        self.keep = set(np.round(np.linspace(0, n_frames - 1, count)).astype(int).tolist())
+
+    def add(self, index: int, frame: np.ndarray) -> None:
+        if self.strip:
+            if index in self.keep:
+                h, w = frame.shape[:2]
+                self.tiles.append(cv2.resize(frame, (STRIP_WIDTH, max(1, round(h * STRIP_WIDTH / w))),
+                                             interpolation=cv2.INTER_AREA))
+            return
+        if self.writer is None:
+            h, w = frame.shape[:2]
+            self.size = (w, h)
+            fourcc = cv2.VideoWriter_fourcc(*VIDEO_CODECS[self.path.suffix.lower()])
+            self.writer = cv2.VideoWriter(str(self.path), fourcc, self.fps, self.size)
+            if not self.writer.isOpened():
+                raise click.ClickException(f"OpenCV cannot write the video {self.path} (codec "
+                                           f"{VIDEO_CODECS[self.path.suffix.lower()]}); write a .png image strip instead")
+        if (frame.shape[1], frame.shape[0]) != self.size:
+            frame = cv2.resize(frame, self.size)
+        self.writer.write(frame)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.release()
+        if self.strip and self.tiles:
+            height = max(t.shape[0] for t in self.tiles)
+            tiles = [cv2.copyMakeBorder(t, 0, height - t.shape[0], 0, 0, cv2.BORDER_CONSTANT) for t in self.tiles]
+            if not cv2.imwrite(str(self.path), np.hstack(tiles)):
+                raise click.ClickException(f"cannot write the image strip {self.path}")
+
+
+def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
+    """``{object id: RefinerSession}``: an ``--model`` ONNX file trained for the object, else its shipped model."""
+    from refiner_rt.session import RefinerSession
+    from refiner_rt.tracker import _object_name
+
+    files, names = [], set()
+    for m in model_args:
+        if m.lower().endswith(".onnx") or Path(m).is_file():
+            files.append(RefinerSession(m, threads=threads))
+        else:
+            names.add(m)
+    loaded, out = {}, {}
+    for object_id in object_ids:
+        name = _object_name(object_id)
+        sess = next((s for s in files if name in s.contract.objects), None)
+        if sess is None:
+            if names and name not in names:
+                raise ValueError(f"no --model serves object {object_id!r}: the ONNX files given are trained for "
+                                 f"{sorted({o for s in files for o in s.contract.objects})} and the names given are "
+                                 f"{sorted(names)}")
+            if name not in loaded:
+                loaded[name] = RefinerSession.pretrained(name, int8=int8, threads=threads)
+            sess = loaded[name]
+        out[object_id] = sess
+    return out
+
+
+@click.command("track")
+@click.argument("frames", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("detections", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("-o", "--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Rotations file to write (JSON, wxyz object-to-camera per frame and object).")
+@click.option("--model", "models", multiple=True,
+              help="A refiner for some objects: an ONNX file (serves the objects in its metadata) or a shipped "
+                   "model's name. Repeatable. Default: each object's shipped model.")
+@click.option("--fp32", is_flag=True, help="Use the shipped fp32 models instead of INT8.")
+@click.option("--K", "K_text", metavar="FX,FY,CX,CY", help="Camera intrinsics in pixels (instead of the file's \"K\").")
+@click.option("--predict", is_flag=True, help="Predict each rotation with a constant angular velocity first.")
+@click.option("--iterations", type=click.IntRange(1, MAX_ITERATIONS), default=1, show_default=True,
+              help="Refinement passes per object and frame.")
+@click.option("--threads", type=click.IntRange(1, 256), default=1, show_default=True,
+              help="Threads each network runs on.")
+@click.option("--video", "video_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the frames annotated with boxes and rotation axes: a .mp4/.avi video or a .png/.jpg "
+                   "strip of --strip frames.")
+@click.option("--strip", "strip_frames", type=click.IntRange(1, 64), default=8, show_default=True,
+              help="Frames in a --video image strip, evenly spaced.")
+@click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
+def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, iterations, threads, video_path,
+              strip_frames, fps):
+    """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
+
+    DETECTIONS is JSON: {"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "frames": {"<image file>": {"<object id>": [x1,y1,x2,y2]
+    or {"box": [...], "q": [w,x,y,z]}}}}. A "q" (a detector's coarse rotation) starts or re-initialises an object;
+    later frames refine from the previous frame's result. Object ids are YCB ids, "#<n>" telling instances apart.
+    Quaternions wxyz object-to-camera, boxes in pixels.
+    """
+    from refiner_rt.tracker import RefinerTracker
+
+    try:
+        K, dets = read_detections(detections)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    if K_text is not None:
+        try:
+            fx, fy, cx, cy = (float(v) for v in K_text.split(","))
+        except ValueError:
+            raise click.BadParameter(f"expected four numbers FX,FY,CX,CY; got {K_text!r}", param_hint="'--K'") from None
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    if K is None:
+        raise click.UsageError("no camera intrinsics: give \"K\" in the detections file or --K FX,FY,CX,CY")
+    files = frame_files(frames)
+    if not files:
+        raise click.ClickException(f"{frames}: no .png or .jpg frames")
+    unknown = sorted(set(dets) - {p.name for p in files})
+    if unknown:
+        raise click.ClickException(f"{detections}: frames {unknown[:5]} are not images in {frames}")
+    object_ids = sorted({o for d in dets.values() for o in d})
+    try:
+        sessions = _sessions(object_ids, models, int8=not fp32, threads=threads)
+        tracker = RefinerTracker(sessions, K, {}, predict=predict, iterations=iterations)
+    except (ValueError, TypeError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+
+    video = _VideoOutput(video_path, len(files), strip_frames, fps) if video_path else None
+    results, refined, seconds = {}, 0, 0.0
+    for index, path in enumerate(files):
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if image is None:
+            raise click.ClickException(f"{path}: OpenCV cannot read this image")
+        frame_dets = dets.get(path.name, {})
+        t0 = time.perf_counter()
+        try:
+            for object_id, det in frame_dets.items():
+                if det["q"] is not None:
+                    if object_id in tracker:
+                        tracker.reset(object_id, det["q"])
+                    else:
+                        tracker.add(object_id, det["q"])
+                elif object_id not in tracker:
+                    raise ValueError(f"{object_id!r} has a box but no rotation to start from: give its first "
+                                     f"detection as {{\"box\": [...], \"q\": [w, x, y, z]}}")
+            boxes = {o: d["box"] for o, d in frame_dets.items()}
+            out = tracker.update(image, boxes)
+        except (ValueError, TypeError) as exc:
+            raise click.ClickException(f"{path.name}: {exc}") from None
+        seconds += time.perf_counter() - t0
+        refined += len(out)
+        results[path.name] = {o: [round(v, 9) for v in q.tolist()] for o, q in out.items()}
+        if video is not None:
+            video.add(index, annotate(image, boxes, out))
+    if video is not None:
+        video.close()
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps({
+        "format": OUTPUT_FORMAT,
+        "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",
+        "K": K.tolist(), "predict": predict, "iterations": iterations,
+        "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
+        "frames": results,
+    }, indent=1))
+    per_frame = 1e3 * seconds / len(files)
+    click.echo(f"{len(files)} frames, {len(object_ids)} objects, {refined} refinements: {per_frame:.2f} ms per frame "
+               f"(tracker only, image reading excluded) -> {out_path}" + (f", {video_path}" if video_path else ""))

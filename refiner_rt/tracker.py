@@ -1,0 +1,314 @@
+"""RefinerTracker: refine each object's rotation frame after frame, its previous refined rotation as the coarse pose.
+
+The paper refines one frame from a detector's coarse pose. In video the best coarse pose for frame ``t`` is
+usually the refined pose of frame ``t - 1``: a detector's pose is needed once (and again only to recover), and
+every later frame costs one network pass per object. ``benchmarks/tracking.py`` measures this on rendered video.
+
+Conventions (design.md section 2):
+    * quaternions are ``wxyz`` (scalar first, Hamilton product), float64, returned with ``w >= 0``;
+    * rotations map object coordinates to camera coordinates (``x_cam = R @ x_obj + t``);
+    * images are ``H x W x 3`` ``uint8`` **BGR** (what ``cv2.imread`` gives);
+    * boxes are ``(x1, y1, x2, y2)`` in pixels, continuous coordinates (pixel ``i`` covers ``[i, i+1)``);
+    * angles are in degrees.
+
+Object ids are YCB ids (``"003_cracker_box"``), optionally with a ``#suffix`` that tells two instances of one
+object apart (``"003_cracker_box#2"``); the part before ``#`` must be an object the session's model was trained for.
+
+Constant-angular-velocity prediction (``predict=True``): the rotation change between an object's last two refined
+rotations, taken in the camera frame, ``dq = q_t * q_{t-1}^-1`` per update, is applied once more before refining,
+``q_in = dq * q_t`` (a camera turning steadily around a still object turns it at a constant rate in the camera
+frame). Only refined rotations enter ``dq``: the correction of a coarse initial pose is not motion.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+
+import numpy as np
+
+from refiner_rt import quaternion as rq
+from refiner_rt.preprocess import validate_boxes, validate_image
+from refiner_rt.session import (
+    RefinerSession,
+    _conjugate_rows,
+    _multiply_rows,
+    _small_boxes,
+    _unit_rows,
+    _validate_K,
+)
+
+__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR"]
+
+log = logging.getLogger(__name__)
+
+INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
+
+
+def _object_name(object_id: str) -> str:
+    """The YCB id part of an object id (``"003_cracker_box#2"`` -> ``"003_cracker_box"``)."""
+    return object_id.split(INSTANCE_SEPARATOR, 1)[0]
+
+
+class _Track:
+    """One tracked object: its session, current rotation and (for prediction) its last rotation change."""
+
+    __slots__ = ("session", "q", "refined", "velocity", "missed")
+
+    def __init__(self, session: RefinerSession, q: np.ndarray):
+        self.session = session
+        self.q = q  # [w, x, y, z] Python floats, unit, w >= 0: the current estimate (coarse until the first update)
+        self.refined = False  # whether q came from the refiner (only then does it count for the velocity)
+        self.velocity = None  # [w, x, y, z]: rotation change per update in the camera frame, or None
+        self.missed = 0  # updates since this object was last refined (it had no box)
+
+
+class RefinerTracker:
+    """Track the rotations of objects through video with :class:`RefinerSession` refinements.
+
+    Each :meth:`update` refines every object that has a box in the frame, starting from its previous refined
+    rotation (or, right after construction, :meth:`add` or :meth:`reset`, from the coarse rotation given there).
+    Objects that share a session are refined in one batched :meth:`RefinerSession.refine` call. An object without
+    a box in a frame (not detected, hidden) keeps its rotation until it is seen again.
+
+    Args:
+        session: the refiner(s). A :class:`RefinerSession` refines every object (each object id must be one of its
+            model's objects); a string loads that shipped model with :meth:`RefinerSession.pretrained` (INT8, one
+            thread) for every object; a mapping ``object id -> RefinerSession or pretrained name`` gives each object
+            its own (a name is loaded once and shared by the objects that name it).
+        K: ``(3, 3)`` camera intrinsics in pixels, ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (the shipped models
+            need it: they work in the viewing-ray frame).
+        q0: ``{object id: (4,) coarse rotation}``, object-to-camera, ``wxyz`` (e.g. a detector's pose); finite and
+            non-zero, normalised here. May be empty (add objects later with :meth:`add`).
+        predict: apply the constant-angular-velocity prediction (module docstring) before each refinement.
+        iterations: refinement passes per update (``>= 1``), as :meth:`RefinerSession.refine`.
+        views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`.
+
+    Raises:
+        ValueError / TypeError: a bad argument, named, with what was expected and what was given.
+
+    Not thread-safe: one tracker per camera stream, updated from one thread.
+
+    Example:
+        >>> tracker = RefinerTracker("003_cracker_box", K, {"003_cracker_box": q_detector})
+        >>> for image, box in frames:                      # image: HxWx3 uint8 BGR, box: (x1, y1, x2, y2) pixels
+        ...     q = tracker.update(image, {"003_cracker_box": box})["003_cracker_box"]   # (4,) wxyz
+    """
+
+    def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1):
+        self.K = _validate_K(K).copy()
+        if not isinstance(predict, bool):
+            raise TypeError(f"predict must be True or False; got {predict!r}")
+        self.predict = predict
+        self.iterations = RefinerSession._validate_iterations(iterations)
+        self.views = RefinerSession._validate_views(views)
+        self._loaded: dict[str, RefinerSession] = {}  # pretrained name -> session, loaded once
+        self._default: RefinerSession | None = None
+        self._per_object: dict[str, RefinerSession] = {}
+        if isinstance(session, Mapping):
+            for object_id, s in session.items():
+                self._check_id(object_id, "session")
+                self._per_object[object_id] = self._session_of(s, f"session[{object_id!r}]")
+        else:
+            self._default = self._session_of(session, "session")
+        if not isinstance(q0, Mapping):
+            raise TypeError(
+                f"q0 must be a mapping {{object id: (4,) wxyz rotation}}, e.g. {{'003_cracker_box': q}}; "
+                f"got {type(q0).__name__}"
+            )
+        self._tracks: dict[str, _Track] = {}
+        for object_id, q in q0.items():
+            self._add(object_id, q, None, f"q0[{object_id!r}]")
+        missing = sorted(set(self._per_object) - set(self._tracks))
+        if missing:
+            log.debug("sessions given for objects without an initial rotation (add them later): %s", missing)
+
+    # ------------------------------------------------------------------ objects
+    @property
+    def object_ids(self) -> list[str]:
+        """The tracked object ids, in the order they were added."""
+        return list(self._tracks)
+
+    @property
+    def rotations(self) -> dict[str, np.ndarray]:
+        """``{object id: (4,) float64 wxyz, w >= 0}``: each object's current object-to-camera rotation (a copy)."""
+        return {k: np.array(t.q) for k, t in self._tracks.items()}
+
+    def __len__(self) -> int:
+        return len(self._tracks)
+
+    def __contains__(self, object_id) -> bool:
+        return object_id in self._tracks
+
+    def add(self, object_id: str, q, session=None) -> None:
+        """Start tracking an object from a coarse rotation.
+
+        Args:
+            object_id: a YCB id, optionally with a ``#suffix`` (module docstring); not already tracked.
+            q: ``(4,)`` coarse object-to-camera rotation, ``wxyz``; finite, non-zero (normalised here).
+            session: a :class:`RefinerSession` or a pretrained name for this object; default the one given for it
+                at construction, else the tracker's common session.
+
+        Raises:
+            ValueError / TypeError: an id already tracked or not a string, no session for it, a session whose model
+                was not trained for the object, a bad ``q``.
+        """
+        self._add(object_id, q, session, "q")
+
+    def _add(self, object_id, q, session, q_name: str) -> None:
+        self._check_id(object_id, "object_id")
+        if object_id in self._tracks:
+            raise ValueError(f"object_id {object_id!r} is already tracked; use reset() to give it a new rotation")
+        if session is not None:
+            sess = self._session_of(session, "session")
+        elif object_id in self._per_object:
+            sess = self._per_object[object_id]
+        elif self._default is not None:
+            sess = self._default
+        else:
+            raise ValueError(
+                f"no session for object_id {object_id!r}: the tracker's sessions are per object "
+                f"({sorted(self._per_object)}); pass session= (a RefinerSession or a pretrained name)"
+            )
+        objects = list(sess.contract.objects)
+        if _object_name(object_id) not in objects:
+            raise ValueError(
+                f"object_id {object_id!r} is not an object its session's model was trained for (metadata objects: "
+                f"{objects}); use that object's model, or name the object '<ycb id>' or '<ycb id>#<instance>'"
+            )
+        self._tracks[object_id] = _Track(sess, self._check_q(q, q_name))
+
+    def drop(self, object_id: str) -> None:
+        """Stop tracking an object.
+
+        Raises:
+            ValueError: the object is not tracked (the message lists those that are).
+        """
+        self._track(object_id)
+        del self._tracks[object_id]
+
+    def reset(self, object_id: str, q) -> None:
+        """Re-initialise an object from a new coarse rotation (a detector's), forgetting its motion.
+
+        Args:
+            object_id: a tracked object id.
+            q: ``(4,)`` coarse object-to-camera rotation, ``wxyz``; finite, non-zero (normalised here).
+
+        Raises:
+            ValueError: the object is not tracked, or a bad ``q``.
+        """
+        track = self._track(object_id)
+        track.q = self._check_q(q, "q")
+        track.refined, track.velocity, track.missed = False, None, 0
+
+    # ------------------------------------------------------------------ tracking
+    def update(self, image, boxes: Mapping) -> dict[str, np.ndarray]:
+        """Refine the tracked objects seen in one frame.
+
+        Args:
+            image: ``H x W x 3`` ``uint8`` image, **BGR** channel order.
+            boxes: ``{object id: (4,) box (x1, y1, x2, y2)}`` in pixels (continuous coordinates), one per tracked
+                object seen in this frame; each non-empty and overlapping the image. Tracked objects without a box
+                keep their rotation; an id that is not tracked is an error.
+
+        Returns:
+            ``{object id: (4,) float64 wxyz, w >= 0}``: the refined object-to-camera rotation of each object in
+            ``boxes`` (the others are in :attr:`rotations`).
+
+        Raises:
+            ValueError / TypeError: a bad image or box, or a box for an object that is not tracked.
+        """
+        image = validate_image(image, "image")
+        if not isinstance(boxes, Mapping):
+            raise TypeError(
+                f"boxes must be a mapping {{object id: (4,) box (x1, y1, x2, y2) in pixels}}; got {type(boxes).__name__}"
+            )
+        groups: dict[int, tuple[RefinerSession, list[str], list[np.ndarray]]] = {}
+        for object_id, box in boxes.items():
+            track = self._track(object_id, name="boxes")
+            row = _check_box(box, image.shape, f"boxes[{object_id!r}]")
+            group = groups.get(id(track.session))
+            if group is None:
+                group = groups[id(track.session)] = (track.session, [], [])
+            group[1].append(object_id)
+            group[2].append(row)
+        seen = set(boxes)
+        for object_id, track in self._tracks.items():
+            if object_id not in seen:
+                track.missed += 1
+        out = {}
+        for sess, ids, rows in groups.values():
+            q_in = np.array([self._prediction(self._tracks[i]) for i in ids])
+            res = sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K, views=self.views)
+            for object_id, q in zip(ids, res.q_refined.tolist()):
+                track = self._tracks[object_id]
+                if self.predict and track.refined:
+                    # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py)
+                    step = _unit_rows(_multiply_rows([q], _conjugate_rows([track.q])))[0]
+                    track.velocity = step if track.missed == 0 else _fraction(step, 1.0 / (track.missed + 1))
+                track.q, track.refined, track.missed = q, True, 0
+                out[object_id] = np.array(q)
+        return out
+
+    # ------------------------------------------------------------------ internals
+    def _prediction(self, track: _Track) -> list:
+        """The coarse rotation for this update: the last one, turned on by the velocity when predicting."""
+        if not self.predict or track.velocity is None:
+            return track.q
+        step = track.velocity if track.missed == 0 else _fraction(track.velocity, track.missed + 1.0)
+        return _unit_rows(_multiply_rows([step], [track.q]))[0]
+
+    def _session_of(self, value, name: str) -> RefinerSession:
+        if isinstance(value, RefinerSession):
+            return value
+        if isinstance(value, str):
+            if value not in self._loaded:
+                log.debug("loading the pretrained refiner %r", value)
+                self._loaded[value] = RefinerSession.pretrained(value, int8=True, threads=1)
+            return self._loaded[value]
+        raise TypeError(f"{name} must be a RefinerSession or a pretrained model name such as '003_cracker_box'; "
+                        f"got {type(value).__name__}")
+
+    def _track(self, object_id, name: str = "object_id") -> _Track:
+        try:
+            return self._tracks[object_id]
+        except (KeyError, TypeError):
+            raise ValueError(f"{name} names {object_id!r}, which is not tracked (tracked: {list(self._tracks)}); "
+                             f"add it with add(object_id, q)") from None
+
+    @staticmethod
+    def _check_id(object_id, name: str) -> None:
+        if not isinstance(object_id, str) or not object_id:
+            raise TypeError(f"{name}: object ids must be non-empty strings such as '003_cracker_box'; "
+                            f"got {object_id!r}")
+
+    @staticmethod
+    def _check_q(q, name: str) -> list:
+        arr = rq.as_quaternion(q, name)
+        if arr.shape != (4,):
+            raise ValueError(f"{name} must be one rotation of shape (4,), wxyz; got shape {arr.shape}")
+        return rq.normalize(arr).tolist()
+
+    def __repr__(self) -> str:
+        return f"RefinerTracker(objects={self.object_ids}, predict={self.predict}, iterations={self.iterations})"
+
+
+def _fraction(q: list, power: float) -> list:
+    """``q ** power`` for a unit quaternion ``[w, x, y, z]``: the same axis, ``power`` times the angle."""
+    axis, angle = rq.to_axis_angle(np.array(q))
+    return rq.from_axis_angle(axis, angle * power).tolist()
+
+
+def _check_box(box, image_shape, name: str) -> list:
+    """One box ``(x1, y1, x2, y2)`` in pixels as a list of floats, checked by the session's rules (its fast path for a
+    well-formed box, else :func:`refiner_rt.preprocess.validate_boxes`, which raises the detailed error)."""
+    try:
+        arr = np.asarray(box, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be one numeric box (x1, y1, x2, y2) in pixels; got {box!r}") from None
+    if arr.shape != (4,):
+        raise ValueError(f"{name} must be one box (x1, y1, x2, y2) in pixels, shape (4,); got shape {arr.shape}")
+    fast = _small_boxes(arr[None], image_shape)
+    if fast is not None:
+        return fast[1][0]
+    return validate_boxes(arr, image_shape, name)[0].tolist()
