@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from benchmarks.memory import MB, _peak_rss_bytes, _rss_bytes, build_model, summarize  # noqa: E402
+from benchmarks.memory import MB, _rss_bytes, build_model, rss_record, summarize  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
 DEFAULT_CALLS = 1_000_000
@@ -80,19 +80,8 @@ def child(model: str, calls: int, every: int, callers: int) -> dict:
         for t in pool:
             t.join()
     seconds = time.perf_counter() - t0
-    return {
-        "torch_imported": "torch" in sys.modules,
-        "rss_start": start,
-        "rss_imported": imported,
-        "rss_loaded": loaded,
-        "samples": samples,
-        "peak_rss": _peak_rss_bytes(),
-        "seconds": seconds,
-        "calls_per_s": calls / seconds,
-        "results_differing_from_the_first": mismatches[0],
-        "quantization": sess.contract.quantization,
-        "arch": sess.contract.arch,
-    }
+    return {**rss_record(sess, start, imported, loaded, samples), "seconds": seconds, "calls_per_s": calls / seconds,
+            "results_differing_from_the_first": mismatches[0]}
 
 
 def main(argv=None) -> int:
