@@ -53,7 +53,7 @@ def test_int8_model_records_scheme_keeps_contract_and_is_close_to_fp32(fp32_mode
     assert {k: v for k, v in after.items() if k not in ("quantization", "int8_calibration")} == {
         k: v for k, v in before.items() if k != "quantization"
     }
-    assert ("int8_calibration" in after) == (scheme == "static-qdq-int8")
+    assert ("int8_calibration" in after) == (scheme in q8.CALIBRATED_SCHEMES)
     # Agreement reported and within the stated bound.
     a = report.agreement
     assert a.enforced and a.passed and a.n_inputs == 64
