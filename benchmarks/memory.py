@@ -60,6 +60,12 @@ def child(model: str, calls: int, every: int, batch: int, threads: int) -> dict:
         sess.refine(image, boxes, q_in)
         if i % every == 0:
             samples.append((i, _rss_bytes()))
+    return rss_record(sess, start, imported, loaded, samples)
+
+
+def rss_record(sess, start: int, imported: int, loaded: int, samples: list) -> dict:
+    """What a measured child process reports: RSS at start, after imports and after loading ``sess``, the samples
+    ``[call, RSS]``, the peak, whether torch was imported, and the model's kind."""
     return {
         "torch_imported": "torch" in sys.modules,
         "rss_start": start,

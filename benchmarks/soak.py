@@ -13,6 +13,7 @@ Usage (from the repository root)::
     python benchmarks/soak.py                              # fusion fp32, 1,000,000 calls (about 15 min on one core)
     python benchmarks/soak.py --calls 100000 --json benchmarks/results/soak_100k.json
     python benchmarks/soak.py --model refiner.onnx --callers 4
+    python benchmarks/soak.py --model refiner_rt/weights/003_cracker_box.int8.onnx   # a shipped (ray-frame) model
 
 Written (``--json``): the command, the machine (CPU model and its vector-instruction flags, cores, versions),
 the model, RSS at start / after imports / after loading / after warm-up / at the end, peak RSS (VmHWM), the growth
@@ -37,7 +38,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from benchmarks.memory import MB, _peak_rss_bytes, _rss_bytes, build_model, summarize  # noqa: E402
+from benchmarks.memory import MB, _rss_bytes, build_model, rss_record, summarize  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
 DEFAULT_CALLS = 1_000_000
@@ -47,19 +48,20 @@ def child(model: str, calls: int, every: int, callers: int) -> dict:
     """The measured process: import the runtime, load, refine ``calls`` times from ``callers`` threads, sample RSS."""
     start = _rss_bytes()
     from refiner_rt import RefinerSession
-    from refiner_rt.bench import synthetic_frame
+    from refiner_rt.bench import FRAME_K, synthetic_frame
 
     imported = _rss_bytes()
     sess = RefinerSession(model, threads=1)
     loaded = _rss_bytes()
     image, boxes, q_in = synthetic_frame(1)
-    expected = sess.refine(image, boxes, q_in).q_refined
+    K = FRAME_K if sess.contract.rotation_frame == "ray" else None  # the bench's camera: ray-frame models need K
+    expected = sess.refine(image, boxes, q_in, K=K).q_refined
     samples, lock, done = [], threading.Lock(), [0]
     mismatches = [0]
 
     def run(n: int) -> None:
         for _ in range(n):
-            q = sess.refine(image, boxes, q_in).q_refined
+            q = sess.refine(image, boxes, q_in, K=K).q_refined
             with lock:
                 if not (q == expected).all():
                     mismatches[0] += 1
@@ -78,19 +80,8 @@ def child(model: str, calls: int, every: int, callers: int) -> dict:
         for t in pool:
             t.join()
     seconds = time.perf_counter() - t0
-    return {
-        "torch_imported": "torch" in sys.modules,
-        "rss_start": start,
-        "rss_imported": imported,
-        "rss_loaded": loaded,
-        "samples": samples,
-        "peak_rss": _peak_rss_bytes(),
-        "seconds": seconds,
-        "calls_per_s": calls / seconds,
-        "results_differing_from_the_first": mismatches[0],
-        "quantization": sess.contract.quantization,
-        "arch": sess.contract.arch,
-    }
+    return {**rss_record(sess, start, imported, loaded, samples), "seconds": seconds, "calls_per_s": calls / seconds,
+            "results_differing_from_the_first": mismatches[0]}
 
 
 def main(argv=None) -> int:
