@@ -388,7 +388,11 @@ def _quantize_dynamic(src: Path, dst: Path, calibration: Calibration | None, *, 
                       fc_min_weights: int = 0) -> None:
     """Dynamic INT8 on ``MatMul``/``Gemm``: all of them, or those with at least ``fc_min_weights`` weights
     (:func:`large_fully_connected`)."""
-    nodes = large_fully_connected(onnx.load(str(src)), fc_min_weights) if fc_min_weights else None
+    nodes = None
+    if fc_min_weights:
+        # onnxruntime's dynamic quantiser first rewrites each Gemm as a MatMul named "<gemm>_MatMul" (plus an Add)
+        # and then selects nodes by name: both names are given.
+        nodes = [m for n in large_fully_connected(onnx.load(str(src)), fc_min_weights) for m in (n, f"{n}_MatMul")]
     quantize_dynamic(src, dst, op_types_to_quantize=list(QUANTIZED_OP_TYPES), weight_type=QuantType.QInt8,
                      reduce_range=reduce_range, nodes_to_quantize=nodes)
 
@@ -475,10 +479,15 @@ def _quantize_static_qdq_conv(src: Path, dst: Path, calibration: Calibration, *,
     if not nodes:  # no conv is wide enough: only the large fully connected layers, dynamically
         _quantize_dynamic(src, dst, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights)
         return
-    mid = dst.with_name(dst.stem + ".qdq.onnx") if fc == "dynamic" else dst
+    if fc == "dynamic" and large_fc:
+        # The dynamic pass first: after the static one, onnxruntime's dynamic quantiser leaves a graph with QDQ
+        # nodes alone (its FC layers would stay fp32). Convolutions keep their names through it.
+        mid = dst.with_name(dst.stem + ".dynamic.onnx")
+        _quantize_dynamic(src, mid, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights)
+        src = mid
     quantize_static(
         src,
-        mid,
+        dst,
         _CalibrationReader(calibration),
         quant_format=QuantFormat.QDQ,
         op_types_to_quantize=op_types,
@@ -489,8 +498,6 @@ def _quantize_static_qdq_conv(src: Path, dst: Path, calibration: Calibration, *,
         weight_type=QuantType.QInt8,
         calibrate_method=CalibrationMethod.MinMax,
     )
-    if fc == "dynamic":
-        _quantize_dynamic(mid, dst, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights)
 
 
 _QUANTIZERS = {"dynamic-int8": _quantize_dynamic, "static-qdq-int8": _quantize_static_qdq,

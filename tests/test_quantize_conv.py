@@ -121,3 +121,16 @@ def test_conv_scheme_refuses_a_bad_fc_mode(fp32, tmp_path):
     with pytest.raises(ValueError, match="fc must be 'static' or 'dynamic'"):
         q8._quantize_static_qdq_conv(fp32, tmp_path / "x.onnx", q8.random_calibration(CONFIG["input_size"], n=4),
                                      fc="sometimes")
+
+
+def test_conv_scheme_quantises_the_large_fully_connected_layers_dynamically(fp32, tmp_path):
+    # With a lower threshold the tiny model's head input layer (192 x 64 = 12,288 weights) counts as large: it must
+    # come out as a dynamic integer MatMul (onnxruntime renames Gemm nodes while quantising them), the others fp32.
+    src = tmp_path / "src.onnx"
+    onnx.save(q8._without_value_info(onnx.load(str(fp32))), str(src))
+    out = tmp_path / "m.onnx"
+    q8._quantize_static_qdq_conv(src, out, q8.random_calibration(CONFIG["input_size"], n=8), fc_min_weights=12288)
+    ops = collections.Counter(n.op_type for n in onnx.load(str(out)).graph.node)
+    assert ops["MatMulInteger"] == 1 and ops["DynamicQuantizeLinear"] == 1, ops
+    runtime = _runtime_ops(out, tmp_path)
+    assert runtime["QLinearConv"] == len(_conv_inputs_from_config(q8.CONV_MIN_CHANNELS)), runtime
