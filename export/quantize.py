@@ -13,9 +13,19 @@ Schemes (the value written to the metadata key ``quantization``; every other key
       choice for x86 with VNNI) on ``MatMul``/``Gemm`` too, with activation ranges calibrated (min/max) on
       crops: from a dataset's training split through the shared crop rule and the crop cache
       (:func:`dataset_calibration`), or random crops (:func:`random_calibration`).
+    * ``"static-qdq-int8-conv"``: for networks whose convolutions are the cost (the shipped five-block refiner):
+      static QDQ with per-channel int8 weights on the convolutions with at least :data:`CONV_MIN_CHANNELS` input
+      channels and the ReLU / max-pool of their blocks (:func:`wide_conv_chain`; onnxruntime runs each as a
+      ``QLinearConv`` in NHWC with a uint8 ``NhwcMaxPool``, so the chain stays in uint8), plus dynamic INT8 on the
+      fully connected layers with at least :data:`CONV_SCHEME_FC_MIN_WEIGHTS` weights
+      (:func:`large_fully_connected`). The first convolution (3 input channels) and the small FC layers (the
+      quaternion's quadratic form, the pose input, the ``q_out`` layer) stay fp32. Weights are 7-bit
+      (``reduce_range``), which keeps onnxruntime's u8s8 kernels from saturating on CPUs without VNNI. Calibrate
+      it on a dataset's training crops for a model that will be used. Measured in
+      ``benchmarks/studies/int8_convs`` (speed, per-operator profile and held-out accuracy of the shipped models).
 
-Why dynamic is the default, with or without a dataset (measured on this project's 2-core EPYC with AVX-512
-VNNI, onnxruntime 1.31; speed: bare ``session.run`` at batch 1 on 1 thread, interleaved medians, random-weight
+Why dynamic is the default for ``refiner-rt export --int8`` without a dataset (measured for the two-block refiners
+on an earlier 2-core EPYC with AVX-512 VNNI, onnxruntime 1.31; speed: bare ``session.run`` at batch 1 on 1 thread, interleaved medians, random-weight
 default configs; agreement: geodesic angle between INT8 and fp32 ``q_out``, mean / max in degrees):
 
     =========================  =========  =========  ====================  ====================
