@@ -72,6 +72,18 @@ def test_int8_model_records_scheme_keeps_contract_and_is_close_to_fp32(fp32_mode
     assert np.all(diff > 0)  # it really is a different (quantised) model
 
 
+def test_dynamic_weights_are_seven_bit_so_avx2_kernels_cannot_saturate(fp32_models, tmp_path):
+    # AVX2's u8s8 kernels sum pairs of products in int16: |w| <= 64 keeps 2 * 255 * 64 below 32767.
+    report = q8.quantize_model(fp32_models["fusion"], tmp_path / "d.int8.onnx", scheme="dynamic-int8")
+    graph = onnx.load(str(report.path)).graph
+    consumers = {name for n in graph.node if n.op_type == "MatMulInteger" for name in n.input}
+    weights = [onnx.numpy_helper.to_array(t) for t in graph.initializer
+               if t.data_type == onnx.TensorProto.INT8 and t.name in consumers and len(t.dims) == 2]  # not zero points
+    assert weights
+    assert max(int(np.abs(w.astype(np.int32)).max()) for w in weights) <= 64
+    assert max(int(np.abs(w.astype(np.int32)).max()) for w in weights) >= 32  # the range is used, not collapsed
+
+
 def test_default_output_path_and_scheme(fp32_models):
     report = q8.quantize_model(fp32_models["fusion"])
     assert report.path == fp32_models["fusion"].with_name(fp32_models["fusion"].stem + ".int8.onnx")

@@ -46,24 +46,18 @@ from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_model
 
 # name -> (scheme written to the metadata, quantiser options); "fp32" and the two older schemes take none.
 _BIG = 65536  # weights of a "large" fully connected layer (export.quantize.large_fully_connected)
+BASE = "dynamic-int8, 8-bit (the shipped files)"
 CANDIDATES = {
     "fp32": ("none", {}),
-    "dynamic-int8": ("dynamic-int8", {}),
-    "dynamic-int8, 7-bit weights": ("dynamic-int8", {"reduce_range": True}),
-    "dynamic-int8, large FC only": ("dynamic-int8", {"fc_min_weights": _BIG}),
-    "dynamic-int8, large FC only, 7-bit": ("dynamic-int8", {"fc_min_weights": _BIG, "reduce_range": True}),
-    "qdq conv>=16 + all FC dynamic": ("static-qdq-int8-conv", {"min_channels": 16, "fc": "dynamic",
-                                                               "fc_min_weights": 0, "reduce_range": False}),
-    "qdq conv>=16 + large FC dynamic": ("static-qdq-int8-conv", {"min_channels": 16, "fc": "dynamic",
-                                                                 "reduce_range": False}),
-    "qdq conv>=16 + large FC dynamic, 7-bit": ("static-qdq-int8-conv", {"min_channels": 16, "fc": "dynamic",
-                                                                        "reduce_range": True}),
-    "qdq conv>=16 + large FC static, 7-bit": ("static-qdq-int8-conv", {"min_channels": 16, "fc": "static",
-                                                                       "reduce_range": True}),
-    "qdq conv>=1 + large FC dynamic, 7-bit": ("static-qdq-int8-conv", {"min_channels": 1, "fc": "dynamic",
-                                                                       "reduce_range": True}),
-    "qdq conv>=32 + large FC dynamic, 7-bit": ("static-qdq-int8-conv", {"min_channels": 32, "fc": "dynamic",
-                                                                        "reduce_range": True}),
+    BASE: ("dynamic-int8", {"reduce_range": False}),
+    "dynamic-int8 (7-bit)": ("dynamic-int8", {}),
+    "dynamic-int8, large FC only (7-bit)": ("dynamic-int8", {"fc_min_weights": _BIG}),
+    "qdq conv>=16 + large FC dynamic (7-bit)": ("static-qdq-int8-conv", {}),
+    "qdq conv>=16 + large FC dynamic, 8-bit": ("static-qdq-int8-conv", {"reduce_range": False}),
+    "qdq conv>=16 + all FC dynamic (7-bit)": ("static-qdq-int8-conv", {"fc_min_weights": 0}),
+    "qdq conv>=16 + large FC static (7-bit)": ("static-qdq-int8-conv", {"fc": "static"}),
+    "qdq conv>=1 + large FC dynamic (7-bit)": ("static-qdq-int8-conv", {"min_channels": 1}),
+    "qdq conv>=32 + large FC dynamic (7-bit)": ("static-qdq-int8-conv", {"min_channels": 32}),
 }
 __doc__ += "\n".join(f"    * {k}: {v[0]} {v[1] or ''}" for k, v in CANDIDATES.items()) + "\n"
 
@@ -90,6 +84,25 @@ def build_candidate(fp32: Path, out: Path, name: str, calibration) -> Path:
     onnx.helper.set_model_props(quantized, props)
     onnx.save(quantized, str(out))
     RefinerSession(out)  # the runtime's contract
+    return out
+
+
+def shallow_models(work: Path) -> dict:
+    """The paper's shallow network with random weights: fp32, dynamic-int8 and static-qdq-int8-conv (calibrated on
+    random crops; for speed only)."""
+    import torch
+
+    import models
+    from export import export_model
+    from export.quantize import quantize_model
+
+    torch.manual_seed(0)
+    path = work / "shallow.onnx"
+    export_model(models.build_refiner("shallow").eval(), path, checkpoint_sha256="random-weights")
+    out = {"paper shallow, fp32": path}
+    for scheme in ("dynamic-int8", "static-qdq-int8-conv"):
+        out[f"paper shallow, {scheme}"] = quantize_model(path, work / f"shallow.{scheme}.onnx", scheme=scheme,
+                                                         enforce=False).path
     return out
 
 
@@ -214,7 +227,8 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", help="comma-separated YCB ids (default: every shipped object)")
     ap.add_argument("--candidates", help="comma-separated candidate names (default: all)")
     ap.add_argument("--rounds", type=int, default=9)
-    ap.add_argument("--skip-accuracy", action="store_true")
+    ap.add_argument("--skip-accuracy", action="store_true", help="only speed and profile")
+    ap.add_argument("--skip-speed", action="store_true", help="only accuracy (the speed keys of --json are kept)")
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args(argv)
     from export.quantize import dataset_calibration
@@ -224,14 +238,18 @@ def main(argv=None) -> int:
     objects = args.objects.split(",") if args.objects else [m.object_id for m in pretrained_models()]
     names = args.candidates.split(",") if args.candidates else list(CANDIDATES)
     t_start = time.perf_counter()
-    doc = {"schema": "refiner-rt/study-int8-convs/1", "machine": machine_info(),
-           "command": "python benchmarks/studies/int8_convs/study.py " + " ".join(
-               a if not a.startswith("/") else Path(a).name for a in (argv or sys.argv[1:])),
-           "objects": {}}
+    # A rerun with --skip-speed or --skip-accuracy updates its own keys of an existing file and keeps the rest.
+    doc = json.loads(args.json.read_text()) if args.json.is_file() else {}
+    command = "python benchmarks/studies/int8_convs/study.py " + " ".join(
+        a if not a.startswith("/") else Path(a).name for a in (argv or sys.argv[1:]))
+    doc.update({"schema": "refiner-rt/study-int8-convs/1", "candidates": {k: [v[0], v[1]] for k, v in CANDIDATES.items()}})
+    doc.setdefault("objects", {})
+    doc.setdefault("runs", []).append({"command": command, "machine": machine_info(),
+                                       "started": time.strftime("%Y-%m-%d %H:%M:%S")})
     with tempfile.TemporaryDirectory(prefix="int8-convs-") as work:
         work = Path(work)
         paths_by_object = {}
-        for obj in objects:
+        for obj in objects if not args.skip_accuracy else objects[:1]:
             fp32 = WEIGHTS_DIR / model_file_name(obj, int8=False)
             contract = parse_metadata({p.key: p.value for p in onnx.load(str(fp32), load_external_data=False).metadata_props})
             t0 = time.perf_counter()
@@ -253,28 +271,75 @@ def main(argv=None) -> int:
                                          "n": ev[n]["all"]["n"]} for n in paths}
                 print(f"[{obj}] accuracy in {time.perf_counter() - t0:.0f} s: " + ", ".join(
                     f"{n} {a['mean_deg']:.3f}" for n, a in entry["accuracy"].items()), flush=True)
-        # Speed and profile on the first object (every shipped model has the same graph, so the same speed).
-        first = paths_by_object[objects[0]]
-        doc["optimized_graph_ops"] = {n: optimized_ops(p) for n, p in first.items()}
-        doc["profile"] = {n: profile_ops(p) for n, p in first.items()}
-        for n, prof in doc["profile"].items():
-            top = ", ".join(f"{op} {us:.0f}" for op, us in list(prof["us_per_call_by_op"].items())[:5])
-            print(f"profile {n}: kernels {prof['kernel_us_per_call']:.0f} us/call ({top})", flush=True)
-        doc["refine_per_s_1_thread"] = refine_speed(first, rounds=args.rounds)
-        base = doc["refine_per_s_1_thread"].get("dynamic-int8")
-        for n, v in doc["refine_per_s_1_thread"].items():
-            print(f"speed {n}: {v:,.0f}/s" + (f" ({v / base:.2f}x dynamic-int8)" if base else ""), flush=True)
-        best = max((n for n in first if n != "fp32"), key=doc["refine_per_s_1_thread"].get)
-        doc["options_model"] = best
-        doc["options_per_s"] = option_speed(first[best], rounds=args.rounds)
-        for k, v in doc["options_per_s"].items():
-            print(f"options ({best}) {k}: {v:,.0f}/s", flush=True)
-    doc["wall_s"] = time.perf_counter() - t_start
+        if not args.skip_speed:
+            # Speed and profile on the first object (every shipped model has the same graph, so the same speed),
+            # beside the paper's shallow network (random weights: speed does not depend on them).
+            speed(doc, {**paths_by_object[objects[0]], **shallow_models(work)}, args.rounds)
+    doc["runs"][-1]["wall_s"] = time.perf_counter() - t_start
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"wrote {args.json} ({doc['wall_s']:.0f} s)")
+    print(f"wrote {args.json} ({doc['runs'][-1]['wall_s']:.0f} s)")
     return 0
 
 
+def speed(doc: dict, first: dict, rounds: int) -> None:
+    """Optimised graphs, profiles, refine() speed and session options of one object's candidates, into ``doc``."""
+    doc["optimized_graph_ops"] = {n: optimized_ops(p) for n, p in first.items()}
+    doc["profile"] = {n: profile_ops(p) for n, p in first.items()}
+    for n, prof in doc["profile"].items():
+        top = ", ".join(f"{op} {us:.0f}" for op, us in list(prof["us_per_call_by_op"].items())[:5])
+        print(f"profile {n}: kernels {prof['kernel_us_per_call']:.0f} us/call ({top})", flush=True)
+    doc["refine_per_s_1_thread"] = refine_speed(first, rounds=rounds)
+    base = doc["refine_per_s_1_thread"].get(BASE)
+    paper = doc["refine_per_s_1_thread"].get("paper shallow, dynamic-int8")
+    for n, v in doc["refine_per_s_1_thread"].items():
+        print(f"speed {n}: {v:,.0f}/s ({v / base:.2f}x the shipped files, {v / paper:.2f}x paper shallow INT8)", flush=True)
+    best = max((n for n in first if n != "fp32" and not n.startswith("paper")), key=doc["refine_per_s_1_thread"].get)
+    doc["options_model"] = best
+    doc["options_per_s"] = option_speed(first[best], rounds=rounds)
+    for k, v in doc["options_per_s"].items():
+        print(f"options ({best}) {k}: {v:,.0f}/s", flush=True)
+
+
+def report(doc: dict) -> str:
+    """Markdown tables of a results file (what the README quotes)."""
+    out = []
+    objs = doc.get("objects", {})
+    names = [n for n in CANDIDATES if any(n in o.get("accuracy", {}) for o in objs.values())]
+    if names:
+        out += ["| candidate | " + " | ".join(objs) + " | mean cost | largest cost |",
+                "|---|" + "---:|" * (len(objs) + 2)]
+        for n in names:
+            costs = [objs[o]["accuracy"][n]["delta_vs_fp32_deg"] for o in objs if n in objs[o].get("accuracy", {})]
+            cells = [f"{objs[o]['accuracy'][n]['mean_deg']:.3f} ({objs[o]['accuracy'][n]['delta_vs_fp32_deg']:+.3f})"
+                     if n in objs[o].get("accuracy", {}) else "" for o in objs]
+            out.append(f"| {n} | " + " | ".join(cells) + f" | {np.mean(costs):+.3f} | {max(costs):+.3f} |")
+        out.append("")
+    speed = doc.get("refine_per_s_1_thread", {})
+    if speed:
+        base, paper = speed.get(BASE), speed.get("paper shallow, dynamic-int8")
+        out += ["| model | refine()/s, 1 thread | over the shipped files | over paper shallow INT8 | kernel us/call "
+                "(profiler) | top operators (us/call) |", "|---|---:|---:|---:|---:|---|"]
+        for n, v in speed.items():
+            prof = doc.get("profile", {}).get(n, {})
+            top = ", ".join(f"{op} {us:.0f}" for op, us in list(prof.get("us_per_call_by_op", {}).items())[:6])
+            out.append(f"| {n} | {v:,.0f} | {v / base:.2f}x | {v / paper:.2f}x | {prof.get('kernel_us_per_call', 0):.0f} "
+                       f"| {top} |")
+        out.append("")
+    opts = doc.get("options_per_s", {})
+    if opts:
+        out += [f"Session options ({doc.get('options_model')}):", "", "| options | refine()/s |", "|---|---:|"]
+        out += [f"| {k} | {v:,.0f} |" for k, v in opts.items()]
+        out.append("")
+    graphs = doc.get("optimized_graph_ops", {})
+    if graphs:
+        out += ["| candidate | operators onnxruntime runs (level ALL) |", "|---|---|"]
+        out += [f"| {n} | " + ", ".join(f"{k} {v}" for k, v in sorted(ops.items())) + " |" for n, ops in graphs.items()]
+    return "\n".join(out)
+
+
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--report"]:
+        print(report(json.loads(Path(sys.argv[2]).read_text())))
+        raise SystemExit(0)
     raise SystemExit(main())
