@@ -116,7 +116,7 @@ def test_bench_json_rows_carry_quantization_and_roofline_fields(tmp_path):
             assert key in r
         assert r["quantization"] == "none" and r["bound"] in ("memory", "compute") and r["weights"] == "user-supplied"
         if r["roofline_note"] is None:
-            assert 0 < r["roofline_ratio"] == pytest.approx(r["fps"] / r["bound_fps"]) <= 1
+            assert r["roofline_ratio"] == pytest.approx(r["fps"] / r["bound_fps"]) and 0 < r["roofline_ratio"] <= 1
         else:
             assert r["roofline_ratio"] is None and r["fps"] > r["bound_fps"]
         assert r["bandwidth_gbs"] > 0 and r["peak_fp32_gflops"] > 0 and r["peak_int8_gops"] > 0
