@@ -225,7 +225,7 @@ def main(argv=None) -> int:
     ap.add_argument("--run", type=Path, required=True, help="the build's run folder: RUN/<obj>/*.pt")
     ap.add_argument("--cache", type=Path, help="crop cache (default DATA/.crops)")
     ap.add_argument("--objects", help="comma-separated YCB ids (default: every shipped object)")
-    ap.add_argument("--candidates", help="comma-separated candidate names (default: all)")
+    ap.add_argument("--candidates", help="semicolon-separated candidate names (default: all)")
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--skip-accuracy", action="store_true", help="only speed and profile")
     ap.add_argument("--skip-speed", action="store_true", help="only accuracy (the speed keys of --json are kept)")
@@ -236,7 +236,10 @@ def main(argv=None) -> int:
 
     cache = args.cache or args.data / ".crops"
     objects = args.objects.split(",") if args.objects else [m.object_id for m in pretrained_models()]
-    names = args.candidates.split(",") if args.candidates else list(CANDIDATES)
+    names = [n.strip() for n in args.candidates.split(";")] if args.candidates else list(CANDIDATES)
+    unknown = [n for n in names if n not in CANDIDATES]
+    if unknown:
+        ap.error(f"unknown candidates {unknown}; known: {list(CANDIDATES)}")
     t_start = time.perf_counter()
     # A rerun with --skip-speed or --skip-accuracy updates its own keys of an existing file and keeps the rest.
     doc = json.loads(args.json.read_text()) if args.json.is_file() else {}
