@@ -11,6 +11,13 @@ A rerun skips the objects already shipped with this recipe, so an interrupted bu
         --objects 003_cracker_box,004_sugar_box --commit        # two such commands side by side, one core each
     python benchmarks/pretrained.py speed                        # INT8/fp32 speed of every shipped model
     python benchmarks/pretrained.py card                         # models.json and MODELS.md from the JSON
+    python benchmarks/pretrained.py requantize --data data/ycb9_v1 --run runs/v1   # INT8 again from the shipped fp32
+
+INT8 scheme: each object's INT8 model is quantised with every scheme of :data:`INT8_SCHEMES_FASTEST_FIRST` and
+evaluated beside fp32 on the held-out test crops; the fastest whose mean error stays within
+:data:`MAX_INT8_COST_DEG` of fp32's ships (the scheme is in the model's metadata ``quantization``), or, when none
+does, the one that costs least. Static schemes are calibrated on the object's training crops, never its test crops.
+``requantize`` redoes this from the shipped fp32 files (no training), e.g. after a faster scheme was added.
 
 Errors are measured on rendered images (``refiner-rt render``): scenes held out whole (``scenes`` split drawn over
 the nine objects, so every object's test scenes are the same), instances with BOP ``visib_fract >= 0.3`` (the
@@ -29,6 +36,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -65,6 +73,15 @@ RECIPE = {
     "seed": _NAMED["seed"],
 }
 MODEL_VERSION = "1"
+
+# INT8 schemes in the order of their speed on the shipped architecture, fastest first, as measured on the AVX2-only
+# build machine (benchmarks/studies/int8_convs: batch 1, one thread, interleaved medians; the conv scheme ran at
+# 0.7-0.8x the dynamic one there: AVX2's u8s8 kernels are barely faster than fp32 FMA, and the uint8 max-pool
+# after the fp32 first block costs more than the integer convs save). On a VNNI machine measure again and pass
+# --schemes in that machine's order. Then the accuracy an INT8 model may give up.
+INT8_SCHEMES_FASTEST_FIRST = ("dynamic-int8", "static-qdq-int8-conv")
+MAX_INT8_COST_DEG = 0.2        # per object: INT8 held-out mean error at most this much above fp32's
+MAX_MEAN_INT8_COST_DEG = 0.1   # goal over the shipped objects (reported by requantize)
 
 
 def _sha256(path: Path) -> str:
@@ -166,7 +183,6 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
 
     logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)  # torchvision ops: n/a
     from export.onnx_export import export_checkpoint
-    from export.quantize import quantize_model
 
     result_json = RESULTS_DIR / f"{obj}.json"
     cmd = train_command(data, obj, run, samples, sizes, cache, val, test)
@@ -184,9 +200,8 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
     row = train_doc["rows"][-1]
     fp32, int8 = run / model_file_name(obj, int8=False), run / model_file_name(obj, int8=True)
     exp = export_checkpoint(ckpt, fp32)
-    q = quantize_model(fp32, int8)
-    print(f"[{obj}] exported: max |dq| {exp.max_abs_dq:.2g}; INT8 {q.scheme}", flush=True)
-    ev = evaluate({"int8": int8, "fp32": fp32}, ckpt, data, cache)
+    scheme, ev, tried = quantize_for_shipping(fp32, int8, ckpt, data, cache)
+    print(f"[{obj}] exported: max |dq| {exp.max_abs_dq:.2g}; INT8 {scheme}", flush=True)
     mesh = MESHES_DIR / obj / "textured.obj"
     heldout = {**{k: ev["int8"]["all"][k] for k in ("mean_deg", "median_deg", "under_5_deg", "under_10_deg",
                                                     "input_mean_deg", "n")},
@@ -209,7 +224,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         "train_command": shlex.join(["python", "benchmarks/data_scaling.py", *cmd[2:]]),
         "train": {k: row.get(k) for k in ("train_crops", "samples", "epochs", "best_epoch", "val_mean_deg", "wall_s",
                                           "scenes", "mean_deg", "median_deg")},
-        "export": {"max_abs_dq": exp.max_abs_dq, "int8_scheme": q.scheme},
+        "export": {"max_abs_dq": exp.max_abs_dq, "int8_scheme": scheme, "int8_candidates": tried},
         "eval": ev, "heldout": heldout, "metadata": card_meta,
         "files": {"int8": int8.name, "fp32": fp32.name},
         "sizes_bytes": {"int8": int8.stat().st_size, "fp32": fp32.stat().st_size},
@@ -227,6 +242,107 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
                 f"weights: the {obj} refiner, {ev['int8']['all']['mean_deg']:.2f} deg INT8 on held-out rendered scenes "
                 f"(input {ev['int8']['all']['input_mean_deg']:.2f})")
     return doc
+
+
+def quantize_for_shipping(fp32: Path, int8: Path, ckpt: Path, data: Path, cache: Path,
+                          schemes=INT8_SCHEMES_FASTEST_FIRST) -> tuple[str, dict, dict]:
+    """Write ``int8`` with the fastest scheme that holds accuracy: ``(scheme, evaluation, candidates)``.
+
+    Every scheme of ``schemes`` (fastest first) quantises ``fp32``, static ones calibrated on the training split's
+    crops of the model's own data spec; all are scored with fp32 on the same held-out test crops and coarse inputs
+    (:func:`evaluate`). The first whose mean error is at most :data:`MAX_INT8_COST_DEG` above fp32's is written to
+    ``int8``; when none is, the one with the smallest cost. ``evaluation`` has :func:`evaluate`'s form with the
+    chosen model under ``"int8"``; ``candidates`` maps each scheme to its mean error and its cost (degrees).
+    """
+    import onnx
+
+    from export.defaults import CALIBRATED_SCHEMES
+    from export.quantize import QuantizationError, dataset_calibration, quantize_model
+    from refiner_rt.metadata import parse_metadata
+
+    contract = parse_metadata({p.key: p.value for p in onnx.load(str(fp32), load_external_data=False).metadata_props})
+    calibration = None
+    paths = {}
+    for scheme in schemes:
+        if scheme in CALIBRATED_SCHEMES and calibration is None:
+            calibration = dataset_calibration(data, contract, cache_root=cache)
+        out = int8.with_name(f"{int8.stem}.{scheme}.onnx")
+        try:
+            quantize_model(fp32, out, scheme=scheme, calibration=calibration if scheme in CALIBRATED_SCHEMES else None)
+        except QuantizationError as exc:  # disagrees with fp32 beyond the exporter's bound: not a candidate
+            print(f"  {scheme}: {exc}", flush=True)
+            continue
+        paths[scheme] = out
+    if not paths:
+        raise RuntimeError(f"{fp32}: no INT8 scheme of {schemes} passed the exporter's agreement check")
+    schemes = [sc for sc in schemes if sc in paths]
+    try:
+        ev = evaluate({**paths, "fp32": fp32}, ckpt, data, cache)
+        fp = ev["fp32"]["all"]["mean_deg"]
+        tried = {sc: {"mean_deg": ev[sc]["all"]["mean_deg"], "cost_deg": ev[sc]["all"]["mean_deg"] - fp} for sc in paths}
+        holding = [sc for sc in schemes if tried[sc]["cost_deg"] <= MAX_INT8_COST_DEG]
+        chosen = holding[0] if holding else min(schemes, key=lambda sc: tried[sc]["cost_deg"])
+        os.replace(paths[chosen], int8)
+    finally:
+        for p in paths.values():
+            p.unlink(missing_ok=True)
+    evaluation = {k: v for k, v in ev.items() if k not in paths}
+    evaluation["int8"] = ev[chosen]
+    return chosen, evaluation, tried
+
+
+def requantize(data: Path, run: Path, cache: Path, objects=None, schemes=INT8_SCHEMES_FASTEST_FIRST,
+               commit: bool = False) -> dict:
+    """Quantise every shipped object's INT8 model again from its shipped fp32 file (:func:`quantize_for_shipping`),
+    update its evaluation JSON and metadata, and regenerate the card. The fp32 files are not changed."""
+    from refiner_rt.pretrained import pretrained_models
+
+    docs = {d["object_id"]: d for d in _load_results()}
+    chosen = [m.object_id for m in pretrained_models() if objects is None or m.object_id in objects]
+    missing = sorted(set(objects or ()) - set(chosen))
+    if missing:
+        raise SystemExit(f"not shipped: {', '.join(missing)}")
+    costs, changed = {}, []
+    for obj in chosen:
+        ckpts = sorted((run / obj).glob("*.pt")) if (run / obj).is_dir() else []
+        if len(ckpts) != 1:
+            raise SystemExit(f"{obj}: expected one checkpoint in {run / obj} (its test split comes from it); "
+                             f"found {[p.name for p in ckpts]}")
+        doc = docs[obj]
+        fp32, int8 = WEIGHTS_DIR / doc["files"]["fp32"], WEIGHTS_DIR / doc["files"]["int8"]
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory(prefix="requantize-") as work:
+            tmp = Path(work) / int8.name
+            scheme, ev, tried = quantize_for_shipping(fp32, tmp, ckpts[0], data, cache, schemes)
+            shutil.copyfile(tmp, int8)
+        doc["eval"] = ev
+        doc["heldout"] = {**{k: ev["int8"]["all"][k] for k in ("mean_deg", "median_deg", "under_5_deg", "under_10_deg",
+                                                                "input_mean_deg", "n")}, "split": "held-out scenes"}
+        doc["export"] = {**doc["export"], "int8_scheme": scheme, "int8_candidates": tried}
+        doc["metadata"]["heldout_error_deg"] = {**doc["metadata"]["heldout_error_deg"],
+                                                "int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
+                                                "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3)}
+        for p in (fp32, int8):
+            stamp(p, {"heldout_error_deg": doc["metadata"]["heldout_error_deg"]})
+        doc["sizes_bytes"] = {"int8": int8.stat().st_size, "fp32": fp32.stat().st_size}
+        (RESULTS_DIR / f"{obj}.json").write_text(json.dumps(doc, indent=1) + "\n")
+        costs[obj] = tried[scheme]["cost_deg"]
+        changed += [fp32, int8, RESULTS_DIR / f"{obj}.json"]
+        print(f"[{obj}] INT8 {scheme}: {ev['int8']['all']['mean_deg']:.3f} deg, fp32 {ev['fp32']['all']['mean_deg']:.3f} "
+              f"(cost {costs[obj]:+.3f}; candidates " + ", ".join(f"{sc} {t['cost_deg']:+.3f}" for sc, t in tried.items())
+              + f") in {time.perf_counter() - t0:.0f} s", flush=True)
+    write_card()
+    mean_cost = float(np.mean(list(costs.values()))) if costs else 0.0
+    held = mean_cost <= MAX_MEAN_INT8_COST_DEG and all(c <= MAX_INT8_COST_DEG for c in costs.values())
+    print(f"INT8 cost over {len(costs)} objects: mean {mean_cost:+.3f} deg (goal <= {MAX_MEAN_INT8_COST_DEG}), "
+          f"largest {max(costs.values(), default=0):+.3f} (goal <= {MAX_INT8_COST_DEG}): "
+          f"{'held' if held else 'NOT held'}", flush=True)
+    if commit and costs:
+        schemes_used = sorted({docs[o]["export"]["int8_scheme"] for o in costs})
+        _commit(changed + [WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md"],
+                f"weights: the INT8 models quantised again ({', '.join(schemes_used)}), mean cost {mean_cost:+.3f} deg "
+                "against fp32 on held-out scenes")
+    return {"costs_deg": costs, "mean_cost_deg": mean_cost, "held": held}
 
 
 def _git_commit() -> str:
@@ -270,6 +386,7 @@ def write_card() -> None:
             "card": {"fp32_heldout_mean_deg": d["eval"]["fp32"]["all"]["mean_deg"],
                      "inside_image": d["eval"]["int8"]["inside_image"], "cut_by_border": d["eval"]["int8"]["cut_by_border"],
                      "int8_refinements_per_s": sp.get("int8"), "fp32_refinements_per_s": sp.get("fp32"),
+                     "int8_scheme": d["export"].get("int8_scheme", "dynamic-int8"),
                      "recipe": d["recipe"]["name"], "train_command": d["train_command"],
                      "train_wall_s": d["train"]["wall_s"], "train_crops": d["train"]["train_crops"],
                      "train_samples": d["train"]["samples"], "mesh": d["metadata"]["mesh"],
@@ -349,8 +466,15 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
                   f"{d['eval']['int8']['all']['n']} test crops from {d['eval']['test_scenes']} held-out scenes.",
                   f"  ```bash\n  {portable_command(d['train_command'])}\n  ```"]
     if docs:
-        lines += ["", "Then, for each: `refiner-rt export CKPT -o OBJ.onnx` and the INT8 sibling (dynamic INT8), "
-                  "evaluated through `RefinerSession.refine_crops` on the test crops (`benchmarks/pretrained.py`)."]
+        by_scheme: dict = {}
+        for d in docs:
+            by_scheme.setdefault(d["export"].get("int8_scheme", "dynamic-int8"), []).append(d["object_id"])
+        schemes = "; ".join(f"{sc}: {', '.join(objs)}" for sc, objs in by_scheme.items())
+        lines += ["", "Then, for each: `refiner-rt export CKPT -o OBJ.onnx` and the INT8 sibling, quantised with the "
+                  "fastest scheme whose held-out mean error stays within "
+                  f"{MAX_INT8_COST_DEG} deg of fp32's ({schemes}; static schemes calibrated on the object's training "
+                  "crops), evaluated through `RefinerSession.refine_crops` on the test crops "
+                  "(`benchmarks/pretrained.py`)."]
     if speed:
         m = speed.get("machine", {})
         lines += ["", "## Speed", "",
@@ -412,6 +536,15 @@ def main(argv=None) -> int:
     b.add_argument("--val", type=int, help=f"validation crops per object (default {RECIPE['val']}; smaller for smoke tests)")
     b.add_argument("--test", type=int, help=f"test crops per object (default {RECIPE['test']})")
     sub.add_parser("card", help="regenerate weights/models.json and weights/MODELS.md from the JSON")
+    r = sub.add_parser("requantize", help="quantise the shipped INT8 models again from their fp32 files with the "
+                       "fastest scheme that holds accuracy, re-evaluate, regenerate the card")
+    r.add_argument("--data", type=Path, required=True, help="the rendered dataset the models were trained on")
+    r.add_argument("--run", type=Path, required=True, help="the build's run folder (RUN/<obj>/*.pt names the test split)")
+    r.add_argument("--cache", type=Path, help="crop cache folder (default DATA/.crops)")
+    r.add_argument("--objects", help="comma-separated YCB ids (default: every shipped object)")
+    r.add_argument("--schemes", default=",".join(INT8_SCHEMES_FASTEST_FIRST),
+                   help="candidate INT8 schemes, fastest first (default: %(default)s)")
+    r.add_argument("--commit", action="store_true", help="git-commit the INT8 files, their JSON and the card")
     s = sub.add_parser("speed", help="measure every shipped model's speed (run on a quiet machine)")
     s.add_argument("--rounds", type=int, default=7)
     s.add_argument("--commit", action="store_true")
@@ -419,6 +552,16 @@ def main(argv=None) -> int:
     if args.cmd == "card":
         write_card()
         return 0
+    if args.cmd == "requantize":
+        from export.defaults import SCHEMES
+
+        schemes = tuple(x.strip() for x in args.schemes.split(",") if x.strip())
+        bad = [x for x in schemes if x not in SCHEMES]
+        if bad or not schemes:
+            ap.error(f"--schemes: unknown INT8 scheme(s) {bad}; known: {', '.join(SCHEMES)}")
+        objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
+        out = requantize(args.data, args.run, args.cache or args.data / ".crops", objects, schemes, args.commit)
+        return 0 if out["held"] else 1
     if args.cmd == "speed":
         doc = measure_speed(args.rounds)
         RESULTS_DIR.mkdir(parents=True, exist_ok=True)

@@ -75,16 +75,18 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
     "--int8-scheme",
     type=click.Choice(SCHEMES),
     default=None,
-    help=f"INT8 scheme: dynamic-int8 (MatMul/Gemm, activations quantised per call; measured fastest and closest "
-    f"to fp32) or static-qdq-int8 (calibrated activation ranges).  [default: {DEFAULT_SCHEME}, or static-qdq-int8 "
-    "with --calib]",
+    help=f"INT8 scheme: dynamic-int8 (MatMul/Gemm, activations quantised per call; no calibration), "
+    f"static-qdq-int8 (MatMul/Gemm with calibrated activation ranges) or static-qdq-int8-conv (also the convolutions "
+    f"with 16+ input channels, per-channel 7-bit weights: the fast one for deep image stages such as the shipped "
+    f"five-block refiner; give --calib).  [default: {DEFAULT_SCHEME}, or static-qdq-int8 with --calib]",
 )
 @click.option(
     "--calib",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
     default=None,
-    help="Dataset (BOP split folder or YCB-Video root) whose training-split crops calibrate static-qdq-int8 and, "
-    "held out, check it; implies --int8-scheme static-qdq-int8. Without it that scheme calibrates on random crops.",
+    help="Dataset (BOP split folder or YCB-Video root) whose training-split crops calibrate the static schemes and, "
+    "held out, check them; implies --int8-scheme static-qdq-int8 unless another static scheme is given. Without it "
+    "the static schemes calibrate on random crops.",
 )
 def export_cmd(
     checkpoint: Path,

@@ -13,9 +13,19 @@ Schemes (the value written to the metadata key ``quantization``; every other key
       choice for x86 with VNNI) on ``MatMul``/``Gemm`` too, with activation ranges calibrated (min/max) on
       crops: from a dataset's training split through the shared crop rule and the crop cache
       (:func:`dataset_calibration`), or random crops (:func:`random_calibration`).
+    * ``"static-qdq-int8-conv"``: for networks whose convolutions are the cost (the shipped five-block refiner):
+      static QDQ with per-channel int8 weights on the convolutions with at least :data:`CONV_MIN_CHANNELS` input
+      channels and the ReLU / max-pool of their blocks (:func:`wide_conv_chain`; onnxruntime runs each as a
+      ``QLinearConv`` in NHWC with a uint8 ``NhwcMaxPool``, so the chain stays in uint8), plus dynamic INT8 on the
+      fully connected layers with at least :data:`CONV_SCHEME_FC_MIN_WEIGHTS` weights
+      (:func:`large_fully_connected`). The first convolution (3 input channels) and the small FC layers (the
+      quaternion's quadratic form, the pose input, the ``q_out`` layer) stay fp32. Weights are 7-bit
+      (``reduce_range``), which keeps onnxruntime's u8s8 kernels from saturating on CPUs without VNNI. Calibrate
+      it on a dataset's training crops for a model that will be used. Measured in
+      ``benchmarks/studies/int8_convs`` (speed, per-operator profile and held-out accuracy of the shipped models).
 
-Why dynamic is the default, with or without a dataset (measured on this project's 2-core EPYC with AVX-512
-VNNI, onnxruntime 1.31; speed: bare ``session.run`` at batch 1 on 1 thread, interleaved medians, random-weight
+Why dynamic is the default for ``refiner-rt export --int8`` without a dataset (measured for the two-block refiners
+on an earlier 2-core EPYC with AVX-512 VNNI, onnxruntime 1.31; speed: bare ``session.run`` at batch 1 on 1 thread, interleaved medians, random-weight
 default configs; agreement: geodesic angle between INT8 and fp32 ``q_out``, mean / max in degrees):
 
     =========================  =========  =========  ====================  ====================
@@ -83,14 +93,26 @@ from onnxruntime.quantization import (
     quantize_static,
 )
 
-from export.defaults import DEFAULT_SCHEME, MAX_MAX_DEG, MAX_MEAN_DEG, SCHEMES  # torch-free: `export --help` reads them
+from export.defaults import (  # torch-free: `export --help` reads them
+    CALIBRATED_SCHEMES,
+    CONV_MIN_CHANNELS,
+    CONV_SCHEME_FC,
+    CONV_SCHEME_FC_MIN_WEIGHTS,
+    CONV_SCHEME_REDUCE_RANGE,
+    DEFAULT_SCHEME,
+    MAX_MAX_DEG,
+    MAX_MEAN_DEG,
+    SCHEMES,
+)
 from export.parity import MIN_PARITY_INPUTS, PARITY_SEED, onnxruntime_outputs, random_inputs
 from models.checkpoint import new_temp_file_beside
 from refiner_rt import quaternion as rq
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, ModelContract, parse_metadata
 
 __all__ = [
+    "CALIBRATED_SCHEMES",
     "CALIBRATION_SIZE",
+    "CONV_MIN_CHANNELS",
     "DEFAULT_SCHEME",
     "MAX_MAX_DEG",
     "MAX_MEAN_DEG",
@@ -104,12 +126,15 @@ __all__ = [
     "int8_agreement",
     "int8_path_for",
     "quantize_model",
+    "large_fully_connected",
     "random_calibration",
+    "wide_conv_chain",
 ]
 
 logger = logging.getLogger(__name__)
 
 QUANTIZED_OP_TYPES = ("MatMul", "Gemm")  # the fully connected layers; convs stay fp32 (see the module docstring)
+# in the dynamic and static-qdq schemes
 CALIBRATION_SIZE = 256  # crops used to calibrate static QDQ activation ranges
 CALIBRATION_SEED = 1  # differs from PARITY_SEED: the agreement is measured on inputs the calibration never saw
 _CALIBRATION_BATCH = 16
@@ -373,10 +398,31 @@ class _CalibrationReader(CalibrationDataReader):
         return next(self._batches, None)
 
 
-def _quantize_dynamic(src: Path, dst: Path, calibration: Calibration | None) -> None:
-    # 7-bit weights: 8-bit ones saturate the 16-bit pair sums of AVX2's u8s8 kernels (see Portability above).
+def _quantize_dynamic(src: Path, dst: Path, calibration: Calibration | None, *, reduce_range: bool = True,
+                      fc_min_weights: int = 0) -> None:
+    """Dynamic INT8 on ``MatMul``/``Gemm``: all of them, or those with at least ``fc_min_weights`` weights
+    (:func:`large_fully_connected`). ``reduce_range`` (default): 7-bit weights, since 8-bit ones saturate the 16-bit
+    pair sums of AVX2's u8s8 kernels (see Portability above)."""
+    nodes = None
+    if fc_min_weights:
+        # onnxruntime's dynamic quantiser first rewrites each Gemm as a MatMul named "<gemm>_MatMul" (plus an Add)
+        # and then selects nodes by name: both names are given.
+        nodes = [m for n in large_fully_connected(onnx.load(str(src)), fc_min_weights) for m in (n, f"{n}_MatMul")]
     quantize_dynamic(src, dst, op_types_to_quantize=list(QUANTIZED_OP_TYPES), weight_type=QuantType.QInt8,
-                     reduce_range=True)
+                     reduce_range=reduce_range, nodes_to_quantize=nodes)
+
+
+def large_fully_connected(proto: onnx.ModelProto, min_weights: int = CONV_SCHEME_FC_MIN_WEIGHTS) -> list[str]:
+    """Names of the ``MatMul``/``Gemm`` nodes whose weight (a 2-D initializer) has at least ``min_weights`` elements.
+
+    In the refiners these hold nearly all the weight bytes (the image features' and the head's first layer); the
+    small ones are the precision-critical ends: the pose input (the coarse rotation as a matrix, and the quadratic
+    form that computes it from ``q_in``) and the output layer that writes ``q_out``.
+    """
+    weights = {t.name: list(t.dims) for t in proto.graph.initializer}
+    return [n.name for n in proto.graph.node
+            if n.op_type in QUANTIZED_OP_TYPES and len(n.input) > 1 and len(weights.get(n.input[1], [])) == 2
+            and weights[n.input[1]][0] * weights[n.input[1]][1] >= min_weights]
 
 
 def _quantize_static_qdq(src: Path, dst: Path, calibration: Calibration) -> None:
@@ -392,7 +438,85 @@ def _quantize_static_qdq(src: Path, dst: Path, calibration: Calibration) -> None
     )
 
 
-_QUANTIZERS = {"dynamic-int8": _quantize_dynamic, "static-qdq-int8": _quantize_static_qdq}
+def wide_conv_chain(proto: onnx.ModelProto, min_channels: int = CONV_MIN_CHANNELS) -> list[str]:
+    """Names of the nodes the conv scheme quantises in the image stage: every ``Conv`` whose input has at least
+    ``min_channels`` channels, with the ``Relu`` and ``MaxPool`` that follow it (so that consecutive quantised
+    convolutions pass uint8 from one to the next, and onnxruntime fuses each into a ``QLinearConv``).
+
+    The input channel count is read from the weight initializer, shape ``(C_out, C_in / group, kH, kW)``.
+    """
+    weights = {t.name: list(t.dims) for t in proto.graph.initializer}
+    consumers: dict[str, list] = {}
+    for node in proto.graph.node:
+        for name in node.input:
+            consumers.setdefault(name, []).append(node)
+    chosen = []
+    for node in proto.graph.node:
+        if node.op_type != "Conv" or len(node.input) < 2 or node.input[1] not in weights:
+            continue
+        group = next((a.i for a in node.attribute if a.name == "group"), 1)
+        if weights[node.input[1]][1] * group < min_channels:
+            continue
+        chosen.append(node.name)
+        out = node.output[0]
+        for op in ("Relu", "MaxPool"):  # conv -> relu -> maxpool, as the image stages write it
+            following = consumers.get(out, [])
+            if len(following) != 1 or following[0].op_type != op:
+                break
+            chosen.append(following[0].name)
+            out = following[0].output[0]
+    return chosen
+
+
+def _quantize_static_qdq_conv(src: Path, dst: Path, calibration: Calibration, *,
+                              min_channels: int = CONV_MIN_CHANNELS, fc: str = CONV_SCHEME_FC,
+                              fc_min_weights: int = CONV_SCHEME_FC_MIN_WEIGHTS,
+                              reduce_range: bool = CONV_SCHEME_REDUCE_RANGE) -> None:
+    """Static QDQ (per-channel int8 weights, uint8 activations, min/max calibration) on the wide convolutions
+    (:func:`wide_conv_chain`); the large fully connected layers (:func:`large_fully_connected`) ``fc="static"``
+    in the same pass or ``fc="dynamic"`` (a dynamic pass over the result). ``reduce_range``: 7-bit weights
+    (onnxruntime's remedy for the saturation of its u8s8 kernels on CPUs without VNNI)."""
+    if fc not in ("static", "dynamic"):
+        raise ValueError(f"fc must be 'static' or 'dynamic'; got {fc!r}")
+    proto = onnx.load(str(src))
+    nodes = wide_conv_chain(proto, min_channels)
+    large_fc = large_fully_connected(proto, fc_min_weights)
+    if not nodes and not large_fc:
+        raise ValueError(
+            f"static-qdq-int8-conv quantises convolutions with at least {min_channels} input channels and fully "
+            f"connected layers with at least {fc_min_weights} weights; this model has neither (a small network): "
+            "use dynamic-int8"
+        )
+    op_types = ["Conv", "Relu", "MaxPool"]
+    if fc == "static":
+        nodes += large_fc
+        op_types += list(QUANTIZED_OP_TYPES)
+    if not nodes:  # no conv is wide enough: only the large fully connected layers, dynamically
+        _quantize_dynamic(src, dst, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights)
+        return
+    if fc == "dynamic" and large_fc:
+        # The dynamic pass first: after the static one, onnxruntime's dynamic quantiser leaves a graph with QDQ
+        # nodes alone (its FC layers would stay fp32). Convolutions keep their names through it.
+        mid = dst.with_name(dst.stem + ".dynamic.onnx")
+        _quantize_dynamic(src, mid, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights)
+        src = mid
+    quantize_static(
+        src,
+        dst,
+        _CalibrationReader(calibration),
+        quant_format=QuantFormat.QDQ,
+        op_types_to_quantize=op_types,
+        nodes_to_quantize=nodes,
+        per_channel=True,
+        reduce_range=reduce_range,
+        activation_type=QuantType.QUInt8,
+        weight_type=QuantType.QInt8,
+        calibrate_method=CalibrationMethod.MinMax,
+    )
+
+
+_QUANTIZERS = {"dynamic-int8": _quantize_dynamic, "static-qdq-int8": _quantize_static_qdq,
+               "static-qdq-int8-conv": _quantize_static_qdq_conv}
 
 
 def _not_preprocess_advice(record: logging.LogRecord) -> bool:
@@ -459,8 +583,8 @@ def quantize_model(
         raise ValueError(f"scheme must be one of {SCHEMES}; got {scheme!r}")
     if calibration is not None and scheme == "dynamic-int8":
         raise ValueError(
-            "calibration crops calibrate the 'static-qdq-int8' scheme; 'dynamic-int8' quantises activations "
-            "at run time and takes none"
+            f"calibration crops calibrate the static schemes {CALIBRATED_SCHEMES}; 'dynamic-int8' quantises "
+            "activations at run time and takes none"
         )
     if n_check < MIN_PARITY_INPUTS:
         raise ValueError(f"n_check must be at least {MIN_PARITY_INPUTS}; got {n_check}")
@@ -476,7 +600,7 @@ def quantize_model(
             f"{fp32_path} is already quantised (metadata quantization={contract.quantization!r}); expected an fp32 "
             "model (quantization='none')"
         )
-    if scheme == "static-qdq-int8" and calibration is None:
+    if scheme in CALIBRATED_SCHEMES and calibration is None:
         calibration = random_calibration(contract.input_size)
     if calibration is not None and calibration.images.shape[1:3] != (contract.input_size, contract.input_size):
         raise ValueError(

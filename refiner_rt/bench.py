@@ -2,17 +2,26 @@
 next to its roofline bound.
 
 What is timed is what robot code pays per call: crop every box out of a 640x480 BGR frame with the
-shared crop rule, run the network, compose ``q_in * q_out`` in float64. Models are measured
-interleaved (round-robin, several rounds) so that drift of a shared machine hits all of them alike,
-and every ratio comes from one run. Reported: median (p50) and p90 latency per call and
-refinements per second (``batch / p50``).
+shared crop rule, run the network, compose ``q_in * q_out`` in float64 (models trained in the viewing-ray frame
+get the frame's ``K``, as robot code gives it). Models are measured interleaved (round-robin, several rounds) so
+that drift of a shared machine hits all of them alike, and every ratio comes from one run. Reported: median (p50)
+and p90 latency per call and refinements per second (``batch / p50``).
 
-With no ``--model``, the registered architectures (default: ``shallow``, the paper's network; ``fusion``, the
-project's refiner; ``vggm``, the paper's deep variant) and any ``--variant`` configs are built with random
-weights and exported (speed does not depend on the weight values), each in fp32 and, quantised in the same run
-with :mod:`export.quantize`'s default scheme, in INT8; this needs the training extra (torch). The same networks
-are also timed in PyTorch eager mode (batches up to :data:`TORCH_MAX_BATCH`) for the onnxruntime/PyTorch ratio.
-Without torch (a runtime-only install) it times the shipped INT8 models instead, and says so.
+With no ``--model``, it times:
+
+* the shipped refiners (trained weights; INT8 and fp32): by default one representative object, the first
+  shipped (every shipped model has the same architecture, so they run at the same speed; ``--shipped all`` times
+  each, ``--shipped none`` none);
+* the paper's networks, :data:`DEFAULT_ARCHS` (``shallow``, the paper's network; ``vggm``, its deep variant) and any
+  ``--variant`` configs, built with random weights and exported (speed does not depend on the weight values), each
+  in fp32 and, quantised in the same run with :mod:`export.quantize`'s default scheme, in INT8. This needs the
+  training extra (torch); without it (a runtime-only install) only the shipped models are timed, and the output says
+  so. The built networks are also timed in PyTorch eager mode (batches up to :data:`TORCH_MAX_BATCH`) for the
+  onnxruntime/PyTorch ratio.
+
+Every row says which weights it has (``weights``: ``trained``, ``random`` or ``user-supplied``), and onnxruntime rows
+give their speed over the paper's shallow network (``ratio_over_shallow``) at the same threads and batch, INT8
+over INT8 and fp32 over fp32.
 
 Roofline (when the ``onnx`` package is installed): a lower bound on the time of one inference from the
 machine's measured limits (see :class:`MachineLimits`):
@@ -21,9 +30,14 @@ machine's measured limits (see :class:`MachineLimits`):
     t_compute = batch * (fp32 FLOPs / fp32 peak + int8 ops / int8 peak)   (per crop, peaks at the row's threads)
     bound     = batch / max(t_memory, t_compute)  refinements/s
 
-Each row reports ``roofline_ratio = fps / bound``: 1.0 would be the hardware limit for that inference. The bound
-covers the network only (not cropping or composition), counts weights but not activations, and assumes weights
-come from DRAM: a model whose weights fit in the 32 MB L3 (the INT8 ones) can beat its memory bound.
+The limits are measured inside every (threads, batch) cell, interleaved round by round with the models, so a
+machine loaded by other work lowers the limits and the models alike; each limit is the best of its rounds (the
+least disturbed), each model the median of its calls. Each row reports ``roofline_ratio = fps / bound``: 1.0 would
+be the hardware limit for that inference. The bound covers the network only (not cropping or composition), counts
+weights but not activations, and assumes weights come from DRAM, so a model whose weights stay in the L2/L3 caches
+between calls can beat it. A ratio above 1 therefore says the bound was not a bound (limits under-measured, or
+weights served from cache), not that the model beat the hardware: such a row gets no ratio (``None``, and "n/a" in
+the table), and ``roofline_note`` says why.
 """
 
 from __future__ import annotations
@@ -52,9 +66,9 @@ log = logging.getLogger(__name__)
 FRAME_W, FRAME_H = 640, 480
 # Intrinsics of the synthetic frame (YCB-Video's camera), passed to models trained in the viewing-ray frame.
 FRAME_K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])
-DEFAULT_ARCHS = ("shallow", "fusion", "vggm")
+DEFAULT_ARCHS = ("shallow", "vggm")  # the paper's networks, random weights; the shipped refiners join them
 TORCH_MAX_BATCH = 8  # PyTorch eager VGG-M takes ~2 s per call at batch 32: only smaller batches are timed
-BANDWIDTH_BUFFER_MB = 512  # much larger than the 32 MB L3
+BANDWIDTH_BUFFER_MB = 256  # much larger than the L3 caches of the CPUs the project runs on (32 MB)
 PEAK_MATMUL_SIZE = 1024  # M = N = K of the matrix products that measure the compute peaks
 
 
@@ -70,19 +84,28 @@ class BenchRow:
         fps: refinements per second, ``batch / p50``.
         p50_ms, p90_ms: latency percentiles of one call (ms).
         calls: number of timed calls.
-        model: label: the architecture, a ``--variant`` label, or the file stem of a ``--model``.
-        quantization: ``"none"``, ``"dynamic-int8"`` or ``"static-qdq-int8"`` (metadata of the ONNX model).
+        model: label: the architecture, a ``--variant`` label, a shipped model's object id, or the file stem of a
+            ``--model``.
+        quantization: the metadata ``quantization`` of the ONNX model (``"none"`` for fp32; an INT8 scheme of
+            :data:`refiner_rt.metadata.QUANTIZATIONS`).
+        weights: ``"trained"`` (a shipped model), ``"random"`` (built for the benchmark) or ``"user-supplied"``.
         config: the config overrides of a ``--variant`` (JSON object), else ``{}``.
         ratio_shallow_over_vggm: shallow / VGG-M fps at the same runtime, quantisation, threads and batch
             (default configs only; on the shallow row).
         ratio_onnxruntime_over_torch: this onnxruntime row's fps over the PyTorch eager fp32 fps of the same network.
+        ratio_over_shallow: this onnxruntime row's fps over the paper's shallow network's (the row labelled
+            ``shallow``, or a ``--model`` file ``shallow.onnx`` / ``shallow.int8.onnx``) at the same threads and batch,
+            INT8 over INT8 and fp32 over fp32 (None on that row itself, or without one).
         weight_bytes: bytes of weights read per call.
         flops_per_call: fp32 floating-point operations per call (2 per multiply-add; convolutions and fully
             connected layers).
         int8_ops_per_call: int8 operations per call (2 per multiply-add) of the quantised layers.
         bound_fps: roofline bound in refinements per second (None without the ``onnx`` package).
         bound: ``"memory"`` or ``"compute"``: which limit sets the bound.
-        roofline_ratio: ``fps / bound_fps``.
+        roofline_ratio: ``fps / bound_fps`` when at most 1; None when above (see ``roofline_note``).
+        roofline_note: why a row with a bound has no ratio, else None.
+        bandwidth_gbs, peak_fp32_gflops, peak_int8_gops: the limits measured in this row's cell (interleaved with
+            the models; peaks at the row's thread count).
     """
 
     arch: str
@@ -95,15 +118,21 @@ class BenchRow:
     calls: int
     model: str
     quantization: str = "none"
+    weights: str = "random"
     config: dict = field(default_factory=dict)
     ratio_shallow_over_vggm: float | None = None
     ratio_onnxruntime_over_torch: float | None = None
+    ratio_over_shallow: float | None = None
     weight_bytes: int | None = None
     flops_per_call: float | None = None
     int8_ops_per_call: float | None = None
     bound_fps: float | None = None
     bound: str | None = None
     roofline_ratio: float | None = None
+    roofline_note: str | None = None
+    bandwidth_gbs: float | None = None
+    peak_fp32_gflops: float | None = None
+    peak_int8_gops: float | None = None
 
 
 # ---------------------------------------------------------------------------------------------------- machine
@@ -125,7 +154,9 @@ def cpu_flags() -> list[str]:
 
 
 def machine_info() -> dict:
-    """CPU model, its vector-instruction flags, core count and library versions of this machine."""
+    """CPU model, its vector-instruction flags, core count and library versions of this machine; with torch
+    installed also the instruction set torch dispatches to (``torch.backends.cpu.get_cpu_capability()``, e.g.
+    ``"AVX2"``, ``"AVX512"``), else None."""
     import onnxruntime
 
     cpu = platform.processor() or "unknown"
@@ -150,8 +181,9 @@ def machine_info() -> dict:
         import torch
 
         info["torch"] = torch.__version__
+        info["cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     except ModuleNotFoundError:
-        info["torch"] = None
+        info["torch"] = info["cpu_capability"] = None
     return info
 
 
@@ -173,12 +205,12 @@ class MachineLimits:
     """The machine's measured limits for the roofline.
 
     Attributes:
-        bandwidth: DRAM bandwidth in bytes/s: ``numpy.copyto`` of a 512 MB buffer (much larger than L3), counting
-            the bytes read plus the bytes written (STREAM's "copy" convention), median of several copies, one
-            thread.
+        bandwidth: DRAM bandwidth in bytes/s: ``numpy.copyto`` of a buffer much larger than L3
+            (:data:`BANDWIDTH_BUFFER_MB`), counting the bytes read plus the bytes written (STREAM's "copy"
+            convention), one thread.
         peak_fp32: ``{threads: FLOP/s}`` of onnxruntime's fp32 ``MatMul`` on 1024x1024 matrices (the MLAS kernels
-            the models use), median of several runs.
-        peak_int8: ``{threads: ops/s}`` of onnxruntime's ``MatMulInteger`` (uint8 x int8, the VNNI kernels of the
+            the models use).
+        peak_int8: ``{threads: ops/s}`` of onnxruntime's ``MatMulInteger`` (uint8 x int8, the kernels of the
             quantised layers) on 1024x1024 matrices. Measured, not derived from the fp32 peak.
     """
 
@@ -211,17 +243,18 @@ class ModelCost:
     quantization: str = "none"
 
 
-def measure_bandwidth(megabytes: int = BANDWIDTH_BUFFER_MB, repeats: int = 5) -> float:
-    """DRAM bandwidth in bytes/s: median of ``repeats`` numpy copies of a buffer, (read + written bytes) / time."""
+def _copy_runner(megabytes: int):
+    """A callable that copies a ``megabytes`` buffer once, and the bytes it moves (read + written)."""
     n = megabytes * 2**20
     src = np.ones(n, dtype=np.uint8)
     dst = np.zeros(n, dtype=np.uint8)  # touched: no page faults in the timed copies
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        np.copyto(dst, src)
-        times.append(time.perf_counter() - t0)
-    return 2 * n / statistics.median(times)
+    return (lambda: np.copyto(dst, src)), 2 * n
+
+
+def measure_bandwidth(megabytes: int = BANDWIDTH_BUFFER_MB, repeats: int = 5) -> float:
+    """DRAM bandwidth in bytes/s: median of ``repeats`` numpy copies of a buffer, (read + written bytes) / time."""
+    copy, nbytes = _copy_runner(megabytes)
+    return nbytes / statistics.median(_time_calls(copy, repeats))
 
 
 def _matmul_model(int8: bool, size: int) -> bytes:
@@ -246,8 +279,9 @@ def _matmul_model(int8: bool, size: int) -> bytes:
     return model.SerializeToString()
 
 
-def measure_peak(int8: bool, threads: int, size: int = PEAK_MATMUL_SIZE, repeats: int = 7) -> float:
-    """Operations per second of onnxruntime's fp32 ``MatMul`` or int8 ``MatMulInteger`` (2 ops per multiply-add)."""
+def _matmul_runner(int8: bool, threads: int, size: int):
+    """A callable that runs one ``size``-cubed fp32 ``MatMul`` or int8 ``MatMulInteger`` in onnxruntime, and its
+    operation count (2 per multiply-add)."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
@@ -257,22 +291,60 @@ def measure_peak(int8: bool, threads: int, size: int = PEAK_MATMUL_SIZE, repeats
     sess = ort.InferenceSession(_matmul_model(int8, size), options, providers=["CPUExecutionProvider"])
     rng = np.random.default_rng(1)
     a = rng.integers(0, 256, (size, size), dtype=np.uint8) if int8 else rng.standard_normal((size, size)).astype(np.float32)
-    sess.run(None, {"a": a})
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        sess.run(None, {"a": a})
-        times.append(time.perf_counter() - t0)
-    return 2.0 * size**3 / statistics.median(times)
+    feed = {"a": a}
+    sess.run(None, feed)
+    return (lambda: sess.run(None, feed)), 2.0 * size**3
+
+
+def measure_peak(int8: bool, threads: int, size: int = PEAK_MATMUL_SIZE, repeats: int = 7) -> float:
+    """Operations per second of onnxruntime's fp32 ``MatMul`` or int8 ``MatMulInteger`` (2 ops per multiply-add)."""
+    run, ops = _matmul_runner(int8, threads, size)
+    return ops / statistics.median(_time_calls(run, repeats))
 
 
 def measure_limits(thread_counts) -> MachineLimits:
-    """Bandwidth once, fp32 and int8 peaks for each thread count."""
+    """Bandwidth once, fp32 and int8 peaks for each thread count, measured back to back (not interleaved with
+    models: :class:`LimitProbe` is what the benchmark uses)."""
     return MachineLimits(
         bandwidth=measure_bandwidth(),
         peak_fp32={n: measure_peak(False, n) for n in thread_counts},
         peak_int8={n: measure_peak(True, n) for n in thread_counts},
     )
+
+
+class LimitProbe:
+    """The roofline's limit measurements as runners that take turns with the models in
+    :func:`measure_interleaved`, so that the limits and the models of one cell see the same machine.
+
+    Args:
+        megabytes: size of the copied buffer (bandwidth).
+        size: side of the matrices (peaks).
+    """
+
+    BANDWIDTH, FP32, INT8 = "limit:bandwidth", "limit:fp32", "limit:int8"
+
+    def __init__(self, megabytes: int = BANDWIDTH_BUFFER_MB, size: int = PEAK_MATMUL_SIZE):
+        self._copy = _copy_runner(megabytes)
+        self._size = size
+        self._matmuls: dict = {}
+
+    def runners(self, threads: int) -> dict:
+        """``{key: callable}`` for the bandwidth and the fp32 and int8 peaks at ``threads`` threads."""
+        for int8 in (False, True):
+            if (int8, threads) not in self._matmuls:
+                self._matmuls[(int8, threads)] = _matmul_runner(int8, threads, self._size)
+        return {self.BANDWIDTH: self._copy[0], self.FP32: self._matmuls[(False, threads)][0],
+                self.INT8: self._matmuls[(True, threads)][0]}
+
+    def limits(self, threads: int, latencies: dict) -> MachineLimits:
+        """The limits from the latencies :func:`measure_interleaved` measured for :meth:`runners`: each the best
+        (fastest) of its calls, the one least disturbed by other work."""
+        best = {key: min(latencies[key]) for key in (self.BANDWIDTH, self.FP32, self.INT8)}
+        return MachineLimits(
+            bandwidth=self._copy[1] / best[self.BANDWIDTH],
+            peak_fp32={threads: self._matmuls[(False, threads)][1] / best[self.FP32]},
+            peak_int8={threads: self._matmuls[(True, threads)][1] / best[self.INT8]},
+        )
 
 
 _CONV_OPS = {"Conv": 1, "ConvInteger": 1, "QLinearConv": 3}  # op -> index of the weight input
@@ -423,12 +495,14 @@ def _percentile(values, q):
 # ---------------------------------------------------------------------------------------------------- models
 @dataclass
 class BenchModel:
-    """A model to time: an ONNX file, and optionally the PyTorch network it was exported from."""
+    """A model to time: an ONNX file, optionally the PyTorch network it was exported from, and what its weights
+    are (``"trained"``, ``"random"`` or ``"user-supplied"``)."""
 
     label: str
     path: Path
     torch_model: object = None
     config: dict = field(default_factory=dict)
+    weights: str = "random"
 
 
 def parse_variant(text: str) -> tuple[str, str, dict]:
@@ -458,7 +532,7 @@ def run_bench(
     threads=(1, 0),
     seconds: float = 1.0,
     with_torch: bool = True,
-    limits: MachineLimits | None = None,
+    probe: LimitProbe | None = None,
     costs: dict | None = None,
     progress=None,
 ) -> list[BenchRow]:
@@ -468,9 +542,9 @@ def run_bench(
         bench_models: the models (PyTorch eager is timed for those that carry a network, when ``with_torch``).
         batches: boxes per call.
         threads: thread counts; ``0`` means all available cores.
-        seconds: approximate time spent per model and cell.
+        seconds: approximate time spent per model and cell (the limit measurements get the same).
         with_torch: time PyTorch eager too (batches up to :data:`TORCH_MAX_BATCH`).
-        limits: the machine's limits for the roofline, or None.
+        probe: measures the machine's limits for the roofline, interleaved with the models in every cell; or None.
         costs: ``{model index: ModelCost}`` for the roofline, or None.
         progress: optional callable advanced by one after each cell.
     """
@@ -493,7 +567,14 @@ def run_bench(
                                             s.refine(image, boxes, q_in, K=K)) for i, s in enumerate(sessions)}
             if batch <= TORCH_MAX_BATCH:
                 runners.update({("torch", i): (lambda r=r: r.refine(image, boxes, q_in)) for i, r in torch_runners.items()})
-            for (runtime, i), values in measure_interleaved(runners, seconds).items():
+            if probe is not None and costs:
+                runners.update(probe.runners(n))
+            latencies = measure_interleaved(runners, seconds)
+            limits = probe.limits(n, latencies) if probe is not None and costs else None
+            for key, values in latencies.items():
+                if not isinstance(key, tuple):
+                    continue  # a limit measurement
+                runtime, i = key
                 m, contract = bench_models[i], sessions[i].contract
                 p50 = _percentile(values, 50)
                 row = BenchRow(
@@ -507,14 +588,11 @@ def run_bench(
                     calls=len(values),
                     model=m.label,
                     quantization=contract.quantization if runtime == "onnxruntime" else "none",
+                    weights=m.weights,
                     config=dict(m.config),
                 )
-                if limits is not None and costs and i in costs:
-                    c = costs[i]
-                    row.weight_bytes = c.weight_bytes
-                    row.flops_per_call, row.int8_ops_per_call = c.flops * batch, c.int8_ops * batch
-                    row.bound_fps, row.bound = roofline_bound(c, batch, n, limits)
-                    row.roofline_ratio = row.fps / row.bound_fps
+                if limits is not None and i in costs:
+                    _fill_roofline(row, costs[i], limits)
                 rows.append(row)
             if progress:
                 progress()
@@ -522,10 +600,32 @@ def run_bench(
     return rows
 
 
+def _fill_roofline(row: BenchRow, cost: ModelCost, limits: MachineLimits) -> None:
+    """The row's bound from its cell's limits, and its ratio when that is a sane one (at most 1)."""
+    n, batch = row.threads, row.batch
+    row.weight_bytes = cost.weight_bytes
+    row.flops_per_call, row.int8_ops_per_call = cost.flops * batch, cost.int8_ops * batch
+    row.bound_fps, row.bound = roofline_bound(cost, batch, n, limits)
+    row.bandwidth_gbs = limits.bandwidth / 1e9
+    row.peak_fp32_gflops, row.peak_int8_gops = limits.peak_fp32[n] / 1e9, limits.peak_int8[n] / 1e9
+    ratio = row.fps / row.bound_fps
+    if ratio <= 1.0:
+        row.roofline_ratio = ratio
+    else:
+        row.roofline_note = (
+            f"ran at {ratio:.2f}x its bound: the bound is not one here (limits under-measured on a busy machine, "
+            "or weights served from cache rather than DRAM), so no ratio is given"
+        )
+
+
 def _fill_ratios(rows: list[BenchRow]) -> None:
-    """Same-run ratios: shallow/VGG-M per (runtime, quantisation, threads, batch) for default configs, and
-    onnxruntime/torch per model (over the fp32 PyTorch eager row of the same network)."""
+    """Same-run ratios: shallow/VGG-M per (runtime, quantisation, threads, batch) for default configs;
+    onnxruntime/torch per model (over the fp32 PyTorch eager row of the same network); and onnxruntime rows over
+    the shallow network at the same threads and batch, INT8 over INT8 and fp32 over fp32."""
     by_cell = {(r.runtime, r.model, r.quantization, r.threads, r.batch): r for r in rows}
+    # The paper's network: the row labelled "shallow" (built), or "shallow.int8" and the like (--model files).
+    shallow = {(r.threads, r.batch, r.quantization != "none"): r for r in rows
+               if r.runtime == "onnxruntime" and r.arch == "shallow" and r.model.split(".")[0] == "shallow"}
     for r in rows:
         if r.arch == "shallow" and r.model == "shallow":
             vggm = by_cell.get((r.runtime, "vggm", r.quantization, r.threads, r.batch))
@@ -535,28 +635,36 @@ def _fill_ratios(rows: list[BenchRow]) -> None:
             t = by_cell.get(("torch", r.model, "none", r.threads, r.batch))
             if t is not None:
                 r.ratio_onnxruntime_over_torch = r.fps / t.fps
+            ref = shallow.get((r.threads, r.batch, r.quantization != "none"))
+            if ref is not None and ref is not r:
+                r.ratio_over_shallow = r.fps / ref.fps
 
 
 def format_table(rows: list[BenchRow]) -> str:
     """A Markdown table of the rows (what the CLI prints and the README quotes)."""
     head = (
-        "| model | runtime | quant | threads | batch | refinements/s | p50 ms | p90 ms | shallow/VGG-M | ORT/torch "
-        "| bound/s | of bound |"
+        "| model | weights | runtime | quant | threads | batch | refinements/s | p50 ms | p90 ms | over shallow "
+        "| shallow/VGG-M | ORT/torch | bound/s | of bound |"
     )
-    sep = "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    sep = "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     lines = [head, sep]
     order = {}
     for r in rows:
         order.setdefault(r.model, len(order))
     for r in sorted(rows, key=lambda r: (r.threads, r.batch, order[r.model], r.runtime, r.quantization)):
+        over = f"{r.ratio_over_shallow:.2f}x" if r.ratio_over_shallow else ""
         ratio = f"{r.ratio_shallow_over_vggm:.1f}x" if r.ratio_shallow_over_vggm else ""
         ort_t = f"{r.ratio_onnxruntime_over_torch:.1f}x" if r.ratio_onnxruntime_over_torch else ""
         bound = f"{r.bound_fps:,.0f} ({r.bound[:3]})" if r.bound_fps else ""
-        share = f"{r.roofline_ratio:.0%}" if r.roofline_ratio else ""
+        share = f"{r.roofline_ratio:.0%}" if r.roofline_ratio else ("n/a*" if r.roofline_note else "")
         lines.append(
-            f"| {r.model} | {r.runtime} | {r.quantization} | {r.threads} | {r.batch} | {r.fps:,.0f} | "
-            f"{r.p50_ms:.3f} | {r.p90_ms:.3f} | {ratio} | {ort_t} | {bound} | {share} |"
+            f"| {r.model} | {r.weights} | {r.runtime} | {r.quantization} | {r.threads} | {r.batch} | {r.fps:,.0f} | "
+            f"{r.p50_ms:.3f} | {r.p90_ms:.3f} | {over} | {ratio} | {ort_t} | {bound} | {share} |"
         )
+    if any(r.roofline_note for r in rows):
+        lines.append("")
+        lines.append("n/a*: the row ran faster than the bound measured in its cell, so that bound is not one (limits "
+                     "under-measured on a busy machine, or weights served from cache rather than DRAM): no ratio.")
     return "\n".join(lines)
 
 
@@ -590,28 +698,35 @@ def _variants(ctx, param, value):
     return [parse_variant(v) for v in value]
 
 
-def _roofline_inputs(bench_models, thread_counts, echo):
-    """Machine limits and per-model costs, or ``(None, None)`` without the ``onnx`` package."""
+def _roofline_inputs(bench_models, echo):
+    """A :class:`LimitProbe` and per-model costs, or ``(None, None)`` without the ``onnx`` package."""
     try:
         import onnx  # noqa: F401  (graph parsing and the peak-measuring graphs)
     except ModuleNotFoundError:
         echo("Roofline skipped: it needs the 'onnx' package to read the graphs.")
         return None, None
-    echo(f"Measuring the roofline limits (numpy copy of {BANDWIDTH_BUFFER_MB} MB; onnxruntime MatMul fp32 and int8)...")
-    limits = measure_limits(thread_counts)
     costs = {}
     for i, m in enumerate(bench_models):
         try:
             costs[i] = model_cost(m.path)
         except Exception as exc:  # onnx's shape inference on a graph it cannot follow: that row goes without a bound
             echo(f"Roofline skipped for {m.label}: its graph cannot be costed ({type(exc).__name__}: {exc})")
-    return limits, costs
+    return LimitProbe(), costs
+
+
+def _shipped_option(ctx, param, value):
+    value = str(value).strip()
+    if value in ("", "none"):
+        return []
+    if value in ("first", "all"):
+        return value
+    return [v.strip() for v in value.split(",") if v.strip()]
 
 
 def bench_command(build_models=None) -> click.Command:
     """The ``refiner-rt bench`` command. ``build_models(specs, workdir, int8=, echo=)`` builds the random-weight
     models timed when no ``--model`` is given; the training side supplies it (``export.bench_models``), since the
-    runtime never imports training code. Without it only ``--model`` files can be timed."""
+    runtime never imports training code. Without it only the shipped models and ``--model`` files can be timed."""
 
     @click.command("bench")
     @click.option("--cpu", "cpu", is_flag=True, default=True, help="Benchmark on the CPU (the only device supported; default).")
@@ -620,9 +735,20 @@ def bench_command(build_models=None) -> click.Command:
         "model_paths",
         multiple=True,
         type=click.Path(exists=True, dir_okay=False, path_type=Path),
-        help="An exported refiner-rt ONNX model (repeatable). Default: random-weight models of --archs and --variant.",
+        help="An exported refiner-rt ONNX model (repeatable); then only these are timed. Default: the shipped "
+        "refiners (--shipped) and random-weight models of --archs and --variant.",
     )
-    @click.option("--archs", default=",".join(DEFAULT_ARCHS), show_default=True, help="Registered architectures to build when no --model is given.")
+    @click.option(
+        "--shipped",
+        default="first",
+        show_default=True,
+        callback=_shipped_option,
+        help="Shipped refiners to time, INT8 and fp32, with their trained weights: 'first' (one representative: "
+        "they all share one architecture, so they run at one speed), 'all', 'none', or YCB ids (comma-separated).",
+    )
+    @click.option("--archs", default=",".join(DEFAULT_ARCHS), show_default=True,
+                  help="Registered architectures to build with random weights when no --model is given (the paper's "
+                  "networks by default; add 'fusion' for the project's refiner with random weights).")
     @click.option(
         "--variant",
         "variants",
@@ -637,9 +763,9 @@ def bench_command(build_models=None) -> click.Command:
     @click.option("--seconds", default=1.0, show_default=True, type=click.FloatRange(0.05, 600), help="Measuring time per model and cell (at least 3 calls).")
     @click.option("--torch/--no-torch", "with_torch", default=True, show_default=True, help=f"Also time PyTorch eager for the built models at batches up to {TORCH_MAX_BATCH} (when torch is installed).")
     @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows (with the run's context) as a JSON list.")
-    def bench_cmd(cpu, model_paths, archs, variants, with_int8, batches, threads, seconds, with_torch, json_path):
-        """CPU speed of the full refine() path (crop + inference + compose): models side by side, fp32 and INT8,
-        each row next to its roofline bound."""
+    def bench_cmd(cpu, model_paths, shipped, archs, variants, with_int8, batches, threads, seconds, with_torch, json_path):
+        """CPU speed of the full refine() path (crop + inference + compose): the shipped refiners beside the paper's
+        networks, fp32 and INT8, each row next to its roofline bound (measured interleaved with the models)."""
         if 0 in batches:
             raise click.BadParameter("batch sizes must be >= 1", param_hint="--batch")
         if max(batches) > MAX_BATCH:
@@ -652,45 +778,52 @@ def bench_command(build_models=None) -> click.Command:
 
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="refiner-rt-bench-") as tmp:
-            bench_models, weights = _prepare_models(model_paths, archs, variants, with_int8, Path(tmp), echo,
+            bench_models, weights = _prepare_models(model_paths, shipped, archs, variants, with_int8, Path(tmp), echo,
                                                      build_models)
-            thread_counts = sorted({t or available_cores() for t in threads})
-            limits, costs = _roofline_inputs(bench_models, thread_counts, echo)
+            probe, costs = _roofline_inputs(bench_models, echo)
             echo(
                 f"Timing refine() on a {FRAME_W}x{FRAME_H} frame: {len(bench_models)} model(s), batches {batches}, "
                 f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell"
+                + (" (and per roofline limit, measured in every cell)" if probe is not None else "")
             )
             with click.progressbar(length=len(threads) * len(batches), label="cells", file=sys.stderr) as bar:
                 try:
                     rows = run_bench(
-                        bench_models, batches, threads, seconds, with_torch, limits, costs, progress=lambda: bar.update(1)
+                        bench_models, batches, threads, seconds, with_torch, probe, costs, progress=lambda: bar.update(1)
                     )
                 except ModelError as exc:  # a model that loaded but fails when it runs
                     raise click.ClickException(str(exc)) from None
         wall = time.perf_counter() - t0
         click.echo("")
-        click.echo(f"Machine: {machine['cpu']}, {machine['cores']} cores, onnxruntime {machine['onnxruntime']}, torch {machine['torch']}")
+        click.echo(f"Machine: {machine['cpu']}, {machine['cores']} cores, vector flags {' '.join(machine['cpu_flags']) or '?'}"
+                   f" (torch dispatch: {machine['cpu_capability'] or 'n/a'}), onnxruntime {machine['onnxruntime']}, "
+                   f"torch {machine['torch']}")
         click.echo(f"Weights: {weights}. Full refine() path, medians over interleaved rounds; wall {wall:.0f} s.")
-        if limits is not None:
-            click.echo(_describe_limits(limits, thread_counts))
-            click.echo("\n".join(describe_roofline(m.label, costs[i], limits, thread_counts) for i, m in enumerate(bench_models)))
+        if probe is not None:
+            click.echo(_describe_limits(rows))
+            thread_counts = sorted({r.threads for r in rows if r.bandwidth_gbs is not None})
+            if thread_counts:
+                first = _cell_limits(rows, thread_counts)
+                click.echo("\n".join(describe_roofline(m.label, costs[i], first, thread_counts)
+                                     for i, m in enumerate(bench_models) if i in costs))
         click.echo(format_table(rows))
         if json_path:
             # A list of rows (what machines read); each row carries the run's context.
-            context = {"machine": machine, "weights": weights, "frame": [FRAME_W, FRAME_H], "seconds_per_cell": seconds,
-                       "wall_s": wall, **(limits.as_dict() if limits is not None else {})}
+            context = {"machine": machine, "weights_note": weights, "frame": [FRAME_W, FRAME_H],
+                       "seconds_per_cell": seconds, "wall_s": wall}
             json_path.write_text(json.dumps([{**asdict(r), **context} for r in rows], indent=2))
             click.echo(f"Wrote {json_path}")
 
     return bench_cmd
 
 
-bench_cmd = bench_command()  # the runtime's own: times --model files
+bench_cmd = bench_command()  # the runtime's own: times the shipped models and --model files
 
 
-def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir: Path, echo,
+def _prepare_models(model_paths, shipped, archs: str, variants, with_int8: bool, workdir: Path, echo,
                     build_models=None) -> tuple[list, str]:
-    """The models to time and a note on their weights: the given files, or random-weight builds (and INT8)."""
+    """The models to time and a note on their weights: the given files; or the shipped models and random-weight
+    builds (and their INT8)."""
     if model_paths:
         from refiner_rt.session import RefinerSession
 
@@ -702,46 +835,99 @@ def _prepare_models(model_paths, archs: str, variants, with_int8: bool, workdir:
                 raise click.BadParameter(str(exc), param_hint="'--model'") from None
             label = p.stem if p.stem not in seen else str(p)
             seen.add(label)
-            bench_models.append(BenchModel(label, p))
+            bench_models.append(BenchModel(label, p, weights="user-supplied"))
         return bench_models, "user-supplied models"
-    if importlib.util.find_spec("torch") is None:
-        return _shipped_models(echo)
     specs = [(a.strip(), a.strip(), {}) for a in archs.split(",") if a.strip()] + list(variants)
-    if not specs:
-        raise click.BadParameter("nothing to benchmark: give --archs, --variant or --model", param_hint="'--archs'")
     labels = [label for label, _, _ in specs]
     if len(set(labels)) != len(labels):
         raise click.BadParameter(f"model labels must be unique; got {labels}", param_hint="'--variant'")
-    if build_models is None:
-        raise click.ClickException("building random-weight models needs the training package (pip install "
-                                   "'refiner-rt[train]'); or pass exported models with --model")
-    echo(f"Building random-weight models {labels} (speed does not depend on weight values)...")
-    return build_models(specs, workdir, int8=with_int8, echo=echo), "random weights (speed does not depend on weight values)"
+    shipped_models, shipped_note = _shipped_models(shipped)
+    notes = [shipped_note] if shipped_note else []
+    built: list[BenchModel] = []
+    if specs and importlib.util.find_spec("torch") is None:
+        if not shipped_models:
+            raise click.ClickException(
+                "building the random-weight models needs torch (pip install 'refiner-rt[train]'), and no shipped "
+                "model is selected to time instead; pass exported models with --model"
+            )
+        echo(f"torch is not installed, so the random-weight models {labels} cannot be built: timing only the "
+             f"shipped models (--model FILE times others; the training extra builds the paper's networks).")
+        notes.append(f"{', '.join(labels)} not timed (needs torch)")
+    elif specs:
+        if build_models is None:
+            raise click.ClickException("building random-weight models needs the training package (pip install "
+                                       "'refiner-rt[train]'); or pass exported models with --model")
+        echo(f"Building random-weight models {labels} (speed does not depend on weight values)...")
+        built = build_models(specs, workdir, int8=with_int8, echo=echo)
+        notes.append(f"{', '.join(labels)}: random weights (speed does not depend on weight values)")
+    bench_models = shipped_models + built
+    if not bench_models:
+        raise click.BadParameter("nothing to benchmark: give --archs, --variant, --shipped or --model",
+                                 param_hint="'--archs'")
+    return bench_models, "; ".join(notes)
 
 
-def _shipped_models(echo) -> tuple[list, str]:
-    """Without torch (a runtime-only install) the random-weight networks cannot be built: time the INT8 models that
-    ship in the package instead, and say so."""
-    from refiner_rt.pretrained import pretrained_models
+def _shipped_models(selection) -> tuple[list, str]:
+    """The shipped models to time (INT8 and fp32 of each; trained weights) and a note saying which, from the
+    ``--shipped`` value: ``"first"``, ``"all"`` or a list of YCB ids (empty: none)."""
+    from refiner_rt.pretrained import pretrained_model, pretrained_models
 
-    shipped = pretrained_models()
-    if not shipped:
-        raise click.ClickException(
-            "building the default benchmark models needs torch (pip install 'refiner-rt[train]'), and no pretrained "
-            "model ships to time instead; pass exported models with --model"
-        )
-    echo(f"torch is not installed, so the default random-weight models cannot be built: timing the {len(shipped)} "
-         "shipped INT8 models instead (--model FILE times others; the training extra builds the default set).")
-    return [BenchModel(m.object_id, m.path(int8=True)) for m in shipped], "the shipped INT8 models"
+    if not selection:
+        return [], ""
+    available = pretrained_models()
+    if selection in ("first", "all"):
+        chosen = available[:1] if selection == "first" else available
+    else:
+        try:
+            chosen = [pretrained_model(obj) for obj in selection]
+        except (ValueError, TypeError) as exc:
+            raise click.BadParameter(str(exc), param_hint="'--shipped'") from None
+    out = []
+    for m in chosen:
+        for int8 in (True, False):
+            if m.files.get("int8" if int8 else "fp32"):
+                path = m.path(int8=int8)  # labelled by file stem: 003_cracker_box.int8 and 003_cracker_box
+                out.append(BenchModel(path.stem, path, config=dict(m.config), weights="trained"))
+    if not chosen:
+        return [], "no shipped model to time"
+    ids = ", ".join(m.object_id for m in chosen)
+    if selection == "first" and len(available) > 1:
+        return out, (f"shipped {ids}: trained weights, INT8 and fp32 (one representative of the {len(available)} "
+                     f"shipped refiners, which share one architecture; --shipped all times each)")
+    return out, f"shipped {ids}: trained weights, INT8 and fp32"
 
 
-def _describe_limits(limits: MachineLimits, thread_counts) -> str:
-    peaks = ", ".join(
-        f"{n} thr: fp32 {limits.peak_fp32[n] / 1e9:.0f} GFLOP/s, int8 {limits.peak_int8[n] / 1e9:.0f} Gop/s"
-        for n in thread_counts
+def _cell_limits(rows: list[BenchRow], thread_counts) -> MachineLimits:
+    """Per thread count, the limits of that thread count's first cell with a bound (for the summary lines)."""
+    first = {}
+    for r in rows:
+        if r.bandwidth_gbs is not None and r.threads not in first:
+            first[r.threads] = r
+    return MachineLimits(
+        bandwidth=min(r.bandwidth_gbs for r in first.values()) * 1e9,
+        peak_fp32={n: first[n].peak_fp32_gflops * 1e9 for n in thread_counts if n in first},
+        peak_int8={n: first[n].peak_int8_gops * 1e9 for n in thread_counts if n in first},
+    )
+
+
+def _describe_limits(rows: list[BenchRow]) -> str:
+    cells = {}
+    for r in rows:
+        if r.bandwidth_gbs is not None:
+            cells.setdefault((r.threads, r.batch), r)
+    if not cells:
+        return "Roofline: no row could be costed."
+    bw = [r.bandwidth_gbs for r in cells.values()]
+    peaks = "; ".join(
+        f"{n} thr: fp32 {min(c.peak_fp32_gflops for (t, _), c in cells.items() if t == n):.0f}-"
+        f"{max(c.peak_fp32_gflops for (t, _), c in cells.items() if t == n):.0f} GFLOP/s, int8 "
+        f"{min(c.peak_int8_gops for (t, _), c in cells.items() if t == n):.0f}-"
+        f"{max(c.peak_int8_gops for (t, _), c in cells.items() if t == n):.0f} Gop/s"
+        for n in sorted({t for t, _ in cells})
     )
     return (
-        f"Roofline: bandwidth {limits.bandwidth / 1e9:.1f} GB/s (numpy copy of {BANDWIDTH_BUFFER_MB} MB, read + "
-        f"write); onnxruntime MatMul peaks {peaks}. Bound = batch / max(weight bytes / bandwidth, "
-        "batch x ops / peak); inference only, weights assumed to come from DRAM."
+        f"Roofline: measured in each of the {len(cells)} cells, interleaved with the models (best of its rounds): "
+        f"bandwidth {min(bw):.1f}-{max(bw):.1f} GB/s (numpy copy of {BANDWIDTH_BUFFER_MB} MB, read + write); "
+        f"onnxruntime MatMul peaks {peaks}. Bound = batch / max(weight bytes / bandwidth, batch x ops / peak); "
+        "inference only, weights assumed to come from DRAM; a row that beats its bound gets no ratio."
     )

@@ -11,6 +11,7 @@ from onnx import TensorProto, helper, numpy_helper
 import onnx_fixtures as fx
 from bench_scripts import load_benchmark
 from export import bench_models
+from export.defaults import DEFAULT_SCHEME
 from test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
 from refiner_rt import bench
 from refiner_rt import pretrained as pt
@@ -96,7 +97,8 @@ def test_parse_variant():
 
 
 ROW_KEYS = ("arch", "runtime", "threads", "batch", "fps", "p50_ms", "p90_ms", "ratio_shallow_over_vggm", "quantization",
-            "config", "weight_bytes", "flops_per_call", "int8_ops_per_call", "bound_fps", "bound", "roofline_ratio")
+            "weights", "ratio_over_shallow", "config", "weight_bytes", "flops_per_call", "int8_ops_per_call", "bound_fps",
+            "bound", "roofline_ratio", "roofline_note", "bandwidth_gbs", "peak_fp32_gflops", "peak_int8_gops")
 
 
 def test_bench_json_rows_carry_quantization_and_roofline_fields(tmp_path):
@@ -112,10 +114,43 @@ def test_bench_json_rows_carry_quantization_and_roofline_fields(tmp_path):
     for r in rows:
         for key in ROW_KEYS:
             assert key in r
-        assert r["quantization"] == "none" and r["bound"] in ("memory", "compute")
-        assert r["bound_fps"] > 0 and r["roofline_ratio"] == pytest.approx(r["fps"] / r["bound_fps"])
-        assert r["bandwidth_gbs"] > 0 and r["peak_int8_gops"]["1"] > 0
-    assert "Roofline: bandwidth" in res.output and "of bound" in res.output
+        assert r["quantization"] == "none" and r["bound"] in ("memory", "compute") and r["weights"] == "user-supplied"
+        if r["roofline_note"] is None:
+            assert r["roofline_ratio"] == pytest.approx(r["fps"] / r["bound_fps"]) and 0 < r["roofline_ratio"] <= 1
+        else:
+            assert r["roofline_ratio"] is None and r["fps"] > r["bound_fps"]
+        assert r["bandwidth_gbs"] > 0 and r["peak_fp32_gflops"] > 0 and r["peak_int8_gops"] > 0
+    assert "Roofline: measured in each of the 2 cells" in res.output and "of bound" in res.output
+
+
+def test_a_row_faster_than_its_bound_gets_no_ratio():
+    # A bound measured on a busy machine (or weights served from cache) can lie below what the model achieved: the
+    # row then says so instead of reading as more than 100% of the hardware.
+    cost = bench.ModelCost(weight_bytes=10_000_000, flops=10e6, int8_ops=0)
+    limits = bench.MachineLimits(bandwidth=10e9, peak_fp32={1: 100e9}, peak_int8={1: 400e9})  # bound: 1,000/s
+    fast = bench.BenchRow(arch="a", runtime="onnxruntime", threads=1, batch=1, fps=1500.0, p50_ms=0.67, p90_ms=0.7,
+                          calls=10, model="a")
+    bench._fill_roofline(fast, cost, limits)
+    assert fast.bound_fps == pytest.approx(1000.0) and fast.roofline_ratio is None and "1.50x its bound" in fast.roofline_note
+    slow = bench.BenchRow(arch="a", runtime="onnxruntime", threads=1, batch=1, fps=500.0, p50_ms=2.0, p90_ms=2.1,
+                          calls=10, model="b")
+    bench._fill_roofline(slow, cost, limits)
+    assert slow.roofline_ratio == pytest.approx(0.5) and slow.roofline_note is None
+    table = bench.format_table([fast, slow])
+    assert "| 50% |" in table and "n/a*" in table and "150%" not in table
+
+
+def test_limit_probe_takes_turns_with_the_models_and_keeps_the_best_round():
+    probe = bench.LimitProbe(megabytes=4, size=64)
+    order = []
+    runners = {("onnxruntime", 0): lambda: order.append("model")}
+    for key, fn in probe.runners(1).items():
+        runners[key] = (lambda k=key, f=fn: (order.append(k), f()))
+    lat = bench.measure_interleaved(runners, seconds=0.0, rounds=3, min_calls=3)
+    assert order[-4:] == ["model", probe.BANDWIDTH, probe.FP32, probe.INT8]  # one round: models and limits in turn
+    limits = probe.limits(1, lat)
+    assert limits.bandwidth == pytest.approx(2 * 4 * 2**20 / min(lat[probe.BANDWIDTH]))
+    assert limits.peak_fp32[1] == pytest.approx(2 * 64**3 / min(lat[probe.FP32])) and limits.peak_int8[1] > 0
 
 
 def test_bench_times_a_viewing_ray_model(tmp_path):
@@ -150,7 +185,7 @@ SMALL = {
 
 def test_bench_builds_fp32_and_int8_rows_of_variants(tmp_path):
     out = tmp_path / "bench.json"
-    args = ["bench", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}",
+    args = ["bench", "--shipped", "none", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}",
             "--variant", f"vggm=vggm:{json.dumps(SMALL['vggm'])}", "--batch", "1", "--threads", "1",
             "--seconds", "0.05", "--json", str(out)]
     res = CliRunner().invoke(main, args)
@@ -158,14 +193,14 @@ def test_bench_builds_fp32_and_int8_rows_of_variants(tmp_path):
     rows = json.loads(out.read_text())
     cells = {(r["model"], r["runtime"], r["quantization"]) for r in rows}
     assert cells == {(m, rt, q) for m in ("shallow", "vggm")
-                     for rt, q in (("onnxruntime", "none"), ("onnxruntime", "dynamic-int8"), ("torch", "none"))}
+                     for rt, q in (("onnxruntime", "none"), ("onnxruntime", DEFAULT_SCHEME), ("torch", "none"))}
     for r in rows:
-        assert r["config"] == SMALL[r["model"]] and r["bound_fps"] > 0
+        assert r["config"] == SMALL[r["model"]] and r["bound_fps"] > 0 and r["weights"] == "random"
         if r["runtime"] == "onnxruntime":
             assert r["ratio_onnxruntime_over_torch"] > 0
         if r["model"] == "shallow":
             assert r["ratio_shallow_over_vggm"] > 0
-    int8 = next(r for r in rows if r["model"] == "shallow" and r["quantization"] == "dynamic-int8")
+    int8 = next(r for r in rows if r["model"] == "shallow" and r["quantization"] == DEFAULT_SCHEME)
     fp32 = next(r for r in rows if r["model"] == "shallow" and r["quantization"] == "none" and r["runtime"] == "onnxruntime")
     assert int8["weight_bytes"] < fp32["weight_bytes"] / 2 and int8["int8_ops_per_call"] > 0
     assert fp32["int8_ops_per_call"] == 0 and fp32["flops_per_call"] > int8["flops_per_call"]
@@ -174,12 +209,14 @@ def test_bench_builds_fp32_and_int8_rows_of_variants(tmp_path):
 def test_bench_help_and_bad_options():
     res = CliRunner().invoke(main, ["bench", "--help"])
     assert res.exit_code == 0
-    for text in ("--variant", "--int8", "--archs", "shallow,fusion,vggm", "1,8,32", "roofline"):
+    for text in ("--variant", "--int8", "--archs", "shallow,vggm", "--shipped", "1,8,32", "roofline"):
         assert text in res.output
     res = CliRunner().invoke(main, ["bench", "--variant", "shallow"])
     assert res.exit_code != 0 and "ARCH:JSON" in res.output
-    res = CliRunner().invoke(main, ["bench", "--archs", ""])
+    res = CliRunner().invoke(main, ["bench", "--archs", "", "--shipped", "none"])
     assert res.exit_code != 0 and "nothing to benchmark" in res.output
+    res = CliRunner().invoke(main, ["bench", "--shipped", "999_nothing"])
+    assert res.exit_code == 2 and "999_nothing" in res.output and "Traceback" not in res.output
     res = CliRunner().invoke(main, ["bench", "--batch", "1,2000"])
     assert res.exit_code == 2 and "at most 1024" in res.output
 
@@ -198,7 +235,8 @@ def _disk_with_free(nbytes):
 
 def test_bench_says_when_the_disk_cannot_hold_the_model_files(monkeypatch):
     monkeypatch.setattr(bench_models.shutil, "disk_usage", _disk_with_free(1 << 20))
-    args = ["bench", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}", "--seconds", "0.05"]
+    args = ["bench", "--shipped", "none", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}",
+            "--seconds", "0.05"]
     res = CliRunner().invoke(main, args)
     assert res.exit_code != 0 and isinstance(res.exception, SystemExit)
     assert "not enough free disk space" in res.output and "shallow's ONNX files" in res.output
@@ -221,11 +259,36 @@ def _without_torch(monkeypatch):
     monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a))
 
 
+def test_bench_times_a_shipped_model_beside_the_paper_network(weights, tmp_path):  # noqa: F811
+    # By default: one representative shipped refiner (trained weights, INT8 and fp32) next to the paper's networks
+    # (random weights), each row saying which weights it has, and its speed over the shallow network's.
+    out = tmp_path / "bench.json"
+    args = ["bench", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}", "--batch", "1",
+            "--threads", "1", "--seconds", "0.05", "--no-torch", "--json", str(out)]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    assert "shipped 003_cracker_box: trained weights, INT8 and fp32 (one representative of the 2" in res.output
+    rows = json.loads(out.read_text())
+    by_model = {(r["model"], r["quantization"] != "none"): r for r in rows if r["model"] != "shallow"}
+    assert {r["model"] for r in rows} == {"003_cracker_box.int8", "003_cracker_box", "shallow"}
+    shallow = {r["quantization"] != "none": r for r in rows if r["model"] == "shallow"}
+    for r in by_model.values():
+        assert r["weights"] == "trained"
+        ref = shallow[r["quantization"] != "none"]
+        assert r["ratio_over_shallow"] == pytest.approx(r["fps"] / ref["fps"])
+    assert all(r["weights"] == "random" and r["ratio_over_shallow"] is None for r in shallow.values())
+    res = CliRunner().invoke(main, ["bench", "--archs", "", "--shipped", "all", "--batch", "1", "--threads", "1",
+                                    "--seconds", "0.05", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    assert {r["model"] for r in json.loads(out.read_text())} == {
+        "003_cracker_box.int8", "003_cracker_box", "011_banana.int8", "011_banana"}
+
+
 def test_bench_without_torch_times_the_shipped_models(weights, monkeypatch):  # noqa: F811
     _without_torch(monkeypatch)
-    res = CliRunner().invoke(main, ["bench", "--seconds", "0.05", "--batch", "1", "--threads", "1"])
+    res = CliRunner().invoke(main, ["bench", "--seconds", "0.05", "--batch", "1", "--threads", "1", "--shipped", "all"])
     assert res.exit_code == 0, res.output
-    assert "torch is not installed" in res.output and "timing the 2 shipped INT8 models instead" in res.output
+    assert "torch is not installed" in res.output and "timing only the shipped models" in res.output
     assert "003_cracker_box" in res.output and "011_banana" in res.output
 
 
@@ -235,6 +298,7 @@ def test_bench_without_torch_or_shipped_models_is_one_line(tmp_path, monkeypatch
     res = CliRunner().invoke(main, ["bench", "--seconds", "0.05"])
     assert res.exit_code == 1 and "Traceback" not in res.output
     assert "needs torch" in res.output and "pass exported models with --model" in res.output
+    assert "no shipped model" in res.output
 def test_the_runtime_bench_imports_no_training_code():
     # The random-weight models are built on the training side (export.bench_models) and handed to the command.
     import re
@@ -248,8 +312,12 @@ def test_the_runtime_bench_imports_no_training_code():
 
 
 def test_machine_info_records_the_cpu_vector_flags():
-    flags = bench.machine_info()["cpu_flags"]
+    import torch
+
+    info = bench.machine_info()
+    flags = info["cpu_flags"]
     assert isinstance(flags, list) and all(f.startswith(bench._SIMD_FLAG_PREFIXES) for f in flags)
+    assert info["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
 
 
 def test_soak_reports_rss_over_the_calls_from_threads_sharing_one_session(tmp_path, capsys):

@@ -40,7 +40,9 @@ def fp32_models(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("scheme", q8.SCHEMES)
+# static-qdq-int8-conv needs 16-channel convs or 64k-weight layers, which these tiny networks lack (it refuses them);
+# tests/test_quantize_conv.py checks it on a five-block network.
+@pytest.mark.parametrize("scheme", [s for s in q8.SCHEMES if s != "static-qdq-int8-conv"])
 @pytest.mark.parametrize("arch", sorted(CONFIGS))
 def test_int8_model_records_scheme_keeps_contract_and_is_close_to_fp32(fp32_models, tmp_path, arch, scheme):
     fp32 = fp32_models[arch]
@@ -53,7 +55,7 @@ def test_int8_model_records_scheme_keeps_contract_and_is_close_to_fp32(fp32_mode
     assert {k: v for k, v in after.items() if k not in ("quantization", "int8_calibration")} == {
         k: v for k, v in before.items() if k != "quantization"
     }
-    assert ("int8_calibration" in after) == (scheme == "static-qdq-int8")
+    assert ("int8_calibration" in after) == (scheme in q8.CALIBRATED_SCHEMES)
     # Agreement reported and within the stated bound.
     a = report.agreement
     assert a.enforced and a.passed and a.n_inputs == 64

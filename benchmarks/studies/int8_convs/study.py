@@ -1,0 +1,348 @@
+"""Which INT8 scheme makes the shipped five-block refiner fast on a CPU, and what it costs in accuracy.
+
+For each shipped object: its fp32 model (``refiner_rt/weights/<obj>.onnx``) quantised with each candidate scheme,
+static ones calibrated on crops of the object's *training* split (never the test crops); then, in one run:
+
+1. the optimised graph onnxruntime builds from each (which operators it really runs: ``QLinearConv`` from the QDQ
+   pairs, ``FusedConv`` from Conv + ReLU, NCHWc / NHWC layouts);
+2. onnxruntime's profiler: kernel time per operator type, per call (batch 1, one thread);
+3. speed of the full ``refine()`` path with K (batch 1, one thread, a 640x480 frame), candidates interleaved call
+   by call over several rounds, medians; ratios only within this run;
+4. session options on the fastest candidate (graph optimisation level, denormals as zero, spinning with 2 threads);
+5. accuracy through the runtime on the object's held-out test scenes (``benchmarks/pretrained.py``'s ``evaluate``),
+   as the change of the mean error against fp32.
+
+Usage (from the repository root; DATA is the rendered dataset, RUN the build's run folder with the checkpoints)::
+
+    python benchmarks/studies/int8_convs/study.py --data DATA --run RUN --json benchmarks/studies/int8_convs/results.json
+
+Candidates (``static-qdq-int8-conv`` variants differ in which convolutions are quantised, by input channels, and
+in whether the fully connected layers are quantised statically or dynamically):
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+
+ROOT = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from refiner_rt import RefinerSession  # noqa: E402
+from refiner_rt.bench import FRAME_K, machine_info, synthetic_frame  # noqa: E402
+from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, parse_metadata  # noqa: E402
+from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
+
+# name -> (scheme written to the metadata, quantiser options); "fp32" and the two older schemes take none.
+_BIG = 65536  # weights of a "large" fully connected layer (export.quantize.large_fully_connected)
+BASE = "dynamic-int8, 8-bit (the shipped files)"
+CANDIDATES = {
+    "fp32": ("none", {}),
+    BASE: ("dynamic-int8", {"reduce_range": False}),
+    "dynamic-int8 (7-bit)": ("dynamic-int8", {}),
+    "dynamic-int8, large FC only (7-bit)": ("dynamic-int8", {"fc_min_weights": _BIG}),
+    "qdq conv>=16 + large FC dynamic (7-bit)": ("static-qdq-int8-conv", {}),
+    "qdq conv>=16 + large FC dynamic, 8-bit": ("static-qdq-int8-conv", {"reduce_range": False}),
+    "qdq conv>=16 + all FC dynamic (7-bit)": ("static-qdq-int8-conv", {"fc_min_weights": 0}),
+    "qdq conv>=16 + large FC static (7-bit)": ("static-qdq-int8-conv", {"fc": "static"}),
+    "qdq conv>=1 + large FC dynamic (7-bit)": ("static-qdq-int8-conv", {"min_channels": 1}),
+    "qdq conv>=32 + large FC dynamic (7-bit)": ("static-qdq-int8-conv", {"min_channels": 32}),
+}
+__doc__ += "\n".join(f"    * {k}: {v[0]} {v[1] or ''}" for k, v in CANDIDATES.items()) + "\n"
+
+
+def build_candidate(fp32: Path, out: Path, name: str, calibration) -> Path:
+    """``fp32`` quantised as candidate ``name`` into ``out``, with the fp32 metadata and the scheme."""
+    from export import quantize as q8
+
+    scheme, options = CANDIDATES[name]
+    if scheme == "none":
+        return fp32
+    proto = onnx.load(str(fp32))
+    with tempfile.TemporaryDirectory() as work:
+        src, dst = Path(work) / "fp32.onnx", Path(work) / "int8.onnx"
+        onnx.save(q8._without_value_info(proto), str(src))
+        with q8._without_preprocess_advice():
+            q8._QUANTIZERS[scheme](src, dst, None if scheme == "dynamic-int8" else calibration, **options)
+        quantized = onnx.load(str(dst))
+    props = {p.key: p.value for p in proto.metadata_props}
+    props["quantization"] = scheme
+    if scheme != "dynamic-int8":
+        props["int8_calibration"] = calibration.source
+    del quantized.metadata_props[:]
+    onnx.helper.set_model_props(quantized, props)
+    onnx.save(quantized, str(out))
+    RefinerSession(out)  # the runtime's contract
+    return out
+
+
+def shallow_models(work: Path) -> dict:
+    """The paper's shallow network with random weights: fp32, dynamic-int8 and static-qdq-int8-conv (calibrated on
+    random crops; for speed only)."""
+    import torch
+
+    import models
+    from export import export_model
+    from export.quantize import quantize_model
+
+    torch.manual_seed(0)
+    path = work / "shallow.onnx"
+    export_model(models.build_refiner("shallow").eval(), path, checkpoint_sha256="random-weights")
+    out = {"paper shallow, fp32": path}
+    for scheme in ("dynamic-int8", "static-qdq-int8-conv"):
+        out[f"paper shallow, {scheme}"] = quantize_model(path, work / f"shallow.{scheme}.onnx", scheme=scheme,
+                                                         enforce=False).path
+    return out
+
+
+def session_options(threads: int = 1, level=ort.GraphOptimizationLevel.ORT_ENABLE_ALL, **configs) -> ort.SessionOptions:
+    """RefinerSession's defaults, with ``level`` and extra ``add_session_config_entry`` settings."""
+    o = ort.SessionOptions()
+    o.intra_op_num_threads = threads
+    o.inter_op_num_threads = 1
+    o.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    o.graph_optimization_level = level
+    o.log_severity_level = 3
+    for k, v in configs.items():
+        o.add_session_config_entry(k, v)
+    return o
+
+
+def optimized_ops(path: Path) -> dict:
+    """Operator counts of the graph onnxruntime runs (after its optimisations, at level ALL)."""
+    with tempfile.TemporaryDirectory() as work:
+        o = session_options()
+        o.optimized_model_filepath = str(Path(work) / "opt.onnx")
+        ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"])
+        g = onnx.load(o.optimized_model_filepath)
+    return dict(collections.Counter(f"{n.domain + '.' if n.domain else ''}{n.op_type}" for n in g.graph.node))
+
+
+def _feed(path: Path):
+    image, boxes, q_in = synthetic_frame(1)
+    s = RefinerSession(path)
+    from refiner_rt.preprocess import crop_to_square
+
+    crop = crop_to_square(image, boxes[0], s.input_size, s.contract.crop_context)[None]
+    return {INPUT_IMAGE: np.ascontiguousarray(crop), INPUT_QUATERNION: q_in.astype(np.float32)}
+
+
+def profile_ops(path: Path, calls: int = 300) -> dict:
+    """onnxruntime's profiler: microseconds of kernel time per call, by operator type (batch 1, one thread)."""
+    feed = _feed(path)
+    with tempfile.TemporaryDirectory() as work:
+        o = session_options()
+        o.enable_profiling = True
+        o.profile_file_prefix = str(Path(work) / "prof")
+        sess = ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"])
+        for _ in range(30):
+            sess.run(None, feed)
+        for _ in range(calls):
+            sess.run(None, feed)
+        events = json.loads(Path(sess.end_profiling()).read_text())
+    per_op: dict = collections.defaultdict(list)
+    runs = []
+    for e in events:
+        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
+            per_op[e["args"]["op_name"]].append(e["dur"])
+        elif e.get("cat") == "Session" and e.get("name") == "model_run":
+            runs.append(e["dur"])
+    total_calls = len(runs) or 1
+    timed = runs[-calls:]
+    ops = {op: sum(d) / total_calls for op, d in per_op.items()}
+    return {"us_per_call_by_op": dict(sorted(ops.items(), key=lambda kv: -kv[1])),
+            "kernel_us_per_call": sum(ops.values()), "model_run_us_median": statistics.median(timed) if timed else None}
+
+
+def time_interleaved(runners: dict, rounds: int = 9, calls: int = 200) -> dict:
+    """Median seconds per call of each runner: rounds of ``calls`` calls each, runners taking turns."""
+    for fn in runners.values():
+        for _ in range(20):
+            fn()
+    per_round = {k: [] for k in runners}
+    for _ in range(rounds):
+        for k, fn in runners.items():
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                fn()
+            per_round[k].append((time.perf_counter() - t0) / calls)
+    return {k: statistics.median(v) for k, v in per_round.items()}
+
+
+def refine_speed(paths: dict, threads: int = 1, rounds: int = 9, calls: int = 200, options=None) -> dict:
+    """Refinements/s of the full refine() path with K, batch 1, interleaved; ``options`` overrides the sessions'."""
+    image, boxes, q_in = synthetic_frame(1)
+    runners = {}
+    for name, path in paths.items():
+        s = RefinerSession(path, threads=threads, session_options=options() if options else None)
+        K = FRAME_K if s.contract.rotation_frame == "ray" else None
+        runners[name] = (lambda s=s, K=K: s.refine(image, boxes, q_in, K=K))
+    return {k: 1.0 / v for k, v in time_interleaved(runners, rounds, calls).items()}
+
+
+def option_speed(path: Path, rounds: int = 9, calls: int = 200) -> dict:
+    """The same model under several session options, interleaved (refinements/s)."""
+    L = ort.GraphOptimizationLevel
+    one = {
+        "1 thread, ALL (default)": lambda: session_options(1),
+        "1 thread, EXTENDED": lambda: session_options(1, L.ORT_ENABLE_EXTENDED),
+        "1 thread, BASIC": lambda: session_options(1, L.ORT_ENABLE_BASIC),
+        "1 thread, ALL, denormals as zero": lambda: session_options(1, **{"session.set_denormal_as_zero": "1"}),
+    }
+    image, boxes, q_in = synthetic_frame(1)
+    runners = {}
+    for label, make in one.items():
+        s = RefinerSession(path, session_options=make())
+        runners[label] = (lambda s=s: s.refine(image, boxes, q_in, K=FRAME_K))
+    out = {k: 1.0 / v for k, v in time_interleaved(runners, rounds, calls).items()}
+    import os
+
+    n = len(os.sched_getaffinity(0))
+    if n > 1:
+        two = {}
+        for spin in ("1", "0"):
+            s = RefinerSession(path, session_options=session_options(n, **{"session.intra_op.allow_spinning": spin}))
+            two[f"{n} threads, ALL, spinning {'on' if spin == '1' else 'off'}"] = (
+                lambda s=s: s.refine(image, boxes, q_in, K=FRAME_K))
+        out.update({k: 1.0 / v for k, v in time_interleaved(two, rounds, calls).items()})
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, required=True, help="rendered dataset (training crops calibrate, test crops score)")
+    ap.add_argument("--run", type=Path, required=True, help="the build's run folder: RUN/<obj>/*.pt")
+    ap.add_argument("--cache", type=Path, help="crop cache (default DATA/.crops)")
+    ap.add_argument("--objects", help="comma-separated YCB ids (default: every shipped object)")
+    ap.add_argument("--candidates", help="semicolon-separated candidate names (default: all)")
+    ap.add_argument("--rounds", type=int, default=9)
+    ap.add_argument("--skip-accuracy", action="store_true", help="only speed and profile")
+    ap.add_argument("--skip-speed", action="store_true", help="only accuracy (the speed keys of --json are kept)")
+    ap.add_argument("--json", type=Path, required=True)
+    args = ap.parse_args(argv)
+    from export.quantize import dataset_calibration
+    from pretrained import evaluate
+
+    cache = args.cache or args.data / ".crops"
+    objects = args.objects.split(",") if args.objects else [m.object_id for m in pretrained_models()]
+    names = [n.strip() for n in args.candidates.split(";")] if args.candidates else list(CANDIDATES)
+    unknown = [n for n in names if n not in CANDIDATES]
+    if unknown:
+        ap.error(f"unknown candidates {unknown}; known: {list(CANDIDATES)}")
+    t_start = time.perf_counter()
+    # A rerun with --skip-speed or --skip-accuracy updates its own keys of an existing file and keeps the rest.
+    doc = json.loads(args.json.read_text()) if args.json.is_file() else {}
+    command = "python benchmarks/studies/int8_convs/study.py " + " ".join(
+        a if not a.startswith("/") else Path(a).name for a in (argv or sys.argv[1:]))
+    doc.update({"schema": "refiner-rt/study-int8-convs/1", "candidates": {k: [v[0], v[1]] for k, v in CANDIDATES.items()}})
+    doc.setdefault("objects", {})
+    doc.setdefault("runs", []).append({"command": command, "machine": machine_info(),
+                                       "started": time.strftime("%Y-%m-%d %H:%M:%S")})
+    with tempfile.TemporaryDirectory(prefix="int8-convs-") as work:
+        work = Path(work)
+        paths_by_object = {}
+        for obj in objects if not args.skip_accuracy else objects[:1]:
+            fp32 = WEIGHTS_DIR / model_file_name(obj, int8=False)
+            contract = parse_metadata({p.key: p.value for p in onnx.load(str(fp32), load_external_data=False).metadata_props})
+            t0 = time.perf_counter()
+            cal = dataset_calibration(args.data, contract, cache_root=cache)
+            print(f"[{obj}] calibration: {len(cal.images)} training crops in {time.perf_counter() - t0:.0f} s", flush=True)
+            paths = {}
+            for i, name in enumerate(names):
+                paths[name] = build_candidate(fp32, work / f"{obj}.{i}.onnx", name, cal)
+            paths_by_object[obj] = paths
+            entry = doc["objects"].setdefault(obj, {})
+            entry["sizes_bytes"] = {n: p.stat().st_size for n, p in paths.items()}
+            if not args.skip_accuracy:
+                ckpts = sorted((args.run / obj).glob("*.pt"))
+                t0 = time.perf_counter()
+                ev = evaluate(paths, ckpts[0], args.data, cache)
+                fp = ev["fp32"]["all"]["mean_deg"] if "fp32" in ev else None
+                entry["accuracy"] = {n: {"mean_deg": ev[n]["all"]["mean_deg"], "median_deg": ev[n]["all"]["median_deg"],
+                                         "delta_vs_fp32_deg": None if fp is None else ev[n]["all"]["mean_deg"] - fp,
+                                         "n": ev[n]["all"]["n"]} for n in paths}
+                print(f"[{obj}] accuracy in {time.perf_counter() - t0:.0f} s: " + ", ".join(
+                    f"{n} {a['mean_deg']:.3f}" for n, a in entry["accuracy"].items()), flush=True)
+        if not args.skip_speed:
+            # Speed and profile on the first object (every shipped model has the same graph, so the same speed),
+            # beside the paper's shallow network (random weights: speed does not depend on them).
+            speed(doc, {**paths_by_object[objects[0]], **shallow_models(work)}, args.rounds)
+    doc["runs"][-1]["wall_s"] = time.perf_counter() - t_start
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {args.json} ({doc['runs'][-1]['wall_s']:.0f} s)")
+    return 0
+
+
+def speed(doc: dict, first: dict, rounds: int) -> None:
+    """Optimised graphs, profiles, refine() speed and session options of one object's candidates, into ``doc``."""
+    doc["optimized_graph_ops"] = {n: optimized_ops(p) for n, p in first.items()}
+    doc["profile"] = {n: profile_ops(p) for n, p in first.items()}
+    for n, prof in doc["profile"].items():
+        top = ", ".join(f"{op} {us:.0f}" for op, us in list(prof["us_per_call_by_op"].items())[:5])
+        print(f"profile {n}: kernels {prof['kernel_us_per_call']:.0f} us/call ({top})", flush=True)
+    doc["refine_per_s_1_thread"] = refine_speed(first, rounds=rounds)
+    base = doc["refine_per_s_1_thread"].get(BASE)
+    paper = doc["refine_per_s_1_thread"].get("paper shallow, dynamic-int8")
+    for n, v in doc["refine_per_s_1_thread"].items():
+        print(f"speed {n}: {v:,.0f}/s ({v / base:.2f}x the shipped files, {v / paper:.2f}x paper shallow INT8)", flush=True)
+    best = max((n for n in first if n != "fp32" and not n.startswith("paper")), key=doc["refine_per_s_1_thread"].get)
+    doc["options_model"] = best
+    doc["options_per_s"] = option_speed(first[best], rounds=rounds)
+    for k, v in doc["options_per_s"].items():
+        print(f"options ({best}) {k}: {v:,.0f}/s", flush=True)
+
+
+def report(doc: dict) -> str:
+    """Markdown tables of a results file (what the README quotes)."""
+    out = []
+    objs = doc.get("objects", {})
+    names = [n for n in CANDIDATES if any(n in o.get("accuracy", {}) for o in objs.values())]
+    if names:
+        out += ["| candidate | " + " | ".join(objs) + " | mean cost | largest cost |",
+                "|---|" + "---:|" * (len(objs) + 2)]
+        for n in names:
+            costs = [objs[o]["accuracy"][n]["delta_vs_fp32_deg"] for o in objs if n in objs[o].get("accuracy", {})]
+            cells = [f"{objs[o]['accuracy'][n]['mean_deg']:.3f} ({objs[o]['accuracy'][n]['delta_vs_fp32_deg']:+.3f})"
+                     if n in objs[o].get("accuracy", {}) else "" for o in objs]
+            out.append(f"| {n} | " + " | ".join(cells) + f" | {np.mean(costs):+.3f} | {max(costs):+.3f} |")
+        out.append("")
+    speed = doc.get("refine_per_s_1_thread", {})
+    if speed:
+        base, paper = speed.get(BASE), speed.get("paper shallow, dynamic-int8")
+        out += ["| model | refine()/s, 1 thread | over the shipped files | over paper shallow INT8 | kernel us/call "
+                "(profiler) | top operators (us/call) |", "|---|---:|---:|---:|---:|---|"]
+        for n, v in speed.items():
+            prof = doc.get("profile", {}).get(n, {})
+            top = ", ".join(f"{op} {us:.0f}" for op, us in list(prof.get("us_per_call_by_op", {}).items())[:6])
+            out.append(f"| {n} | {v:,.0f} | {v / base:.2f}x | {v / paper:.2f}x | {prof.get('kernel_us_per_call', 0):.0f} "
+                       f"| {top} |")
+        out.append("")
+    opts = doc.get("options_per_s", {})
+    if opts:
+        out += [f"Session options ({doc.get('options_model')}):", "", "| options | refine()/s |", "|---|---:|"]
+        out += [f"| {k} | {v:,.0f} |" for k, v in opts.items()]
+        out.append("")
+    graphs = doc.get("optimized_graph_ops", {})
+    if graphs:
+        out += ["| candidate | operators onnxruntime runs (level ALL) |", "|---|---|"]
+        out += [f"| {n} | " + ", ".join(f"{k} {v}" for k, v in sorted(ops.items())) + " |" for n, ops in graphs.items()]
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--report"]:
+        print(report(json.loads(Path(sys.argv[2]).read_text())))
+        raise SystemExit(0)
+    raise SystemExit(main())
