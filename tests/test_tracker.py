@@ -309,6 +309,29 @@ def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
                                     "--video", str(tmp_path / "v.avi"), "--predict"])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "v.avi").stat().st_size > 0
+    assert json.loads(out.read_text())["lost"] == {}
+
+
+@pytest.mark.parametrize("lost_deg, lost_frames", [("5", ["000001.png", "000002.png"]), ("10", [])])
+def test_track_command_lists_the_frames_where_the_lost_check_fires(tmp_path, lost_deg, lost_frames):
+    """The constant model moves every rotation by 7 degrees: a check at 5 fires on every frame after the first."""
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=3)
+    out = tmp_path / "rot.json"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", lost_deg])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["lost_deg"] == float(lost_deg)
+    assert doc["lost"] == {name: ["003_cracker_box"] for name in lost_frames}
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", "0"])
+    assert res.exit_code != 0 and "--lost-deg" in res.output
 
 
 def test_track_command_with_shipped_names_and_a_reset(tmp_path, weights):  # noqa: F811
