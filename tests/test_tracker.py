@@ -437,6 +437,10 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
         assert s["track_predict"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
         assert s["track_redetect"][step]["mean_deg"] < s["hold"][step]["mean_deg"]  # reset to fresh draws
         assert 5 < s["per_frame"][step]["mean_deg"] < 25
+        # A model that never corrects agrees with itself: the loss check never fires, no detector is asked.
+        assert s["track_lost"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
+        assert s["track_lost"][step]["detector_share"] == 0 and s["per_frame"][step]["detector_share"] == 1
+    assert s["track_redetect"]["1"]["detector_share"] == round(4 / 23, 4)  # frames 4 and 8 of both, frame 5 unscored
     assert s["hold"]["1"]["frames"] == 23  # 2 x 12 frames, one below --min-visib
     # Holding the pose drifts by the 2-degree turn per frame: the curve rises over the sequence.
     curve = doc["curves"]["hold"]["1"]
@@ -444,7 +448,7 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     assert doc["cost"]["track_step1"]["refinements"] == 23 and doc["machine"]["cpu"]
     assert png.stat().st_size > 10_000
     table = bench.report(doc)
-    assert len(table.splitlines()) == 2 + 3 * 5 and "| 1 | (c) track |" in table
+    assert len(table.splitlines()) == 2 + 3 * 6 and "| 1 | (c) track |" in table
     # The detections it writes run through `refiner-rt track`: with this model the rotation stays the initial pose.
     from click.testing import CliRunner
 
