@@ -100,7 +100,7 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 
 
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
-              n_frames: int, timing: dict, methods=METHODS, redetect: int = 10, lost_deg: float = 2.0,
+              n_frames: int, timing: dict, methods=METHODS, redetect: int = 10, lost_deg: float = 1.5,
               detections: dict | None = None) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
@@ -312,8 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--methods", default=",".join(METHODS), help=f"what to measure (default {','.join(METHODS)})")
     p.add_argument("--redetect", type=int, default=10,
                    help="track_redetect: frames between a detector's poses (default 10, e.g. 3 Hz in 30 Hz video)")
-    p.add_argument("--lost-deg", type=float, default=2.0,
-                   help="track_lost: the tracker's lost_deg (degrees a second refinement may move a rotation; default 2)")
+    p.add_argument("--lost-deg", type=float, default=1.5,
+                   help="track_lost: the tracker's lost_deg (degrees a second refinement may move a rotation; default 1.5)")
     p.add_argument("--json", type=Path, help="write the results here")
     p.add_argument("--plot", type=Path, help="write the error-vs-frame plot here (PNG)")
     p.add_argument("--detections-out", type=Path, metavar="DIR",
