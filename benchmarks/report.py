@@ -169,6 +169,7 @@ def tracking() -> str:
 
     spec = importlib.util.spec_from_file_location("tracking_bench", ROOT / "benchmarks" / "tracking.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up there
     spec.loader.exec_module(module)
     doc = _load("tracking")
     return (module.report(doc) + f"\n\n{doc['measured']}. JSON `benchmarks/results/tracking.json`, written by "

@@ -429,7 +429,8 @@ def main(argv: list[str] | None = None) -> int:
                      f"{render_record.get('seed', '?')}, camera sweep {render_record.get('config', {}).get('sweep_deg')} "
                      f"deg of azimuth per scene) of {len(objects)} object(s); frames with visib_fract >= "
                      f"{args.min_visib} scored, sequences with >= {args.min_frames} such frames; coarse poses U(0, 30) deg "
-                     f"around the truth, seed {args.seed}; one network pass per object and update, threads=1"),
+                     f"around the truth, seed {args.seed}; one network pass per object and update (track_lost: two, and one more "
+                     f"per detector pose), threads=1"),
         "data": str(args.data), "render_seed": render_record.get("seed"), "scenes": len(scenes),
         "sequences_per_object": {o: len(v) for o, v in sorted(per_object["track"][steps[0]].items())},
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
