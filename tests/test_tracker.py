@@ -365,8 +365,8 @@ def test_track_command_with_shipped_names_and_a_reset(tmp_path, weights):  # noq
     ({"frames": {"000000.png": {"003_cracker_box": {"box": [500, 500, 510, 510], "q": [1, 0, 0, 0]}}}}, [],
      r"000000.png: boxes\['003_cracker_box'\]"),
     ({"frames": {"000001.png": {"003_cracker_box": BOX_A}}}, [], "has a box but no rotation to start from"),
-    ({"frames": {"000000.png": {"011_banana": {"box": BOX_A, "q": [1, 0, 0, 0]}}}}, [],
-     "no pretrained model for object '011_banana'"),
+    ({"frames": {"000000.png": {"005_tomato_soup_can": {"box": BOX_A, "q": [1, 0, 0, 0]}}}}, [],
+     "no pretrained model for object '005_tomato_soup_can'"),  # a YCB object that no model ships for
     ({}, ["--video", "x.gif"], "expected a .mp4 or .avi video or a .png or .jpg image strip"),
 ])
 def test_track_command_refuses_bad_input_without_a_traceback(tmp_path, change, args, match):
