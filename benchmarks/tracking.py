@@ -10,7 +10,11 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
   each from the previous frame's result;
 * ``track_predict``: the same with the constant-angular-velocity prediction;
 * ``track_redetect``: ``track`` with a detector's pose every ``--redetect`` frames (a slow detector and a fast
-  tracker): :meth:`~refiner_rt.tracker.RefinerTracker.reset` to the same fresh draw ``per_frame`` refines there.
+  tracker): :meth:`~refiner_rt.tracker.RefinerTracker.reset` to the same fresh draw ``per_frame`` refines there;
+* ``track_lost``: ``track`` with the tracker's loss-of-track check (``lost_deg=--lost-deg``: a second refinement
+  of each refined rotation; an object it moves by more than that is lost) and the detector asked only then, for the
+  same fresh draw ``per_frame`` refines on that frame. Its re-detection rate is reported (detector poses per
+  refined object and frame).
 
 Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
@@ -51,10 +55,11 @@ from refiner_rt import quaternion as rq  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
 from refiner_rt.tracker import RefinerTracker  # noqa: E402
 
-METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect")
+METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect", "track_lost")
 LABELS = {"hold": "(a) hold the initial coarse pose", "per_frame": "(b) refine each frame from U(0, 30)",
           "track": "(c) track from an initial U(0, 30)", "track_predict": "(c) + constant-velocity prediction",
-          "track_redetect": "(c) + a detector's U(0, 30) pose every N frames"}
+          "track_redetect": "(c) + a detector's U(0, 30) pose every N frames",
+          "track_lost": "(c) + loss-of-track check, detector only when lost"}
 DIVERGED_DEG = 30.0
 
 
@@ -95,7 +100,8 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 
 
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
-              n_frames: int, timing: dict, methods=METHODS, redetect: int = 10) -> dict:
+              n_frames: int, timing: dict, methods=METHODS, redetect: int = 10, lost_deg: float = 1.5,
+              detections: dict | None = None) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
     start_noise = {s.object_id: rq.sample_rotation_noise(1, "uniform", 0, 30, rng[s.object_id])[0] for s in seqs}
@@ -141,9 +147,10 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                     out["hold"][step][s.object_id][f - f0] = rq.geodesic_angle(q_start[s.object_id], s.q_gt[f])
                     if "per_frame" in methods:
                         out["per_frame"][step][s.object_id][f - f0] = per_frame[s.object_id][f]
-        for method in [m for m in ("track", "track_predict", "track_redetect") if m in methods]:
+        for method in [m for m in ("track", "track_predict", "track_redetect", "track_lost") if m in methods]:
             tracker = RefinerTracker({s.object_id: sessions[s.object_id] for s in live}, K, {},
-                                     predict=method == "track_predict")
+                                     predict=method == "track_predict",
+                                     lost_deg=lost_deg if method == "track_lost" else None)
             key = f"{method}_step{step}"
             last_detection = {}
             for f in grid:
@@ -157,8 +164,16 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                         tracker.reset(s.object_id, rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames]))
                         last_detection[s.object_id] = f
                 boxes = {s.object_id: s.boxes[f] for s in live if s.object_id in tracker and f in s.images}
+                # a detector's pose, asked for only by track_lost's lost objects: that frame's fresh draw
+                detector = {s.object_id: rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])
+                            for s in live if s.object_id in boxes} if method == "track_lost" else None
                 t0, c0 = time.perf_counter(), time.process_time()
-                q = tracker.update(images[f], boxes)
+                before = tracker.redetections
+                q = tracker.update(images[f], boxes, detector=detector)
+                if detections is not None:
+                    detections[key] = detections.get(key, 0) + tracker.redetections - before + (
+                        sum(1 for s in live if s.object_id in boxes and last_detection.get(s.object_id) == f
+                            and f != start[s.object_id]))
                 timing[key]["seconds"] += time.perf_counter() - t0
                 timing[key]["cpu_seconds"] += time.process_time() - c0
                 timing[key]["updates"] += 1
@@ -232,7 +247,7 @@ def plot(doc: dict, path: Path) -> None:
     steps = doc["steps"]
     fig, axes = plt.subplots(2, len(steps), figsize=(4.6 * len(steps), 6.6), sharey="row", squeeze=False)
     colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange",
-               "track_redetect": "tab:green"}
+               "track_redetect": "tab:green", "track_lost": "tab:purple"}
     for row, (key, stat) in enumerate((("curves", "mean"), ("curves_median", "median"))):
         for ax, step in zip(axes[row], steps):
             for m in [m for m in METHODS if m in doc[key]]:
@@ -262,16 +277,22 @@ def report(doc: dict) -> str:
     """The Markdown table of a results file: one row per frame step and method."""
     short = {"hold": "(a) hold initial pose", "per_frame": "(b) refine each frame from U(0, 30)",
              "track": "(c) track", "track_predict": "(c) track + constant velocity",
-             "track_redetect": f"(c) track + detector every {doc['redetect']} frames"}
-    lines = ["| step | method | mean | median | last frame | diverged (> 30 deg) | beats (b) per sequence |",
-             "|---:|---|---:|---:|---:|---:|---:|"]
+             "track_redetect": f"(c) track + detector every {doc['redetect']} frames",
+             "track_lost": f"(c) track + loss check ({doc.get('lost_deg')} deg), detector when lost"}
+    lines = ["| step | method | mean | median | last frame | diverged (> 30 deg) | beats (b) per sequence "
+             "| detector poses per frame | CPU ms per update |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for st in doc["steps"]:
         for m in [m for m in METHODS if m in doc["summary"]]:
             r = doc["summary"][m][str(st)]
             beats = "" if m == "per_frame" or "beats_per_frame_share" not in r else f"{100 * r['beats_per_frame_share']:.0f}%"
+            share = r.get("detector_share")
+            det = "" if share is None else f"{100 * share:.1f}%"
+            cost = doc.get("cost", {}).get("per_frame" if m == "per_frame" else f"{m}_step{st}", {})
+            ms = "" if m == "hold" or cost.get("cpu_ms_per_update") is None else f"{cost['cpu_ms_per_update']:.2f}"
             lines.append(f"| {st} | {short[m]} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} | "
                          f"{r['last_frame_mean_deg']:.2f} | {100 * r['diverged_share']:.1f}% ({r['diverged']}/{r['sequences']}) "
-                         f"| {beats} |")
+                         f"| {beats} | {det} | {ms} |")
     return "\n".join(lines)
 
 
@@ -291,6 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--methods", default=",".join(METHODS), help=f"what to measure (default {','.join(METHODS)})")
     p.add_argument("--redetect", type=int, default=10,
                    help="track_redetect: frames between a detector's poses (default 10, e.g. 3 Hz in 30 Hz video)")
+    p.add_argument("--lost-deg", type=float, default=1.5,
+                   help="track_lost: the tracker's lost_deg (degrees a second refinement may move a rotation; default 1.5)")
     p.add_argument("--json", type=Path, help="write the results here")
     p.add_argument("--plot", type=Path, help="write the error-vs-frame plot here (PNG)")
     p.add_argument("--detections-out", type=Path, metavar="DIR",
@@ -306,6 +329,8 @@ def main(argv: list[str] | None = None) -> int:
     methods = tuple(m for m in METHODS if m in args.methods.split(","))
     if set(args.methods.split(",")) - set(METHODS) or "hold" not in methods:
         p.error(f"--methods must list some of {','.join(METHODS)}, hold included; got {args.methods!r}")
+    if not 0 < args.lost_deg <= 180:
+        p.error(f"--lost-deg must be in (0, 180] degrees; got {args.lost_deg}")
     if any(s < 1 for s in steps):
         p.error(f"--steps must be positive integers; got {args.steps!r}")
 
@@ -343,13 +368,15 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"no sequence of {objects} in {args.data} with >= {args.min_frames} frames at visib >= {args.min_visib}")
     n_frames = max(max(s.images) for s in seqs) + 1
     timing = defaultdict(lambda: {"seconds": 0.0, "cpu_seconds": 0.0, "updates": 0, "refinements": 0})
+    detections: dict[str, int] = {}  # method_step -> detector poses used after each track's start
     errors = {m: {st: [] for st in steps} for m in methods}
     per_sequence = []  # step 1 (the first step), one row per sequence: its mean and largest error per method
     per_object = {m: {st: defaultdict(list) for st in steps} for m in methods}
     t_start = time.perf_counter()
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
-        res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods, args.redetect)
+        res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods, args.redetect,
+                        args.lost_deg, detections)
         for s in scene_seqs:
             if s.object_id in res["hold"][steps[0]]:
                 row = {"scene": scene, "object": s.object_id, "frames": len(s.images)}
@@ -373,6 +400,14 @@ def main(argv: list[str] | None = None) -> int:
             for st in steps:
                 better = [np.nanmean(a) < np.nanmean(b) for a, b in zip(errors[m][st], errors["per_frame"][st])]
                 summary[m][str(st)]["beats_per_frame_share"] = round(float(np.mean(better)), 4)
+    for m in ("track", "track_predict", "track_redetect", "track_lost"):
+        for st in steps:
+            if m in methods:  # detector poses per scored frame after the start (per_frame: one on every frame)
+                summary[m][str(st)]["detector_share"] = round(
+                    detections.get(f"{m}_step{st}", 0) / summary[m][str(st)]["frames"], 4)
+    if "per_frame" in methods:
+        for st in steps:
+            summary["per_frame"][str(st)]["detector_share"] = 1.0
     objects_table = {m: {str(st): {o: summarise(v) for o, v in sorted(per_object[m][st].items())} for st in steps}
                      for m in methods}
     # CPU time of this process (threads=1: the network's own time) is the cost; wall time also counts the waits
@@ -394,11 +429,13 @@ def main(argv: list[str] | None = None) -> int:
                      f"{render_record.get('seed', '?')}, camera sweep {render_record.get('config', {}).get('sweep_deg')} "
                      f"deg of azimuth per scene) of {len(objects)} object(s); frames with visib_fract >= "
                      f"{args.min_visib} scored, sequences with >= {args.min_frames} such frames; coarse poses U(0, 30) deg "
-                     f"around the truth, seed {args.seed}; one network pass per object and update, threads=1"),
+                     f"around the truth, seed {args.seed}; one network pass per object and update (track_lost: two, and one more "
+                     f"per detector pose), threads=1"),
         "data": str(args.data), "render_seed": render_record.get("seed"), "scenes": len(scenes),
         "sequences_per_object": {o: len(v) for o, v in sorted(per_object["track"][steps[0]].items())},
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
+        "lost_deg": args.lost_deg,
         "summary": summary, "per_object": objects_table, "per_sequence_first_step": per_sequence,
         "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
         "curves_median": {m: {str(st): curve(errors[m][st], np.median) for st in steps} for m in methods},

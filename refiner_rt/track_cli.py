@@ -198,6 +198,10 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
 @click.option("--fp32", is_flag=True, help="Use the shipped fp32 models instead of INT8.")
 @click.option("--K", "K_text", metavar="FX,FY,CX,CY", help="Camera intrinsics in pixels (instead of the file's \"K\").")
 @click.option("--predict", is_flag=True, help="Predict each rotation with a constant angular velocity first.")
+@click.option("--lost-deg", type=click.FloatRange(0.0, 180.0, min_open=True), default=None,
+              help="Loss-of-track check: flag an object lost when a second refinement moves its rotation by more "
+                   "than this many degrees (one more pass per object and frame); the output's \"lost\" lists "
+                   "those frames, for a detector's new \"q\". Default: no check.")
 @click.option("--iterations", type=click.IntRange(1, MAX_ITERATIONS), default=1, show_default=True,
               help="Refinement passes per object and frame.")
 @click.option("--threads", type=click.IntRange(1, 256), default=1, show_default=True,
@@ -208,7 +212,7 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
 @click.option("--strip", "strip_frames", type=click.IntRange(1, 64), default=8, show_default=True,
               help="Frames in a --video image strip, evenly spaced.")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
-def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, iterations, threads, video_path,
+def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, lost_deg, iterations, threads, video_path,
               strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
@@ -240,12 +244,12 @@ def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, itera
     object_ids = sorted({o for d in dets.values() for o in d})
     try:
         sessions = _sessions(object_ids, models, int8=not fp32, threads=threads)
-        tracker = RefinerTracker(sessions, K, {}, predict=predict, iterations=iterations)
+        tracker = RefinerTracker(sessions, K, {}, predict=predict, iterations=iterations, lost_deg=lost_deg)
     except (ValueError, TypeError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
 
     video = _VideoOutput(video_path, len(files), strip_frames, fps) if video_path else None
-    results, refined, seconds = {}, 0, 0.0
+    results, lost, refined, seconds = {}, {}, 0, 0.0
     for index, path in enumerate(files):
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
@@ -269,6 +273,8 @@ def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, itera
         seconds += time.perf_counter() - t0
         refined += len(out)
         results[path.name] = {o: [round(v, 9) for v in q.tolist()] for o, q in out.items()}
+        if tracker.lost:
+            lost[path.name] = list(tracker.lost)
         if video is not None:
             video.add(index, annotate(image, boxes, out))
     if video is not None:
@@ -277,9 +283,10 @@ def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, itera
     out_path.write_text(json.dumps({
         "format": OUTPUT_FORMAT,
         "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",
-        "K": K.tolist(), "predict": predict, "iterations": iterations,
+        "K": K.tolist(), "predict": predict, "iterations": iterations, "lost_deg": lost_deg,
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
         "frames": results,
+        "lost": lost,  # frame -> objects the loss-of-track check flagged there (empty without --lost-deg)
     }, indent=1))
     per_frame = 1e3 * seconds / len(files)
     click.echo(f"{len(files)} frames, {len(object_ids)} objects, {refined} refinements: {per_frame:.2f} ms per frame "

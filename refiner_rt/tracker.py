@@ -18,6 +18,14 @@ Constant-angular-velocity prediction (``predict=True``): the rotation change bet
 rotations, taken in the camera frame, ``dq = q_t * q_{t-1}^-1`` per update, is applied once more before refining,
 ``q_in = dq * q_t`` (a camera turning steadily around a still object turns it at a constant rate in the camera
 frame). Only refined rotations enter ``dq``: the correction of a coarse initial pose is not motion.
+
+Loss-of-track check (``lost_deg``): a tracker that loses an object rarely finds it again, since the refiner is
+trained on coarse poses within 30 degrees of the truth. The check needs no ground truth: the refined rotation is
+refined once more (a second network pass in the same batched call per session), and an object whose rotation that
+second pass moves by more than ``lost_deg`` degrees is flagged lost (the refiner does not agree with its own
+output: near the truth it moves little). A flagged object is listed in :attr:`RefinerTracker.lost`; when
+:meth:`RefinerTracker.update` is given a ``detector``, it is re-initialised from the detector's coarse pose and
+refined from it in the same update, and :attr:`RefinerTracker.redetections` counts it.
 """
 
 from __future__ import annotations
@@ -83,6 +91,9 @@ class RefinerTracker:
         predict: apply the constant-angular-velocity prediction (module docstring) before each refinement.
         iterations: refinement passes per update (``>= 1``), as :meth:`RefinerSession.refine`.
         views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`.
+        lost_deg: the loss-of-track check (module docstring): flag an object lost when a second refinement of its
+            refined rotation moves it by more than this many degrees; a finite number in ``(0, 180]``, or ``None``
+            (default) for no check (one network pass per object and update; the check costs a second).
 
     Raises:
         ValueError / TypeError: a bad argument, named, with what was expected and what was given.
@@ -95,11 +106,15 @@ class RefinerTracker:
         ...     q = tracker.update(image, {"003_cracker_box": box})["003_cracker_box"]   # (4,) wxyz
     """
 
-    def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1):
+    def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1,
+                 lost_deg: float | None = None):
         self.K = _validate_K(K).copy()
         if not isinstance(predict, bool):
             raise TypeError(f"predict must be True or False; got {predict!r}")
         self.predict = predict
+        self.lost_deg = _check_lost_deg(lost_deg)
+        self.lost: list[str] = []  # objects the last update flagged lost (and could not re-detect)
+        self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
         self.iterations = RefinerSession._validate_iterations(iterations)
         self.views = RefinerSession._validate_views(views)
         self._loaded: dict[str, RefinerSession] = {}  # pretrained name -> session, loaded once
@@ -202,7 +217,7 @@ class RefinerTracker:
         track.refined, track.velocity, track.missed = False, None, 0
 
     # ------------------------------------------------------------------ tracking
-    def update(self, image, boxes: Mapping) -> dict[str, np.ndarray]:
+    def update(self, image, boxes: Mapping, detector=None) -> dict[str, np.ndarray]:
         """Refine the tracked objects seen in one frame.
 
         Args:
@@ -210,15 +225,29 @@ class RefinerTracker:
             boxes: ``{object id: (4,) box (x1, y1, x2, y2)}`` in pixels (continuous coordinates), one per tracked
                 object seen in this frame; each non-empty and overlapping the image. Tracked objects without a box
                 keep their rotation; an id that is not tracked is an error.
+            detector: where a lost object's new coarse pose comes from (used only with ``lost_deg``): a callable
+                ``detector(object_id) -> (4,)`` or a mapping ``{object id: (4,)}``, object-to-camera ``wxyz``
+                rotations (e.g. your pose detector's). Asked only for the objects this update flags lost; each is
+                re-initialised from that pose and refined from it in this update (one more network pass), its
+                motion forgotten. An object the detector has no pose for (a mapping without it, or ``None``
+                returned) stays lost. ``None`` (default): lost objects keep their refined rotation; see
+                :attr:`lost`.
 
         Returns:
             ``{object id: (4,) float64 wxyz, w >= 0}``: the refined object-to-camera rotation of each object in
             ``boxes`` (the others are in :attr:`rotations`).
 
+        After the call, :attr:`lost` lists the objects of this update that were flagged lost and not re-detected
+        (always empty without ``lost_deg``), and :attr:`redetections` has grown by the number re-detected.
+
         Raises:
-            ValueError / TypeError: a bad image or box, or a box for an object that is not tracked.
+            ValueError / TypeError: a bad image or box, a box for an object that is not tracked, a ``detector``
+                that is neither callable nor a mapping, or a bad rotation from it (named with its object).
         """
         image = validate_image(image, "image")
+        if detector is not None and not (callable(detector) or isinstance(detector, Mapping)):
+            raise TypeError(f"detector must be a callable detector(object_id) -> (4,) wxyz rotation, a mapping "
+                            f"{{object id: (4,) wxyz}} or None; got {type(detector).__name__}")
         if not isinstance(boxes, Mapping):
             raise TypeError(
                 f"boxes must be a mapping {{object id: (4,) box (x1, y1, x2, y2) in pixels}}; got {type(boxes).__name__}"
@@ -236,19 +265,67 @@ class RefinerTracker:
         for object_id, track in self._tracks.items():
             if object_id not in seen:
                 track.missed += 1
-        out = {}
+        # Refine (and check) every group first, then ask the detector, and change the tracks only once nothing
+        # can fail any more: a bad pose from the detector leaves the tracker as it was.
+        results = []
         for sess, ids, rows in groups.values():
             q_in = np.array([self._prediction(self._tracks[i]) for i in ids])
-            res = sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K, views=self.views)
-            for object_id, q in zip(ids, res.q_refined.tolist()):
+            refined = self._refine(sess, image, rows, q_in).tolist()
+            results.append((sess, ids, rows, refined, self._flag_lost(sess, image, ids, rows, refined)))
+        redetected, lost = {}, []
+        for sess, ids, rows, refined, flagged in results:
+            found, poses = [], []
+            for i in flagged:
+                q = self._ask(detector, ids[i])
+                if q is None:
+                    lost.append(ids[i])
+                else:
+                    found.append(i)
+                    poses.append(q)
+            if found:
+                again = self._refine(sess, image, [rows[i] for i in found], np.array(poses)).tolist()
+                redetected.update({ids[i]: q for i, q in zip(found, again)})
+        out = {}
+        for sess, ids, rows, refined, flagged in results:
+            for object_id, q in zip(ids, refined):
                 track = self._tracks[object_id]
+                if object_id in redetected:  # a detector's pose, refined: a new start, not motion
+                    track.q, track.refined, track.velocity, track.missed = redetected[object_id], True, None, 0
+                    out[object_id] = np.array(track.q)
+                    continue
                 if self.predict and track.refined:
                     # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py)
                     step = _unit_rows(_multiply_rows([q], _conjugate_rows([track.q])))[0]
                     track.velocity = step if track.missed == 0 else _fraction(step, 1.0 / (track.missed + 1))
                 track.q, track.refined, track.missed = q, True, 0
                 out[object_id] = np.array(q)
+        self.lost = lost
+        self.redetections += len(redetected)
         return out
+
+    def _refine(self, sess: RefinerSession, image, rows: list, q_in) -> np.ndarray:
+        return sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K,
+                           views=self.views).q_refined
+
+    def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list) -> list[int]:
+        """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a
+        tracked (not a coarse) rotation, and moved by more than ``lost_deg`` by one more refinement."""
+        if self.lost_deg is None:
+            return []
+        checked = [i for i, object_id in enumerate(ids) if self._tracks[object_id].refined]
+        if not checked:
+            return []
+        again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
+                            K=self.K, views=self.views).q_refined
+        moved = rq.geodesic_angle(np.array([refined[i] for i in checked]), again)
+        return [i for i, m in zip(checked, moved) if m > self.lost_deg]
+
+    def _ask(self, detector, object_id: str) -> list | None:
+        """The detector's coarse pose for a lost object (checked, unit), or None when it has none."""
+        if detector is None:
+            return None
+        q = detector(object_id) if callable(detector) else detector.get(object_id)
+        return None if q is None else self._check_q(q, f"detector pose for {object_id!r}")
 
     # ------------------------------------------------------------------ internals
     def _prediction(self, track: _Track) -> list:
@@ -290,7 +367,18 @@ class RefinerTracker:
         return rq.normalize(arr).tolist()
 
     def __repr__(self) -> str:
-        return f"RefinerTracker(objects={self.object_ids}, predict={self.predict}, iterations={self.iterations})"
+        return (f"RefinerTracker(objects={self.object_ids}, predict={self.predict}, iterations={self.iterations}, "
+                f"lost_deg={self.lost_deg})")
+
+
+def _check_lost_deg(value) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"lost_deg must be a number of degrees in (0, 180] or None; got {value!r}")
+    if not (0.0 < float(value) <= 180.0):
+        raise ValueError(f"lost_deg must be in (0, 180] degrees (or None for no check); got {value!r}")
+    return float(value)
 
 
 def _fraction(q: list, power: float) -> list:

@@ -73,9 +73,9 @@ def test_no_machine_paths_or_internal_issue_numbers():
     assert not hits, "\n".join(hits)
 
 
-def _readme_python_block() -> str:
+def _readme_python_block(heading: str = "## In robot code") -> str:
     text = README.read_text()
-    section = text[text.index("## In robot code"):]
+    section = text[text.index(heading):]
     return re.search(r"```python\n(.*?)```", section, flags=re.S).group(1)
 
 
@@ -87,6 +87,17 @@ def test_readme_robot_code_runs_as_written(tmp_path):
                           env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
     assert done.returncode == 0, done.stderr
     assert "q_refined" in done.stdout
+
+
+@pytest.mark.skipif("003_cracker_box" not in {m.object_id for m in pt.pretrained_models()},
+                    reason="the README's tracking example uses the shipped cracker-box model, which does not ship here")
+def test_readme_tracking_code_runs_as_written(tmp_path):
+    code = _readme_python_block("## Tracking")
+    assert len(code.strip().splitlines()) <= 14, "the tracking example is meant to stay about ten lines"
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr
+    assert "q_tracked" in done.stdout
 
 
 def test_readme_example_uses_a_shipped_model_with_K():

@@ -160,6 +160,10 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(predict="yes"), TypeError, "predict must be True or False"),
     (dict(iterations=0), ValueError, "iterations must be an integer from 1 to"),
     (dict(views=99), ValueError, "views must be an integer from 1 to"),
+    (dict(lost_deg=0), ValueError, r"lost_deg must be in \(0, 180\] degrees"),
+    (dict(lost_deg=float("nan")), ValueError, r"lost_deg must be in \(0, 180\] degrees"),
+    (dict(lost_deg="2"), TypeError, "lost_deg must be a number of degrees"),
+    (dict(lost_deg=True), TypeError, "lost_deg must be a number of degrees"),
 ])
 def test_bad_construction_is_named(kwargs, error, match):
     args = dict(session=session(), K=K, q0={"003_cracker_box": Q0[0]})
@@ -198,6 +202,67 @@ def test_bad_updates_are_named_and_change_nothing(image, boxes, error, match):
     with pytest.raises(error, match=match):
         tracker.update(image, boxes)
     np.testing.assert_array_equal(tracker.rotations["003_cracker_box"], before["003_cracker_box"])
+
+
+# ------------------------------------------------------------------------------ the loss-of-track check
+@pytest.mark.parametrize("frame", ["camera", "ray"])
+def test_the_lost_check_flags_an_object_that_a_second_refinement_moves_too_far(frame):
+    """The constant model moves every rotation by 7 degrees: above lost_deg=5 every checked update flags the
+    object (not the first, refined from a coarse pose); with lost_deg=10 none does; either way the returned
+    rotation is still q0 * c^n (no detector given)."""
+    for lost_deg, flagged in ((5.0, True), (10.0, False)):
+        tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]}, lost_deg=lost_deg)
+        for n in range(1, 4):
+            q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
+            assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT) ** n)
+            assert tracker.lost == (["003_cracker_box"] if flagged and n > 1 else [])
+        assert tracker.redetections == 0
+
+
+def test_a_lost_object_restarts_from_the_detector_pose_in_the_same_update():
+    """With a detector, a flagged object is refined from the detector's pose instead: q = q_det * c (SciPy), its
+    motion forgotten; the detector is asked for flagged objects only, and a mapping works as a callable does."""
+    q_det = rq.from_axis_angle([1.0, 0.0, 0.0], 40.0)
+    asked = []
+
+    def detector(object_id):
+        asked.append(object_id)
+        return q_det
+
+    shared = session(objects=("003_cracker_box", "011_banana"))
+    tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0], "011_banana": Q0[1]}, lost_deg=5.0, predict=True)
+    boxes = {"003_cracker_box": BOX_A, "011_banana": BOX_B}
+    tracker.update(IMG, boxes, detector=detector)  # from the coarse poses: not checked
+    assert asked == [] and tracker.lost == []
+    out = tracker.update(IMG, boxes, detector=detector)
+    assert sorted(asked) == ["003_cracker_box", "011_banana"] and tracker.lost == [] and tracker.redetections == 2
+    for object_id in boxes:
+        assert_same_rotation(out[object_id], scipy_q(q_det) * scipy_q(Q_OUT))
+        assert tracker._tracks[object_id].velocity is None
+    out = tracker.update(IMG, {"011_banana": BOX_B}, detector={"003_cracker_box": q_det})  # no pose for the banana
+    assert tracker.lost == ["011_banana"] and tracker.redetections == 2
+    assert_same_rotation(out["011_banana"], scipy_q(q_det) * scipy_q(Q_OUT) ** 2)
+
+
+def test_no_check_and_no_detector_call_without_lost_deg():
+    tracker = RefinerTracker(session(), K, {"003_cracker_box": Q0[0]})
+    for _ in range(3):
+        tracker.update(IMG, {"003_cracker_box": BOX_A}, detector=lambda object_id: pytest.fail("asked"))
+    assert tracker.lost == [] and tracker.redetections == 0
+
+
+@pytest.mark.parametrize("detector, error, match", [
+    (3, TypeError, "detector must be a callable detector"),
+    ({"003_cracker_box": [0, 0, 0, 0]}, ValueError, r"detector pose for '003_cracker_box' must be non-zero"),
+    (lambda object_id: [1, 0, 0], ValueError, r"detector pose for '003_cracker_box' must have shape"),
+])
+def test_a_bad_detector_is_named_and_changes_nothing(detector, error, match):
+    tracker = RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, lost_deg=5.0)
+    tracker.update(IMG, {"003_cracker_box": BOX_A})
+    before = tracker.rotations["003_cracker_box"]
+    with pytest.raises(error, match=match):
+        tracker.update(IMG, {"003_cracker_box": BOX_A}, detector=detector)
+    np.testing.assert_array_equal(tracker.rotations["003_cracker_box"], before)
 
 
 # ------------------------------------------------------------------------------ refiner-rt track
@@ -244,6 +309,29 @@ def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
                                     "--video", str(tmp_path / "v.avi"), "--predict"])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "v.avi").stat().st_size > 0
+    assert json.loads(out.read_text())["lost"] == {}
+
+
+@pytest.mark.parametrize("lost_deg, lost_frames", [("5", ["000001.png", "000002.png"]), ("10", [])])
+def test_track_command_lists_the_frames_where_the_lost_check_fires(tmp_path, lost_deg, lost_frames):
+    """The constant model moves every rotation by 7 degrees: a check at 5 fires on every frame after the first."""
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=3)
+    out = tmp_path / "rot.json"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", lost_deg])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["lost_deg"] == float(lost_deg)
+    assert doc["lost"] == {name: ["003_cracker_box"] for name in lost_frames}
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", "0"])
+    assert res.exit_code != 0 and "--lost-deg" in res.output
 
 
 def test_track_command_with_shipped_names_and_a_reset(tmp_path, weights):  # noqa: F811
@@ -277,8 +365,8 @@ def test_track_command_with_shipped_names_and_a_reset(tmp_path, weights):  # noq
     ({"frames": {"000000.png": {"003_cracker_box": {"box": [500, 500, 510, 510], "q": [1, 0, 0, 0]}}}}, [],
      r"000000.png: boxes\['003_cracker_box'\]"),
     ({"frames": {"000001.png": {"003_cracker_box": BOX_A}}}, [], "has a box but no rotation to start from"),
-    ({"frames": {"000000.png": {"011_banana": {"box": BOX_A, "q": [1, 0, 0, 0]}}}}, [],
-     "no pretrained model for object '011_banana'"),
+    ({"frames": {"000000.png": {"005_tomato_soup_can": {"box": BOX_A, "q": [1, 0, 0, 0]}}}}, [],
+     "no pretrained model for object '005_tomato_soup_can'"),  # a YCB object that no model ships for
     ({}, ["--video", "x.gif"], "expected a .mp4 or .avi video or a .png or .jpg image strip"),
 ])
 def test_track_command_refuses_bad_input_without_a_traceback(tmp_path, change, args, match):
@@ -349,6 +437,10 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
         assert s["track_predict"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
         assert s["track_redetect"][step]["mean_deg"] < s["hold"][step]["mean_deg"]  # reset to fresh draws
         assert 5 < s["per_frame"][step]["mean_deg"] < 25
+        # A model that never corrects agrees with itself: the loss check never fires, no detector is asked.
+        assert s["track_lost"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
+        assert s["track_lost"][step]["detector_share"] == 0 and s["per_frame"][step]["detector_share"] == 1
+    assert s["track_redetect"]["1"]["detector_share"] == round(4 / 23, 4)  # frames 4 and 8 of both, frame 5 unscored
     assert s["hold"]["1"]["frames"] == 23  # 2 x 12 frames, one below --min-visib
     # Holding the pose drifts by the 2-degree turn per frame: the curve rises over the sequence.
     curve = doc["curves"]["hold"]["1"]
@@ -356,7 +448,7 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     assert doc["cost"]["track_step1"]["refinements"] == 23 and doc["machine"]["cpu"]
     assert png.stat().st_size > 10_000
     table = bench.report(doc)
-    assert len(table.splitlines()) == 2 + 3 * 5 and "| 1 | (c) track |" in table
+    assert len(table.splitlines()) == 2 + 3 * 6 and "| 1 | (c) track |" in table
     # The detections it writes run through `refiner-rt track`: with this model the rotation stays the initial pose.
     from click.testing import CliRunner
 
