@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import fcntl
-import hashlib
 import json
 import os
 import platform
@@ -46,6 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from models.recipe import NAMED_RECIPES  # noqa: E402
+from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.pretrained import INDEX_FILE, INDEX_FORMAT, WEIGHTS_DIR, model_file_name  # noqa: E402
 
 RESULTS_DIR = ROOT / "benchmarks" / "results" / "pretrained"
@@ -83,13 +83,6 @@ INT8_SCHEMES_FASTEST_FIRST = ("dynamic-int8", "static-qdq-int8-conv")
 MAX_INT8_COST_DEG = 0.2        # per object: INT8 held-out mean error at most this much above fp32's
 MAX_MEAN_INT8_COST_DEG = 0.1   # goal over the shipped objects (reported by requantize)
 
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def machine() -> dict:
@@ -208,7 +201,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
                "split": "held-out scenes"}
     card_meta = {
         "object_id": obj, "model_version": MODEL_VERSION, "recipe": RECIPE["name"],
-        "mesh": {"file": f"models/data/ycb_models/{obj}/textured.obj", "sha256": _sha256(mesh)},
+        "mesh": {"file": f"models/data/ycb_models/{obj}/textured.obj", "sha256": file_sha256(mesh)},
         "object_frame": OBJECT_FRAME,
         "heldout_error_deg": {"int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
                               "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3),
@@ -228,7 +221,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         "eval": ev, "heldout": heldout, "metadata": card_meta,
         "files": {"int8": int8.name, "fp32": fp32.name},
         "sizes_bytes": {"int8": int8.stat().st_size, "fp32": fp32.stat().st_size},
-        "checkpoint_sha256": _sha256(ckpt), "machine": machine(), "git_commit": _git_commit(),
+        "checkpoint_sha256": file_sha256(ckpt), "machine": machine(), "git_commit": _git_commit(),
         "build_s": round(time.perf_counter() - t0, 1),
     }
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)

@@ -52,6 +52,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from refiner_rt import quaternion as rq  # noqa: E402
+from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
 from refiner_rt.tracker import RefinerTracker  # noqa: E402
 
@@ -232,11 +233,6 @@ def cpu_record() -> dict:
             "onnxruntime": info["onnxruntime"], "load_average_1min_at_start": round(os.getloadavg()[0], 2)}
 
 
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
 
 def plot(doc: dict, path: Path) -> None:
     import matplotlib
@@ -351,12 +347,12 @@ def main(argv: list[str] | None = None) -> int:
     for o in objects:
         if o in files:
             sessions[o] = RefinerSession(files[o], threads=1, object_id=o)
-            model_record[o] = {"file": str(files[o]), "sha256": _sha256(files[o])}
+            model_record[o] = {"file": str(files[o]), "sha256": file_sha256(files[o])}
         else:
             sessions[o] = RefinerSession.pretrained(o, int8=not args.fp32, threads=1)
             model_record[o] = {"file": shipped[o].files["fp32" if args.fp32 else "int8"], "version": shipped[o].version,
                                "heldout_mean_deg": shipped[o].heldout.get("mean_deg"),
-                               "sha256": _sha256(shipped[o].path(int8=not args.fp32))}
+                               "sha256": file_sha256(shipped[o].path(int8=not args.fp32))}
 
     machine = cpu_record()
     seqs, notes = load_sequences(args.data, set(objects), args.min_visib, args.min_frames)

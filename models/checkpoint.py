@@ -12,7 +12,6 @@ A checkpoint is untrusted input: it is loaded with ``torch.load(..., weights_onl
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -22,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from refiner_rt.metadata import file_sha256  # re-exported: the checkpoint's hash in exported models
 from models.blocks import Refiner
 from models.registry import get_refiner_class
 
@@ -168,11 +168,3 @@ def load_checkpoint(path) -> tuple[Refiner, dict]:
     model.eval()
     return model, info
 
-
-def file_sha256(path) -> str:
-    """Hex SHA-256 of a file's bytes (recorded as ``checkpoint_sha256`` in exported models)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()

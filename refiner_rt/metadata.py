@@ -7,11 +7,13 @@ Names of graph inputs and outputs live here only, so the exporter and the runtim
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
 
 __all__ = [
+    "file_sha256",
     "FORMAT",
     "INPUT_IMAGE",
     "INPUT_QUATERNION",
@@ -255,3 +257,13 @@ def check_graph(inputs, outputs, input_size: int) -> None:
                     f"model {kind} {name!r} must have a dynamic batch axis {want}; the graph fixes it to {got[0]} "
                     "(export with a dynamic batch dimension)"
                 )
+
+
+def file_sha256(path) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MB blocks: what models record of the files they came from
+    (``checkpoint_sha256``, a mesh's ``sha256``)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -20,7 +20,6 @@ Meshes are in their file's own frame: ground-truth rotations (object to camera) 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -32,6 +31,7 @@ import cv2
 import numpy as np
 
 from models.data.objects import YCBV_CLASSES
+from refiner_rt.metadata import file_sha256
 
 __all__ = ["Mesh", "MODEL_FILES", "TEXTURE_FILE", "OWN_OBJ_ID_START", "find_models", "list_models", "load_obj",
            "file_sha256"]
@@ -74,13 +74,6 @@ class Mesh:
             out["symmetry"] = self.symmetry
         return out
 
-
-def file_sha256(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
