@@ -23,7 +23,7 @@ from pathlib import Path
 import click
 
 from models.recipe import (NAMED_RECIPES, OBJECT_NAME_PATTERN, SECTIONS, RecipeError, TrainRecipe, field_default,
-                           load_recipe)
+                           load_recipe, parse_json_object)
 from models.training import write_logs  # noqa: F401  (re-exported: the epoch logs of a run)
 
 log = logging.getLogger(__name__)
@@ -53,15 +53,15 @@ def _names(ctx, param, value):
 
 
 def _json_config(ctx, param, value):
+    """``--config``: the recipe's JSON-object parser, its error as click's."""
+    import argparse
+
     if value is None:
         return None
     try:
-        cfg = json.loads(value)
-    except json.JSONDecodeError as exc:
-        raise click.BadParameter(f"expected a JSON object, e.g. '{{\"head_widths\": [512, 64]}}'; {exc}") from None
-    if not isinstance(cfg, dict):
-        raise click.BadParameter(f"expected a JSON object; got {type(cfg).__name__}")
-    return cfg
+        return parse_json_object(value)
+    except argparse.ArgumentTypeError as exc:
+        raise click.BadParameter(str(exc)) from None
 
 
 _DIR = click.Path(exists=True, file_okay=False)
