@@ -49,15 +49,16 @@ def child(model: str, calls: int, every: int, batch: int, threads: int) -> dict:
     """The measured process: import the runtime, load, refine ``calls`` times, sample RSS every ``every`` calls."""
     start = _rss_bytes()
     from refiner_rt import RefinerSession
-    from refiner_rt.bench import synthetic_frame
+    from refiner_rt.bench import frame_K, synthetic_frame
 
     imported = _rss_bytes()
     sess = RefinerSession(model, threads=threads)
     loaded = _rss_bytes()
     image, boxes, q_in = synthetic_frame(batch)
+    K = frame_K(sess)  # the bench's camera: ray-frame models need K
     samples = []
     for i in range(1, calls + 1):
-        sess.refine(image, boxes, q_in)
+        sess.refine(image, boxes, q_in, K=K)
         if i % every == 0:
             samples.append((i, _rss_bytes()))
     return rss_record(sess, start, imported, loaded, samples)

@@ -40,7 +40,7 @@ import numpy as np
 import onnxruntime as ort
 
 from refiner_rt import RefinerSession
-from refiner_rt.bench import FRAME_K, machine_info, synthetic_frame
+from refiner_rt.bench import frame_K, machine_info, synthetic_frame
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION
 from refiner_rt.preprocess import crop_to_square, validate_boxes
 
@@ -66,11 +66,6 @@ def build_models(archs: list[str], workdir: Path, int8: bool) -> dict[str, Path]
             quantize_model(path, q_path)
             out[f"{arch}-int8"] = q_path
     return out
-
-
-def frame_K(sess: RefinerSession):
-    """The synthetic frame's intrinsics for models in the viewing-ray frame (they require K), else None."""
-    return FRAME_K if sess.contract.rotation_frame == "ray" else None
 
 
 def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float) -> dict:

@@ -48,13 +48,13 @@ def child(model: str, calls: int, every: int, callers: int) -> dict:
     """The measured process: import the runtime, load, refine ``calls`` times from ``callers`` threads, sample RSS."""
     start = _rss_bytes()
     from refiner_rt import RefinerSession
-    from refiner_rt.bench import FRAME_K, synthetic_frame
+    from refiner_rt.bench import frame_K, synthetic_frame
 
     imported = _rss_bytes()
     sess = RefinerSession(model, threads=1)
     loaded = _rss_bytes()
     image, boxes, q_in = synthetic_frame(1)
-    K = FRAME_K if sess.contract.rotation_frame == "ray" else None  # the bench's camera: ray-frame models need K
+    K = frame_K(sess)  # the bench's camera: ray-frame models need K
     expected = sess.refine(image, boxes, q_in, K=K).q_refined
     samples, lock, done = [], threading.Lock(), [0]
     mismatches = [0]

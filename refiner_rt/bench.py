@@ -66,6 +66,14 @@ log = logging.getLogger(__name__)
 FRAME_W, FRAME_H = 640, 480
 # Intrinsics of the synthetic frame (YCB-Video's camera), passed to models trained in the viewing-ray frame.
 FRAME_K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])
+
+
+def frame_K(sess):
+    """The synthetic frame's intrinsics for a model in the viewing-ray frame (it requires K), else None: validating
+    an unused K would add to a camera-frame model's timings."""
+    return FRAME_K if sess.contract.rotation_frame == "ray" else None
+
+
 DEFAULT_ARCHS = ("shallow", "vggm")  # the paper's networks, random weights; the shipped refiners join them
 TORCH_MAX_BATCH = 8  # PyTorch eager VGG-M takes ~2 s per call at batch 32: only smaller batches are timed
 BANDWIDTH_BUFFER_MB = 256  # much larger than the L3 caches of the CPUs the project runs on (32 MB)
@@ -562,9 +570,8 @@ def run_bench(
             torch_runners = {i: TorchRefiner(m.torch_model, n) for i, m in enumerate(bench_models) if m.torch_model is not None}
         for batch in batches:
             image, boxes, q_in = synthetic_frame(batch)
-            # K only where the model needs it: validating an unused K would add to camera-frame models' timings
-            runners = {("onnxruntime", i): (lambda s=s, K=FRAME_K if s.contract.rotation_frame == "ray" else None:
-                                            s.refine(image, boxes, q_in, K=K)) for i, s in enumerate(sessions)}
+            runners = {("onnxruntime", i): (lambda s=s, K=frame_K(s): s.refine(image, boxes, q_in, K=K))
+                       for i, s in enumerate(sessions)}
             if batch <= TORCH_MAX_BATCH:
                 runners.update({("torch", i): (lambda r=r: r.refine(image, boxes, q_in)) for i, r in torch_runners.items()})
             if probe is not None and costs:

@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from refiner_rt import RefinerSession  # noqa: E402
-from refiner_rt.bench import FRAME_K, machine_info, synthetic_frame  # noqa: E402
+from refiner_rt.bench import FRAME_K, frame_K, machine_info, synthetic_frame  # noqa: E402
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, parse_metadata  # noqa: E402
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
 
@@ -186,8 +186,7 @@ def refine_speed(paths: dict, threads: int = 1, rounds: int = 9, calls: int = 20
     runners = {}
     for name, path in paths.items():
         s = RefinerSession(path, threads=threads, session_options=options() if options else None)
-        K = FRAME_K if s.contract.rotation_frame == "ray" else None
-        runners[name] = (lambda s=s, K=K: s.refine(image, boxes, q_in, K=K))
+        runners[name] = (lambda s=s, K=frame_K(s): s.refine(image, boxes, q_in, K=K))
     return {k: 1.0 / v for k, v in time_interleaved(runners, rounds, calls).items()}
 
 
