@@ -156,6 +156,13 @@ def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -
     return {"test_scenes": len(set(test.scene_ids.astype(str).tolist())), "split": spec.as_dict(), **out}
 
 
+def _metadata(path: Path) -> dict:
+    """An ONNX file's ``metadata_props`` as a dict of strings."""
+    import onnx
+
+    return {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+
+
 def stamp(path: Path, extra: dict) -> None:
     """Add model-card keys to an ONNX file's ``metadata_props`` (the weights are not touched)."""
     import onnx
@@ -196,13 +203,18 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
     scheme, ev, tried = quantize_for_shipping(fp32, int8, ckpt, data, cache)
     print(f"[{obj}] exported: max |dq| {exp.max_abs_dq:.2g}; INT8 {scheme}", flush=True)
     mesh = MESHES_DIR / obj / "textured.obj"
+    # Nothing shipped names a folder of the build machine: the JSON's split says DATA (as the card's command does),
+    # and the models' `data` metadata names the rendered set by its folder's name (benchmarks/DATA.md lists the sets).
+    ev["split"]["data"] = "DATA"
+    data_meta = json.loads(_metadata(fp32)["data"])
+    data_meta["data"] = data.resolve().name
     heldout = {**{k: ev["int8"]["all"][k] for k in ("mean_deg", "median_deg", "under_5_deg", "under_10_deg",
                                                     "input_mean_deg", "n")},
                "split": "held-out scenes"}
     card_meta = {
         "object_id": obj, "model_version": MODEL_VERSION, "recipe": RECIPE["name"],
         "mesh": {"file": f"models/data/ycb_models/{obj}/textured.obj", "sha256": file_sha256(mesh)},
-        "object_frame": OBJECT_FRAME,
+        "object_frame": OBJECT_FRAME, "data": data_meta,
         "heldout_error_deg": {"int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
                               "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3),
                               "split": "scenes held out whole, rendered, visib_fract >= 0.3, inputs U(0, 30)"},
@@ -214,7 +226,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         shutil.copyfile(p, WEIGHTS_DIR / p.name)
     doc = {
         "schema": SCHEMA, "object_id": obj, "model_version": MODEL_VERSION, "recipe": RECIPE,
-        "train_command": shlex.join(["python", "benchmarks/data_scaling.py", *cmd[2:]]),
+        "train_command": portable_command(shlex.join(["python", "benchmarks/data_scaling.py", *cmd[2:]])),
         "train": {k: row.get(k) for k in ("train_crops", "samples", "epochs", "best_epoch", "val_mean_deg", "wall_s",
                                           "scenes", "mean_deg", "median_deg")},
         "export": {"max_abs_dq": exp.max_abs_dq, "int8_scheme": scheme, "int8_candidates": tried},
@@ -247,13 +259,11 @@ def quantize_for_shipping(fp32: Path, int8: Path, ckpt: Path, data: Path, cache:
     ``int8``; when none is, the one with the smallest cost. ``evaluation`` has :func:`evaluate`'s form with the
     chosen model under ``"int8"``; ``candidates`` maps each scheme to its mean error and its cost (degrees).
     """
-    import onnx
-
     from export.defaults import CALIBRATED_SCHEMES
     from export.quantize import QuantizationError, dataset_calibration, quantize_model
     from refiner_rt.metadata import parse_metadata
 
-    contract = parse_metadata({p.key: p.value for p in onnx.load(str(fp32), load_external_data=False).metadata_props})
+    contract = parse_metadata(_metadata(fp32))
     calibration = None
     paths = {}
     for scheme in schemes:
@@ -400,8 +410,8 @@ def _deg(s: dict, key: str = "mean_deg") -> str:
 
 def portable_command(command: str) -> str:
     """``command`` as the model card prints it: the build machine's folders written ``DATA`` (the ``--data``
-    folder) and ``RUN`` (the folder holding ``--save``), so the card names no path outside the repository; the JSON
-    keeps the command as it ran."""
+    folder) and ``RUN`` (the folder holding ``--save``), so neither the card nor the JSON names a path outside the
+    repository. Idempotent."""
     args = shlex.split(command)
     folders = {}
     for flag, name in (("--data", "DATA"), ("--save", "RUN")):
