@@ -225,6 +225,10 @@ def to_onnx_proto(model: Refiner, opset: int = DEFAULT_OPSET, *, lrn: str = DEFA
     finally:
         model.train(was_training)
     proto = program.model_proto
+    # The exporter's per-node trace (source file paths and line numbers of the machine that exported, FX names):
+    # nothing the runtime reads, and a shipped model should not carry the build machine's folders.
+    for node in [*proto.graph.node, *(n for f in proto.functions for n in f.node)]:
+        del node.metadata_props[:]
     written = {o.domain: o.version for o in proto.opset_import}.get("", None)
     if written != opset:
         raise RuntimeError(f"the exporter wrote opset {written} instead of the requested {opset}")

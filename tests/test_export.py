@@ -2,6 +2,7 @@
 
 import os
 import stat
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -91,6 +92,15 @@ def test_graph_contract_dynamic_batch_self_contained(exported, arch):
     (q_out,) = sess.run([OUTPUT_QUATERNION], {INPUT_IMAGE: images, INPUT_QUATERNION: q})
     assert q_out.shape == (7, 4)
     np.testing.assert_allclose(np.linalg.norm(q_out, axis=1), 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_nodes_carry_no_trace_of_the_exporting_machine(exported, arch):
+    # The exporter's per-node stack traces name the source files of the machine that exported.
+    _, report, _ = exported[arch]
+    proto = onnx.load(str(report.path), load_external_data=False)
+    assert all(len(n.metadata_props) == 0 for n in proto.graph.node)
+    assert str(Path(models.__file__).resolve().parent) not in report.path.read_bytes().decode("latin-1")
 
 
 def test_metadata_contract(exported):
