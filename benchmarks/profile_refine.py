@@ -40,6 +40,7 @@ import numpy as np
 import onnxruntime as ort
 
 from refiner_rt import RefinerSession
+from refiner_rt.session import DISABLED_OPTIMIZERS
 from refiner_rt.bench import frame_K, machine_info, synthetic_frame
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION
 from refiner_rt.preprocess import crop_to_square, validate_boxes
@@ -126,7 +127,8 @@ def ort_profile(sess: RefinerSession, image, boxes, q_in, calls: int, workdir: P
     options.enable_profiling = True
     options.profile_file_prefix = str(workdir / "ort_profile")
     source = str(sess.model_path)
-    prof = ort.InferenceSession(source, sess_options=options, providers=sess.providers)
+    prof = ort.InferenceSession(source, sess_options=options, providers=sess.providers,
+                                disabled_optimizers=list(DISABLED_OPTIMIZERS))
     s = sess.input_size
     crops = np.stack([crop_to_square(image, b, s, sess.contract.crop_context) for b in validate_boxes(boxes)])
     feed = {INPUT_IMAGE: crops, INPUT_QUATERNION: q_in.astype(np.float32)}

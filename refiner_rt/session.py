@@ -61,7 +61,7 @@ from refiner_rt.geometry import (  # noqa: F401  (re-exported under their old na
 )
 from refiner_rt.preprocess import MAX_BOX_COORDINATE, crop_to_square, resize_crop, validate_boxes, validate_image
 
-__all__ = ["RefinerSession", "RefineResult", "ModelError", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS",
+__all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS",
            "K_MAX_ABS", "K_MIN_FOCAL", "available_cores", "ray_quaternions", "view_boxes", "view_offsets"]
 
 log = logging.getLogger(__name__)
@@ -85,6 +85,13 @@ MAX_ITERATIONS = 16
 # coordinates within MAX_BOX_COORDINATE these keep the viewing-ray maths far from overflow.
 K_MIN_FOCAL = 1e-3
 K_MAX_ABS = 1e9
+# onnxruntime graph transformers every session turns off. QDQPropagationTransformer moves the first QuantizeLinear
+# of a static-qdq-int8-conv model above the first block's max-pool, which then runs on uint8 in NCHW: 115 us of a
+# 226 us call for the shipped five-block refiner, against 4 us for the fp32 NCHWc max-pool it replaces, and the whole
+# call takes half the time without it (113 us; AVX-512 VNNI EPYC, benchmarks/studies/int8_convs). Max-pooling
+# commutes with quantisation, so the outputs are the same bit for bit; fp32 and dynamic-int8 models have no
+# QuantizeLinear to move (same outputs, same speed).
+DISABLED_OPTIMIZERS = ("QDQPropagationTransformer",)
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity, which cgroups and ``taskset`` restrict)."""
     try:
@@ -260,7 +267,9 @@ class RefinerSession:
     ``ORT_ENABLE_ALL`` (``EXTENDED``/``BASIC`` ran 1.2-1.5x slower at batch 1; ALL adds layout transformations such
     as NCHWc convolutions), CPU memory arena and memory pattern on (turning them off never helped), sequential
     execution with one inter-op thread (the graph is a chain), intra-op spinning left at onnxruntime's default (on).
-    IOBinding saved 0.5-3.5 us per call, within the noise of the whole call, so the plain ``run`` stays.
+    IOBinding saved 0.5-3.5 us per call, within the noise of the whole call, so the plain ``run`` stays. onnxruntime's
+    ``QDQPropagationTransformer`` is always off (:data:`DISABLED_OPTIMIZERS`; also with ``session_options``): it
+    halves the speed of the static INT8 conv models and changes nothing else.
 
     Raises:
         FileNotFoundError: ``model`` is a path that does not exist.
@@ -322,7 +331,8 @@ class RefinerSession:
         else:
             self.threads = session_options.intra_op_num_threads
         try:
-            self._session = ort.InferenceSession(source, sess_options=session_options, providers=providers)
+            self._session = ort.InferenceSession(source, sess_options=session_options, providers=providers,
+                                                 disabled_optimizers=list(DISABLED_OPTIMIZERS))
         except Exception as exc:  # onnxruntime's InvalidProtobuf, InvalidArgument, Fail, ... (all plain Exceptions)
             raise ModelError(f"{self._label}: onnxruntime cannot load it as an ONNX model: {_ort_message(exc)}") from exc
 

@@ -134,3 +134,41 @@ def test_conv_scheme_quantises_the_large_fully_connected_layers_dynamically(fp32
     assert ops["MatMulInteger"] == 1 and ops["DynamicQuantizeLinear"] == 1, ops
     runtime = _runtime_ops(out, tmp_path)
     assert runtime["QLinearConv"] == len(_conv_inputs_from_config(q8.CONV_MIN_CHANNELS)), runtime
+
+
+def _runtime_graph(path, tmp_path, disabled=()):
+    o = ort.SessionOptions()
+    o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    o.optimized_model_filepath = str(tmp_path / "optimized.onnx")
+    ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"], disabled_optimizers=list(disabled))
+    return onnx.load(o.optimized_model_filepath).graph
+
+
+def _pools_on_uint8(graph):
+    """Max-pools that read a QuantizeLinear's output (uint8): onnxruntime's plain NCHW pool on integers."""
+    producers = {o: n for n in graph.node for o in n.output}
+    return [n.name for n in graph.node if n.op_type == "MaxPool" and n.input[0] in producers
+            and producers[n.input[0]].op_type == "QuantizeLinear"]
+
+
+def test_the_runtime_keeps_the_max_pool_before_the_integer_convs_in_fp32(fp32, tmp_path):
+    # With onnxruntime's QDQPropagationTransformer on, the first QuantizeLinear moves above the max-pool before the
+    # first integer conv (which then runs on uint8 in NCHW); RefinerSession turns that transformer off
+    # (DISABLED_OPTIMIZERS), so that pool stays in fp32 after its conv.
+    from refiner_rt.session import DISABLED_OPTIMIZERS
+
+    path = q8.quantize_model(fp32, tmp_path / "m.int8.onnx", scheme=SCHEME).path
+    assert len(_pools_on_uint8(_runtime_graph(path, tmp_path))) == 1
+    assert _pools_on_uint8(_runtime_graph(path, tmp_path, DISABLED_OPTIMIZERS)) == []
+
+
+def test_turning_qdq_propagation_off_changes_no_output(fp32, tmp_path):
+    # Max-pooling commutes with a monotonic quantisation, so RefinerSession (transformer off) must agree bit for bit
+    # with a plain onnxruntime session (transformer on) on the same crops.
+    path = q8.quantize_model(fp32, tmp_path / "m.int8.onnx", scheme=SCHEME).path
+    images, q_in = random_inputs(CONFIG["input_size"], 16, seed=7)
+    plain = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    expected = plain.run(["q_out"], {"image": images, "q_in": q_in.astype(np.float32)})[0]
+    sess = RefinerSession(path)
+    got = sess._session.run(["q_out"], {"image": images, "q_in": q_in.astype(np.float32)})[0]
+    np.testing.assert_array_equal(got, expected)
