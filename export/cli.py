@@ -78,15 +78,17 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
     help=f"INT8 scheme: dynamic-int8 (MatMul/Gemm, activations quantised per call; no calibration), "
     f"static-qdq-int8 (MatMul/Gemm with calibrated activation ranges) or static-qdq-int8-conv (also the convolutions "
     f"with 16+ input channels, per-channel 7-bit weights: the fast one for deep image stages such as the shipped "
-    f"five-block refiner; give --calib).  [default: {DEFAULT_SCHEME}, or static-qdq-int8 with --calib]",
+    f"five-block refiner; give --calib).  [default: {DEFAULT_SCHEME}; with --calib static-qdq-int8-conv for a "
+    f"model with such convolutions, else static-qdq-int8]",
 )
 @click.option(
     "--calib",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
     default=None,
     help="Dataset (BOP split folder or YCB-Video root) whose training-split crops calibrate the static schemes and, "
-    "held out, check them; implies --int8-scheme static-qdq-int8 unless another static scheme is given. Without it "
-    "the static schemes calibrate on random crops.",
+    "held out, check them; implies a static scheme (static-qdq-int8-conv where the model has convolutions of 16+ "
+    "input channels, else static-qdq-int8) unless --int8-scheme names one. Without it the static schemes calibrate "
+    "on random crops.",
 )
 def export_cmd(
     checkpoint: Path,
@@ -123,7 +125,9 @@ def export_cmd(
             "use --int8-scheme static-qdq-int8 with --calib, or drop --calib",
             param_hint="'--calib'",
         )
-    scheme = int8_scheme or ("static-qdq-int8" if calib is not None else DEFAULT_SCHEME)
+    # With --calib and no scheme named, each model gets the fastest static scheme it has layers for
+    # (export.quantize.calibrated_scheme_for); without --calib, the dynamic scheme, which needs no data.
+    scheme = int8_scheme or (None if calib is not None else DEFAULT_SCHEME)
     output = output if output is not None else checkpoint.with_suffix(".onnx")
     if not output.parent.is_dir():
         raise click.BadParameter(f"directory {output.parent} does not exist", param_hint="'-o' / '--output'")
@@ -145,10 +149,11 @@ def export_cmd(
             raise click.ClickException(f"cannot write {exc.filename or out}: {exc.strerror or exc}") from None
 
 
-def _quantize_one(fp32: Path, out: Path, scheme: str, calib: Path | None) -> None:
+def _quantize_one(fp32: Path, out: Path, scheme: str | None, calib: Path | None) -> None:
     """Write the INT8 model ``out`` from the fp32 model ``fp32`` (see :func:`export.quantize.quantize_model`)."""
-    from export.quantize import QuantizationError, dataset_calibration, quantize_model
+    from export.quantize import QuantizationError, calibrated_scheme_for, dataset_calibration, quantize_model
 
+    scheme = scheme or calibrated_scheme_for(fp32)
     calibration = None
     if calib is not None:
         from refiner_rt.session import RefinerSession
