@@ -74,12 +74,13 @@ RECIPE = {
 }
 MODEL_VERSION = "1"
 
-# INT8 schemes in the order of their speed on the shipped architecture, fastest first, as measured on the AVX2-only
-# build machine (benchmarks/studies/int8_convs: batch 1, one thread, interleaved medians; the conv scheme ran at
-# 0.7-0.8x the dynamic one there: AVX2's u8s8 kernels are barely faster than fp32 FMA, and the uint8 max-pool
-# after the fp32 first block costs more than the integer convs save). On a VNNI machine measure again and pass
-# --schemes in that machine's order. Then the accuracy an INT8 model may give up.
-INT8_SCHEMES_FASTEST_FIRST = ("dynamic-int8", "static-qdq-int8-conv")
+# INT8 schemes in the order of their speed on the shipped architecture, fastest first (benchmarks/studies/int8_convs:
+# batch 1, one thread, interleaved medians). With onnxruntime's QDQPropagationTransformer off (RefinerSession does
+# that, refiner_rt.session.DISABLED_OPTIMIZERS) the conv scheme's first max-pool stays in fp32 NCHWc and its integer
+# convolutions run 2-3x faster than the fp32 ones on AVX-512 VNNI: 1.77x the dynamic scheme's speed per call. (With
+# the transformer on, the uint8 max-pool it creates cost more than the integer convs saved: 0.7-0.8x on an AVX2-only
+# EPYC, 0.87x on AVX-512 VNNI.) Then the accuracy an INT8 model may give up.
+INT8_SCHEMES_FASTEST_FIRST = ("static-qdq-int8-conv", "dynamic-int8")
 MAX_INT8_COST_DEG = 0.2        # per object: INT8 held-out mean error at most this much above fp32's
 MAX_MEAN_INT8_COST_DEG = 0.1   # goal over the shipped objects (reported by requantize)
 
@@ -133,15 +134,11 @@ def _stats(err_out: np.ndarray, err_in: np.ndarray) -> dict:
             "under_10_deg": float((err_out < 10).mean()), "input_mean_deg": float(err_in.mean())}
 
 
-def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -> dict:
-    """Held-out-scene errors of each ONNX model (through ``RefinerSession.refine_crops``), overall and split by
-    whether the object is inside the image or cut by its border; the same crops and coarse inputs for all."""
-    import models
+def _score(onnx_paths: dict[str, Path], test, samples, rotation_frame: str) -> dict:
+    """Errors of each ONNX model on the crops ``test`` (``samples`` in the same order), through
+    ``RefinerSession.refine_crops``: overall, inside the image and cut by its border; the same coarse inputs for all."""
     from models.evaluate import evaluate_errors, onnx_predictor
-    from models.pipeline import checkpoint_test_set
 
-    net, info = models.load_checkpoint(ckpt)
-    test, spec, samples = checkpoint_test_set(net, info, data=data, cache_root=cache, with_samples=True)
     q_samples = np.array([s.q_gt for s in samples])
     if len(samples) != len(test) or not np.allclose(np.abs(np.sum(q_samples * test.q_gt, axis=1)), 1.0, atol=1e-6):
         raise RuntimeError("the test crops and the test samples are not in the same order")
@@ -149,11 +146,51 @@ def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -
     out = {}
     for name, path in onnx_paths.items():
         errors = evaluate_errors(onnx_predictor(path, threads=1), test, "uniform:0:30", seed=2024,
-                                 rotation_frame=info.get("rotation_frame", "camera"))
+                                 rotation_frame=rotation_frame)
         out[name] = {"all": _stats(errors.err_out_deg, errors.err_in_deg),
                      "inside_image": _stats(errors.err_out_deg[~cut], errors.err_in_deg[~cut]),
                      "cut_by_border": _stats(errors.err_out_deg[cut], errors.err_in_deg[cut])}
-    return {"test_scenes": len(set(test.scene_ids.astype(str).tolist())), "split": spec.as_dict(), **out}
+    return {"test_scenes": len(set(test.scene_ids.astype(str).tolist())), **out}
+
+
+def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -> dict:
+    """Held-out-scene errors of each ONNX model on the test split its checkpoint was trained against
+    (:func:`_score`)."""
+    import models
+    from models.pipeline import checkpoint_test_set
+
+    net, info = models.load_checkpoint(ckpt)
+    test, spec, samples = checkpoint_test_set(net, info, data=data, cache_root=cache, with_samples=True)
+    scored = _score(onnx_paths, test, samples, info.get("rotation_frame", "camera"))
+    return {"test_scenes": scored.pop("test_scenes"), "split": spec.as_dict(), **scored}
+
+
+def whole_folder_spec(data: Path, obj: str, part: str):
+    """A :class:`models.pipeline.DataSpec` that puts every instance of ``obj`` in ``data`` (the usual filters:
+    ``visib_fract >= 0.3``, boxes of 16 px or more) into one part, ``"train_base"`` or ``"test"``: for a folder of
+    scenes rendered apart from any training set (calibration crops, or fresh held-out scenes)."""
+    from models.pipeline import DataSpec, load_samples
+
+    spec = DataSpec(data=str(data), objects=[obj], split_mode="scenes", sizes=(0, 0, 0, 0))
+    n = len(load_samples(spec))
+    if n == 0:
+        raise SystemExit(f"{data}: no visible instance of {obj}")
+    return DataSpec.from_dict({**spec.as_dict(), "sizes": (n, 0, 0, 0) if part == "train_base" else (0, 0, 0, n)})
+
+
+def evaluate_fresh(onnx_paths: dict[str, Path], obj: str, data: Path, cache: Path, rotation_frame: str,
+                   input_size: int, crop_context: float) -> dict:
+    """Errors of each ONNX model on every instance of ``obj`` in ``data``, a folder of rendered scenes that no
+    shipped model trained on (``refiner-rt render`` with a seed other than the training set's) (:func:`_score`)."""
+    from models.pipeline import cropset_for, load_splits
+
+    spec = whole_folder_spec(data, obj, "test")
+    splits = load_splits(spec)
+    test = cropset_for(splits, "test", spec, input_size, crop_context, cache_root=cache, progress=False)
+    scored = _score(onnx_paths, test, list(splits.test), rotation_frame)
+    folder_scenes = sum(1 for p in Path(data).iterdir() if p.is_dir() and p.name.isdigit())
+    return {"test_scenes": scored.pop("test_scenes"), "folder_scenes": folder_scenes,
+            "split": {**spec.as_dict(), "data": data.resolve().name}, **scored}
 
 
 def _metadata(path: Path) -> dict:
@@ -200,7 +237,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
     row = train_doc["rows"][-1]
     fp32, int8 = run / model_file_name(obj, int8=False), run / model_file_name(obj, int8=True)
     exp = export_checkpoint(ckpt, fp32)
-    scheme, ev, tried = quantize_for_shipping(fp32, int8, ckpt, data, cache)
+    scheme, ev, tried = quantize_for_shipping(fp32, int8, *_checkpoint_quantization(fp32, ckpt, data, cache))
     print(f"[{obj}] exported: max |dq| {exp.max_abs_dq:.2g}; INT8 {scheme}", flush=True)
     mesh = MESHES_DIR / obj / "textured.obj"
     # Nothing shipped names a folder of the build machine: the JSON's split says DATA (as the card's command does),
@@ -249,26 +286,25 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
     return doc
 
 
-def quantize_for_shipping(fp32: Path, int8: Path, ckpt: Path, data: Path, cache: Path,
-                          schemes=INT8_SCHEMES_FASTEST_FIRST) -> tuple[str, dict, dict]:
+def quantize_for_shipping(fp32: Path, int8: Path, score, calibrate, schemes=INT8_SCHEMES_FASTEST_FIRST
+                          ) -> tuple[str, dict, dict]:
     """Write ``int8`` with the fastest scheme that holds accuracy: ``(scheme, evaluation, candidates)``.
 
-    Every scheme of ``schemes`` (fastest first) quantises ``fp32``, static ones calibrated on the training split's
-    crops of the model's own data spec; all are scored with fp32 on the same held-out test crops and coarse inputs
-    (:func:`evaluate`). The first whose mean error is at most :data:`MAX_INT8_COST_DEG` above fp32's is written to
-    ``int8``; when none is, the one with the smallest cost. ``evaluation`` has :func:`evaluate`'s form with the
-    chosen model under ``"int8"``; ``candidates`` maps each scheme to its mean error and its cost (degrees).
+    Every scheme of ``schemes`` (fastest first) quantises ``fp32``, static ones calibrated on ``calibrate()``'s
+    crops (training crops, never test crops); all are scored with fp32 on the same held-out crops and coarse inputs
+    by ``score(paths)`` (:func:`evaluate` or :func:`evaluate_fresh`). The first whose mean error is at most
+    :data:`MAX_INT8_COST_DEG` above fp32's is written to ``int8``; when none is, the one with the smallest cost.
+    ``evaluation`` has the scorer's form with the chosen model under ``"int8"``; ``candidates`` maps each scheme to
+    its mean error and its cost (degrees).
     """
     from export.defaults import CALIBRATED_SCHEMES
-    from export.quantize import QuantizationError, dataset_calibration, quantize_model
-    from refiner_rt.metadata import parse_metadata
+    from export.quantize import QuantizationError, quantize_model
 
-    contract = parse_metadata(_metadata(fp32))
     calibration = None
     paths = {}
     for scheme in schemes:
         if scheme in CALIBRATED_SCHEMES and calibration is None:
-            calibration = dataset_calibration(data, contract, cache_root=cache)
+            calibration = calibrate()
         out = int8.with_name(f"{int8.stem}.{scheme}.onnx")
         try:
             quantize_model(fp32, out, scheme=scheme, calibration=calibration if scheme in CALIBRATED_SCHEMES else None)
@@ -280,9 +316,12 @@ def quantize_for_shipping(fp32: Path, int8: Path, ckpt: Path, data: Path, cache:
         raise RuntimeError(f"{fp32}: no INT8 scheme of {schemes} passed the exporter's agreement check")
     schemes = [sc for sc in schemes if sc in paths]
     try:
-        ev = evaluate({**paths, "fp32": fp32}, ckpt, data, cache)
+        ev = score({**paths, "fp32": fp32})
         fp = ev["fp32"]["all"]["mean_deg"]
-        tried = {sc: {"mean_deg": ev[sc]["all"]["mean_deg"], "cost_deg": ev[sc]["all"]["mean_deg"] - fp} for sc in paths}
+        tried = {sc: {"mean_deg": ev[sc]["all"]["mean_deg"], "cost_deg": ev[sc]["all"]["mean_deg"] - fp,
+                      "cost_largest_group_deg": max(ev[sc][g]["mean_deg"] - ev["fp32"][g]["mean_deg"]
+                                                    for g in ("inside_image", "cut_by_border") if ev[sc][g]["n"])}
+                 for sc in paths}
         holding = [sc for sc in schemes if tried[sc]["cost_deg"] <= MAX_INT8_COST_DEG]
         chosen = holding[0] if holding else min(schemes, key=lambda sc: tried[sc]["cost_deg"])
         os.replace(paths[chosen], int8)
@@ -294,12 +333,49 @@ def quantize_for_shipping(fp32: Path, int8: Path, ckpt: Path, data: Path, cache:
     return chosen, evaluation, tried
 
 
-def requantize(data: Path, run: Path, cache: Path, objects=None, schemes=INT8_SCHEMES_FASTEST_FIRST,
-               commit: bool = False) -> dict:
+def _checkpoint_quantization(fp32: Path, ckpt: Path, data: Path, cache: Path) -> tuple:
+    """``(score, calibrate)`` for :func:`quantize_for_shipping` from a build's checkpoint: its own held-out test
+    split, and calibration on its training split."""
+    from export.quantize import dataset_calibration
+    from refiner_rt.metadata import parse_metadata
+
+    contract = parse_metadata(_metadata(fp32))
+    return (lambda paths: evaluate(paths, ckpt, data, cache),
+            lambda: dataset_calibration(data, contract, cache_root=cache))
+
+
+def _fresh_quantization(fp32: Path, obj: str, heldout: Path, calibration: Path, cache: Path) -> tuple:
+    """``(score, calibrate)`` for :func:`quantize_for_shipping` without a checkpoint: every instance of ``obj`` in
+    ``heldout`` (scenes no model trained on), and calibration on every instance in ``calibration`` (other such
+    scenes)."""
+    from export.quantize import dataset_calibration
+    from refiner_rt.metadata import parse_metadata
+
+    c = parse_metadata(_metadata(fp32))
+    return (lambda paths: evaluate_fresh(paths, obj, heldout, cache, c.rotation_frame, c.input_size, c.crop_context),
+            lambda: dataset_calibration(calibration, c, cache_root=cache,
+                                        spec=whole_folder_spec(calibration, obj, "train_base")))
+
+
+FRESH_SPLIT = "rendered scenes of a set no shipped model trained on, visib_fract >= 0.3, inputs U(0, 30)"
+
+
+def requantize(data: Path | None, run: Path | None, cache: Path | None, objects=None,
+               schemes=INT8_SCHEMES_FASTEST_FIRST, commit: bool = False, heldout: Path | None = None,
+               calibration: Path | None = None) -> dict:
     """Quantise every shipped object's INT8 model again from its shipped fp32 file (:func:`quantize_for_shipping`),
-    update its evaluation JSON and metadata, and regenerate the card. The fp32 files are not changed."""
+    update its evaluation JSON and metadata, and regenerate the card. The fp32 files' weights are not changed.
+
+    Two ways to score the candidates: the build's checkpoints (``run``) rebuild each model's own test split of
+    ``data``; or, without them, ``heldout`` and ``calibration``: folders of scenes rendered with seeds the training
+    set did not use, every instance of the object in ``heldout`` scored and every one in ``calibration`` used to
+    calibrate. The second way replaces the card's evaluation (``eval``) with the fresh scenes' and keeps the
+    previous one, the training set's own test scenes, as ``eval_training_split`` (its ``int8`` entry is the
+    previous INT8 file's).
+    """
     from refiner_rt.pretrained import pretrained_models
 
+    fresh = heldout is not None
     docs = {d["object_id"]: d for d in _load_results()}
     chosen = [m.object_id for m in pretrained_models() if objects is None or m.object_id in objects]
     missing = sorted(set(objects or ()) - set(chosen))
@@ -307,26 +383,42 @@ def requantize(data: Path, run: Path, cache: Path, objects=None, schemes=INT8_SC
         raise SystemExit(f"not shipped: {', '.join(missing)}")
     costs, changed = {}, []
     for obj in chosen:
-        ckpts = sorted((run / obj).glob("*.pt")) if (run / obj).is_dir() else []
-        if len(ckpts) != 1:
-            raise SystemExit(f"{obj}: expected one checkpoint in {run / obj} (its test split comes from it); "
-                             f"found {[p.name for p in ckpts]}")
         doc = docs[obj]
         fp32, int8 = WEIGHTS_DIR / doc["files"]["fp32"], WEIGHTS_DIR / doc["files"]["int8"]
+        if fresh:
+            tools = _fresh_quantization(fp32, obj, heldout, calibration, cache or heldout / ".crops")
+        else:
+            ckpts = sorted((run / obj).glob("*.pt")) if (run / obj).is_dir() else []
+            if len(ckpts) != 1:
+                raise SystemExit(f"{obj}: expected one checkpoint in {run / obj} (its test split comes from it); "
+                                 f"found {[p.name for p in ckpts]}")
+            tools = _checkpoint_quantization(fp32, ckpts[0], data, cache or data / ".crops")
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="requantize-") as work:
             tmp = Path(work) / int8.name
-            scheme, ev, tried = quantize_for_shipping(fp32, tmp, ckpts[0], data, cache, schemes)
+            scheme, ev, tried = quantize_for_shipping(fp32, tmp, *tools, schemes)
             shutil.copyfile(tmp, int8)
+        split_text = doc["metadata"]["heldout_error_deg"].get("split")
+        if fresh:
+            if "eval_training_split" not in doc:
+                doc["eval_training_split"] = {**doc["eval"], "int8_file": "the previous INT8 file ("
+                                              + doc["export"].get("int8_scheme", "dynamic-int8") + ")"}
+            ev["calibration"] = {"data": calibration.resolve().name, "crops": "every instance of the object"}
+            split_text = FRESH_SPLIT
         doc["eval"] = ev
         doc["heldout"] = {**{k: ev["int8"]["all"][k] for k in ("mean_deg", "median_deg", "under_5_deg", "under_10_deg",
-                                                                "input_mean_deg", "n")}, "split": "held-out scenes"}
-        doc["export"] = {**doc["export"], "int8_scheme": scheme, "int8_candidates": tried}
-        doc["metadata"]["heldout_error_deg"] = {**doc["metadata"]["heldout_error_deg"],
-                                                "int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
-                                                "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3)}
+                                                                "input_mean_deg", "n")},
+                          "split": "fresh held-out scenes" if fresh else "held-out scenes"}
+        doc["export"] = {**doc["export"], "int8_scheme": scheme, "int8_candidates": tried,
+                         "int8_machine": machine()}
+        held = {**doc["metadata"]["heldout_error_deg"], "int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
+                "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3), "split": split_text}
+        if fresh:
+            held["data"] = ev["split"]["data"]
+            held["fp32_mean_training_split"] = round(doc["eval_training_split"]["fp32"]["all"]["mean_deg"], 3)
+        doc["metadata"]["heldout_error_deg"] = held
         for p in (fp32, int8):
-            stamp(p, {"heldout_error_deg": doc["metadata"]["heldout_error_deg"]})
+            stamp(p, {"heldout_error_deg": held})
         doc["sizes_bytes"] = {"int8": int8.stat().st_size, "fp32": fp32.stat().st_size}
         (RESULTS_DIR / f"{obj}.json").write_text(json.dumps(doc, indent=1) + "\n")
         costs[obj] = tried[scheme]["cost_deg"]
@@ -387,6 +479,9 @@ def write_card() -> None:
             "arch": d["recipe"]["arch"], "config": d["recipe"]["config"], "version": d["model_version"],
             "files": d["files"], "heldout": d["heldout"],
             "card": {"fp32_heldout_mean_deg": d["eval"]["fp32"]["all"]["mean_deg"],
+                     "heldout_data": d["eval"]["split"].get("data"),
+                     "fp32_training_split_mean_deg": d.get("eval_training_split", {}).get("fp32", {}).get(
+                         "all", {}).get("mean_deg"),
                      "inside_image": d["eval"]["int8"]["inside_image"], "cut_by_border": d["eval"]["int8"]["cut_by_border"],
                      "int8_refinements_per_s": sp.get("int8"), "fp32_refinements_per_s": sp.get("fp32"),
                      "int8_scheme": d["export"].get("int8_scheme", "dynamic-int8"),
@@ -428,36 +523,58 @@ def portable_command(command: str) -> str:
     return shlex.join(out)
 
 
+def _fresh(d: dict) -> bool:
+    """Whether ``d``'s card evaluation is on fresh scenes (``requantize --heldout``) rather than its own test split."""
+    return "eval_training_split" in d
+
+
 def card_markdown(docs: list[dict], speed: dict) -> str:
+    fresh = bool(docs) and all(_fresh(d) for d in docs)
+    if fresh:
+        ev0 = docs[0]["eval"]
+        measured_on = (
+            f"measured on **rendered scenes of a set that no shipped model trained on** (`{ev0['split']['data']}`: "
+            f"{ev0['folder_scenes']:,} scenes rendered with another seed than the training set, every instance of "
+            "each object scored; `benchmarks/DATA.md` has its command). The last column is the fp32 model on its training "
+            "set's own held-out test scenes (the split is drawn over the nine objects)."
+        )
+    else:
+        measured_on = ("measured on **rendered scenes held out whole** from its training (every object's test scenes "
+                       "are the same: the split is drawn over the nine objects).")
     lines = [
         "# The shipped refiners",
         "",
         "Generated by `python benchmarks/pretrained.py card` from `benchmarks/results/pretrained/*.json`; do not edit.",
         "",
-        "One refiner per YCB object, trained on images rendered by `refiner-rt render` and measured on **rendered scenes "
-        "held out whole** from its training (every object's test scenes are the same: the split is drawn over the nine "
-        "objects). Instances with BOP `visib_fract >= 0.3` (the silhouette beyond the image border counted), coarse "
+        "One refiner per YCB object, trained on images rendered by `refiner-rt render` and " + measured_on + " "
+        "Instances with BOP `visib_fract >= 0.3` (the silhouette beyond the image border counted), coarse "
         "inputs drawn U(0, 30) degrees around the truth, one network pass, errors in degrees (geodesic). "
         "Rotations are relative to the YCB google_16k scan frame of `models/data/ycb_models/<id>/textured.obj` "
         "(origin near the object's base), **not** the YCB-Video or BOP model frame.",
         "",
         "| object | INT8 mean | median | under 5 | under 10 | input mean | inside the image: mean (n) | cut by the border: "
-        "mean (n) | INT8 - fp32 | INT8 refinements/s | test crops |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "mean (n) | INT8 - fp32 | INT8 refinements/s | test crops |" + (" fp32, training set's test scenes |" if fresh else ""),
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if fresh else ""),
     ]
-    means, inputs = [], []
+    means, inputs, own = [], [], []
     for d in docs:
         e, f = d["eval"]["int8"], d["eval"]["fp32"]
         sp = speed.get("models", {}).get(d["object_id"], {}).get("int8")
         means.append(e["all"]["mean_deg"])
         inputs.append(e["all"]["input_mean_deg"])
+        extra = ""
+        if fresh:
+            own.append(d["eval_training_split"]["fp32"]["all"]["mean_deg"])
+            extra = f" {own[-1]:.2f} |"
         lines.append(
             f"| {d['object_id']} | **{_deg(e['all'])}** | {_deg(e['all'], 'median_deg')} | {_pct(e['all']['under_5_deg'])} "
             f"| {_pct(e['all']['under_10_deg'])} | {_deg(e['all'], 'input_mean_deg')} | "
             f"{_deg(e['inside_image'])} ({e['inside_image']['n']}) | {_deg(e['cut_by_border'])} ({e['cut_by_border']['n']}) | "
-            f"{e['all']['mean_deg'] - f['all']['mean_deg']:+.3f} | {'-' if sp is None else f'{sp:,.0f}'} | {e['all']['n']} |")
+            f"{e['all']['mean_deg'] - f['all']['mean_deg']:+.3f} | {'-' if sp is None else f'{sp:,.0f}'} | {e['all']['n']} |"
+            + extra)
     if docs:
-        lines.append(f"| **mean of {len(docs)}** | **{np.mean(means):.2f}** | | | | {np.mean(inputs):.2f} | | | | | |")
+        lines.append(f"| **mean of {len(docs)}** | **{np.mean(means):.2f}** | | | | {np.mean(inputs):.2f} | | | | | |"
+                     + (f" {np.mean(own):.2f} |" if fresh else ""))
     lines += ["", "## How each model was made", ""]
     for d in docs:
         t = d["train"]
@@ -466,7 +583,11 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
                   f"{t['samples']:,} samples, best epoch {t['best_epoch']} of {t['epochs']}, "
                   f"training {t['wall_s']:,.0f} s on one thread of {d['machine']['cpu']} "
                   f"({', '.join(d['machine']['isa_flags']) or 'no AVX flags read'}); "
-                  f"{d['eval']['int8']['all']['n']} test crops from {d['eval']['test_scenes']} held-out scenes.",
+                  + (f"{d['eval_training_split']['int8']['all']['n']} test crops from "
+                     f"{d['eval_training_split']['test_scenes']} held-out scenes of its training set; "
+                     if _fresh(d) else "")
+                  + f"{d['eval']['int8']['all']['n']} test crops from {d['eval']['test_scenes']} "
+                  + ("fresh scenes that hold it." if _fresh(d) else "held-out scenes."),
                   f"  ```bash\n  {portable_command(d['train_command'])}\n  ```"]
     if docs:
         by_scheme: dict = {}
@@ -475,9 +596,11 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
         schemes = "; ".join(f"{sc}: {', '.join(objs)}" for sc, objs in by_scheme.items())
         lines += ["", "Then, for each: `refiner-rt export CKPT -o OBJ.onnx` and the INT8 sibling, quantised with the "
                   "fastest scheme whose held-out mean error stays within "
-                  f"{MAX_INT8_COST_DEG} deg of fp32's ({schemes}; static schemes calibrated on the object's training "
-                  "crops), evaluated through `RefinerSession.refine_crops` on the test crops "
-                  "(`benchmarks/pretrained.py`)."]
+                  f"{MAX_INT8_COST_DEG} deg of fp32's ({schemes}; static schemes calibrated on "
+                  + (f"every instance of the object in `{docs[0]['eval']['calibration']['data']}`, other fresh scenes"
+                     if fresh else "the object's training crops")
+                  + "), evaluated through `RefinerSession.refine_crops` on the test crops "
+                  "(`benchmarks/pretrained.py`" + (" requantize --heldout" if fresh else "") + ")."]
     if speed:
         m = speed.get("machine", {})
         lines += ["", "## Speed", "",
@@ -541,9 +664,13 @@ def main(argv=None) -> int:
     sub.add_parser("card", help="regenerate weights/models.json and weights/MODELS.md from the JSON")
     r = sub.add_parser("requantize", help="quantise the shipped INT8 models again from their fp32 files with the "
                        "fastest scheme that holds accuracy, re-evaluate, regenerate the card")
-    r.add_argument("--data", type=Path, required=True, help="the rendered dataset the models were trained on")
-    r.add_argument("--run", type=Path, required=True, help="the build's run folder (RUN/<obj>/*.pt names the test split)")
-    r.add_argument("--cache", type=Path, help="crop cache folder (default DATA/.crops)")
+    r.add_argument("--data", type=Path, help="the rendered dataset the models were trained on (with --run)")
+    r.add_argument("--run", type=Path, help="the build's run folder (RUN/<obj>/*.pt names the test split)")
+    r.add_argument("--heldout", type=Path, help="instead of --data/--run: a rendered folder of scenes no model "
+                   "trained on (another --seed); every instance is scored")
+    r.add_argument("--calibration", type=Path, help="with --heldout: another such folder, for the static schemes' "
+                   "calibration")
+    r.add_argument("--cache", type=Path, help="crop cache folder (default DATA/.crops or HELDOUT/.crops)")
     r.add_argument("--objects", help="comma-separated YCB ids (default: every shipped object)")
     r.add_argument("--schemes", default=",".join(INT8_SCHEMES_FASTEST_FIRST),
                    help="candidate INT8 schemes, fastest first (default: %(default)s)")
@@ -563,7 +690,12 @@ def main(argv=None) -> int:
         if bad or not schemes:
             ap.error(f"--schemes: unknown INT8 scheme(s) {bad}; known: {', '.join(SCHEMES)}")
         objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
-        out = requantize(args.data, args.run, args.cache or args.data / ".crops", objects, schemes, args.commit)
+        if (args.heldout is None) == (args.data is None or args.run is None):
+            ap.error("give either --data and --run (the build's checkpoints) or --heldout and --calibration")
+        if args.heldout is not None and args.calibration is None:
+            ap.error("--heldout needs --calibration (a folder of other fresh scenes)")
+        out = requantize(args.data, args.run, args.cache, objects, schemes, args.commit, args.heldout,
+                         args.calibration)
         return 0 if out["held"] else 1
     if args.cmd == "speed":
         doc = measure_speed(args.rounds)

@@ -12,9 +12,12 @@ static ones calibrated on crops of the object's *training* split (never the test
 5. accuracy through the runtime on the object's held-out test scenes (``benchmarks/pretrained.py``'s ``evaluate``),
    as the change of the mean error against fp32.
 
-Usage (from the repository root; DATA is the rendered dataset, RUN the build's run folder with the checkpoints)::
+Usage (from the repository root; DATA is the rendered dataset, RUN the build's run folder with the checkpoints; or,
+without checkpoints, HELDOUT and CALIB: rendered scenes of seeds no model trained on, benchmarks/DATA.md)::
 
     python benchmarks/studies/int8_convs/study.py --data DATA --run RUN --json benchmarks/studies/int8_convs/results.json
+    python benchmarks/studies/int8_convs/study.py --heldout HELDOUT --calibration CALIB \\
+        --json benchmarks/studies/int8_convs/results_vnni.json
 
 Candidates (``static-qdq-int8-conv`` variants differ in which convolutions are quantised, by input channels, and
 in whether the fully connected layers are quantised statically or dynamically):
@@ -43,10 +46,12 @@ from refiner_rt import RefinerSession  # noqa: E402
 from refiner_rt.bench import FRAME_K, frame_K, machine_info, synthetic_frame  # noqa: E402
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, parse_metadata  # noqa: E402
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
+from refiner_rt.session import DISABLED_OPTIMIZERS  # noqa: E402
 
 # name -> (scheme written to the metadata, quantiser options); "fp32" and the two older schemes take none.
 _BIG = 65536  # weights of a "large" fully connected layer (export.quantize.large_fully_connected)
-BASE = "dynamic-int8, 8-bit (the shipped files)"
+BASE = "dynamic-int8, 8-bit (the first shipped files)"
+_OLD_BASE = "dynamic-int8, 8-bit (the shipped files)"  # BASE's name in results.json (written before the rename)
 CANDIDATES = {
     "fp32": ("none", {}),
     BASE: ("dynamic-int8", {"reduce_range": False}),
@@ -119,12 +124,13 @@ def session_options(threads: int = 1, level=ort.GraphOptimizationLevel.ORT_ENABL
     return o
 
 
-def optimized_ops(path: Path) -> dict:
-    """Operator counts of the graph onnxruntime runs (after its optimisations, at level ALL)."""
+def optimized_ops(path: Path, disabled=DISABLED_OPTIMIZERS) -> dict:
+    """Operator counts of the graph onnxruntime runs (after its optimisations, at level ALL, with the transformers
+    ``disabled``: RefinerSession's by default)."""
     with tempfile.TemporaryDirectory() as work:
         o = session_options()
         o.optimized_model_filepath = str(Path(work) / "opt.onnx")
-        ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"])
+        ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"], disabled_optimizers=list(disabled))
         g = onnx.load(o.optimized_model_filepath)
     return dict(collections.Counter(f"{n.domain + '.' if n.domain else ''}{n.op_type}" for n in g.graph.node))
 
@@ -138,14 +144,15 @@ def _feed(path: Path):
     return {INPUT_IMAGE: np.ascontiguousarray(crop), INPUT_QUATERNION: q_in.astype(np.float32)}
 
 
-def profile_ops(path: Path, calls: int = 300) -> dict:
-    """onnxruntime's profiler: microseconds of kernel time per call, by operator type (batch 1, one thread)."""
+def profile_ops(path: Path, calls: int = 300, disabled=DISABLED_OPTIMIZERS) -> dict:
+    """onnxruntime's profiler: microseconds of kernel time per call, by operator type (batch 1, one thread), with the
+    transformers ``disabled`` (RefinerSession's by default)."""
     feed = _feed(path)
     with tempfile.TemporaryDirectory() as work:
         o = session_options()
         o.enable_profiling = True
         o.profile_file_prefix = str(Path(work) / "prof")
-        sess = ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"])
+        sess = ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"], disabled_optimizers=list(disabled))
         for _ in range(30):
             sess.run(None, feed)
         for _ in range(calls):
@@ -190,6 +197,21 @@ def refine_speed(paths: dict, threads: int = 1, rounds: int = 9, calls: int = 20
     return {k: 1.0 / v for k, v in time_interleaved(runners, rounds, calls).items()}
 
 
+def propagation_speed(path: Path, rounds: int = 9, calls: int = 300) -> dict:
+    """Bare ``session.run`` (batch 1, one thread) of one model with onnxruntime's QDQPropagationTransformer on (its
+    default) and off (RefinerSession's), interleaved: microseconds per call, and each way's profile."""
+    feed = _feed(path)
+    ways = {"QDQ propagation on (onnxruntime's default)": (), "QDQ propagation off (RefinerSession)": DISABLED_OPTIMIZERS}
+    runners = {}
+    for label, disabled in ways.items():
+        sess = ort.InferenceSession(str(path), session_options(), providers=["CPUExecutionProvider"],
+                                    disabled_optimizers=list(disabled))
+        runners[label] = (lambda sess=sess: sess.run(None, feed))
+    us = {k: 1e6 * v for k, v in time_interleaved(runners, rounds, calls).items()}
+    return {"run_us": us, "profile": {k: profile_ops(path, disabled=d) for k, d in ways.items()},
+            "optimized_graph_ops": {k: optimized_ops(path, d) for k, d in ways.items()}}
+
+
 def option_speed(path: Path, rounds: int = 9, calls: int = 200) -> dict:
     """The same model under several session options, interleaved (refinements/s)."""
     L = ort.GraphOptimizationLevel
@@ -220,9 +242,12 @@ def option_speed(path: Path, rounds: int = 9, calls: int = 200) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, required=True, help="rendered dataset (training crops calibrate, test crops score)")
-    ap.add_argument("--run", type=Path, required=True, help="the build's run folder: RUN/<obj>/*.pt")
-    ap.add_argument("--cache", type=Path, help="crop cache (default DATA/.crops)")
+    ap.add_argument("--data", type=Path, help="rendered dataset (training crops calibrate, test crops score)")
+    ap.add_argument("--run", type=Path, help="the build's run folder: RUN/<obj>/*.pt")
+    ap.add_argument("--heldout", type=Path, help="instead of --data/--run: rendered scenes no model trained on, every "
+                    "instance scored (benchmarks/pretrained.py requantize --heldout)")
+    ap.add_argument("--calibration", type=Path, help="with --heldout: other such scenes, every instance calibrates")
+    ap.add_argument("--cache", type=Path, help="crop cache (default DATA/.crops or HELDOUT/.crops)")
     ap.add_argument("--objects", help="comma-separated YCB ids (default: every shipped object)")
     ap.add_argument("--candidates", help="semicolon-separated candidate names (default: all)")
     ap.add_argument("--rounds", type=int, default=9)
@@ -231,9 +256,12 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args(argv)
     from export.quantize import dataset_calibration
-    from pretrained import evaluate
+    from pretrained import evaluate, evaluate_fresh, whole_folder_spec
 
-    cache = args.cache or args.data / ".crops"
+    fresh = args.heldout is not None
+    if fresh == (args.data is not None and args.run is not None) or (fresh and args.calibration is None):
+        ap.error("give either --data and --run, or --heldout and --calibration")
+    cache = args.cache or (args.heldout if fresh else args.data) / ".crops"
     objects = args.objects.split(",") if args.objects else [m.object_id for m in pretrained_models()]
     names = [n.strip() for n in args.candidates.split(";")] if args.candidates else list(CANDIDATES)
     unknown = [n for n in names if n not in CANDIDATES]
@@ -255,7 +283,11 @@ def main(argv=None) -> int:
             fp32 = WEIGHTS_DIR / model_file_name(obj, int8=False)
             contract = parse_metadata({p.key: p.value for p in onnx.load(str(fp32), load_external_data=False).metadata_props})
             t0 = time.perf_counter()
-            cal = dataset_calibration(args.data, contract, cache_root=cache)
+            if fresh:
+                cal = dataset_calibration(args.calibration, contract, cache_root=cache,
+                                          spec=whole_folder_spec(args.calibration, obj, "train_base"))
+            else:
+                cal = dataset_calibration(args.data, contract, cache_root=cache)
             print(f"[{obj}] calibration: {len(cal.images)} training crops in {time.perf_counter() - t0:.0f} s", flush=True)
             paths = {}
             for i, name in enumerate(names):
@@ -264,9 +296,12 @@ def main(argv=None) -> int:
             entry = doc["objects"].setdefault(obj, {})
             entry["sizes_bytes"] = {n: p.stat().st_size for n, p in paths.items()}
             if not args.skip_accuracy:
-                ckpts = sorted((args.run / obj).glob("*.pt"))
                 t0 = time.perf_counter()
-                ev = evaluate(paths, ckpts[0], args.data, cache)
+                if fresh:
+                    ev = evaluate_fresh(paths, obj, args.heldout, cache, contract.rotation_frame, contract.input_size,
+                                        contract.crop_context)
+                else:
+                    ev = evaluate(paths, sorted((args.run / obj).glob("*.pt"))[0], args.data, cache)
                 fp = ev["fp32"]["all"]["mean_deg"] if "fp32" in ev else None
                 entry["accuracy"] = {n: {"mean_deg": ev[n]["all"]["mean_deg"], "median_deg": ev[n]["all"]["median_deg"],
                                          "delta_vs_fp32_deg": None if fp is None else ev[n]["all"]["mean_deg"] - fp,
@@ -295,8 +330,13 @@ def speed(doc: dict, first: dict, rounds: int) -> None:
     base = doc["refine_per_s_1_thread"].get(BASE)
     paper = doc["refine_per_s_1_thread"].get("paper shallow, dynamic-int8")
     for n, v in doc["refine_per_s_1_thread"].items():
-        print(f"speed {n}: {v:,.0f}/s ({v / base:.2f}x the shipped files, {v / paper:.2f}x paper shallow INT8)", flush=True)
+        print(f"speed {n}: {v:,.0f}/s ({v / base:.2f}x the first shipped files, {v / paper:.2f}x paper shallow INT8)", flush=True)
     best = max((n for n in first if n != "fp32" and not n.startswith("paper")), key=doc["refine_per_s_1_thread"].get)
+    conv = "qdq conv>=16 + large FC dynamic (7-bit)"
+    if conv in first:
+        doc["propagation"] = propagation_speed(first[conv], rounds=rounds)
+        for k, v in doc["propagation"]["run_us"].items():
+            print(f"{conv}, {k}: session.run {v:.1f} us", flush=True)
     doc["options_model"] = best
     doc["options_per_s"] = option_speed(first[best], rounds=rounds)
     for k, v in doc["options_per_s"].items():
@@ -307,7 +347,7 @@ def report(doc: dict) -> str:
     """Markdown tables of a results file (what the README quotes)."""
     out = []
     objs = doc.get("objects", {})
-    names = [n for n in CANDIDATES if any(n in o.get("accuracy", {}) for o in objs.values())]
+    names = [n for n in [_OLD_BASE, *CANDIDATES] if any(n in o.get("accuracy", {}) for o in objs.values())]
     if names:
         out += ["| candidate | " + " | ".join(objs) + " | mean cost | largest cost |",
                 "|---|" + "---:|" * (len(objs) + 2)]
@@ -319,14 +359,23 @@ def report(doc: dict) -> str:
         out.append("")
     speed = doc.get("refine_per_s_1_thread", {})
     if speed:
-        base, paper = speed.get(BASE), speed.get("paper shallow, dynamic-int8")
-        out += ["| model | refine()/s, 1 thread | over the shipped files | over paper shallow INT8 | kernel us/call "
+        base, paper = speed.get(BASE) or speed.get(_OLD_BASE), speed.get("paper shallow, dynamic-int8")
+        out += ["| model | refine()/s, 1 thread | over the first shipped files | over paper shallow INT8 | kernel us/call "
                 "(profiler) | top operators (us/call) |", "|---|---:|---:|---:|---:|---|"]
         for n, v in speed.items():
             prof = doc.get("profile", {}).get(n, {})
             top = ", ".join(f"{op} {us:.0f}" for op, us in list(prof.get("us_per_call_by_op", {}).items())[:6])
             out.append(f"| {n} | {v:,.0f} | {v / base:.2f}x | {v / paper:.2f}x | {prof.get('kernel_us_per_call', 0):.0f} "
                        f"| {top} |")
+        out.append("")
+    prop = doc.get("propagation")
+    if prop:
+        out += ["| qdq conv>=16 + large FC dynamic (7-bit), bare session.run | us/call | kernel us/call (profiler) | "
+                "top operators (us/call) |", "|---|---:|---:|---|"]
+        for k, v in prop["run_us"].items():
+            pr = prop["profile"][k]
+            top = ", ".join(f"{op} {us:.0f}" for op, us in list(pr["us_per_call_by_op"].items())[:6])
+            out.append(f"| {k} | {v:.1f} | {pr['kernel_us_per_call']:.0f} | {top} |")
         out.append("")
     opts = doc.get("options_per_s", {})
     if opts:
