@@ -122,6 +122,7 @@ __all__ = [
     "Calibration",
     "QuantizationError",
     "QuantizeReport",
+    "calibrated_scheme_for",
     "dataset_calibration",
     "int8_agreement",
     "int8_path_for",
