@@ -8,10 +8,11 @@ batch 1, one iteration. Models of different objects cannot share a batch, so a f
 * ``one core``: one thread, the nine calls one after the other (sessions with ``threads=1``);
 * ``all cores, objects in parallel``: a pool of one worker thread per core, each with single-threaded sessions,
   the nine calls spread over the workers (onnxruntime and OpenCV release the GIL while they compute);
-* ``all cores, threads per call``: the nine calls one after the other, each session on every core.
+* ``all cores, threads per call``: the nine calls one after the other, each session on every core (worker spinning
+  off: nine sessions' spinning pools fought over the cores, 14-19 ms per frame on 2 cores).
 
-The ways are measured interleaved (round by round, frames of each way in turn) and the figure is the median frame
-time. Where fewer than nine objects ship, the missing ones are refined by copies of shipped models (a separate
+The ways are measured interleaved (round by round, frames of each way in turn, with a 50 ms pause before each way
+so that the previous one's spinning onnxruntime workers have parked) and the figure is the median frame time. Where fewer than nine objects ship, the missing ones are refined by copies of shipped models (a separate
 session each, as a real object's would be; every shipped model has the same architecture, so the same speed) and
 the output says so.
 
@@ -39,6 +40,7 @@ from refiner_rt.bench import FRAME_K, machine_info, synthetic_frame  # noqa: E40
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
 from refiner_rt.session import available_cores  # noqa: E402
 
+PAUSE_S = 0.05  # between ways, in every round (see the loop)
 PAPER_OBJECTS = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "006_mustard_bottle", "009_gelatin_box",
                  "011_banana", "021_bleach_cleanser", "035_power_drill", "037_scissors")
 
@@ -65,6 +67,22 @@ def frame_models(model_dir: Path | None, int8: bool) -> tuple[dict, dict]:
     return paths, stand_in
 
 
+def _no_spin_options(threads: int):
+    """RefinerSession's default options on ``threads`` threads, with onnxruntime's worker spinning off: nine sessions
+    each with spinning workers (one pool per session) fight over the cores between their calls (14-19 ms per frame
+    on 2 cores, and they slowed the other ways measured beside them)."""
+    import onnxruntime as ort
+
+    o = ort.SessionOptions()
+    o.intra_op_num_threads = threads
+    o.inter_op_num_threads = 1
+    o.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    o.log_severity_level = 3
+    o.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return o
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model-dir", type=Path, help="folder of <obj>.int8.onnx / <obj>.onnx (default: the shipped models)")
@@ -79,7 +97,8 @@ def main(argv=None) -> int:
     image, boxes, q_in = synthetic_frame(len(PAPER_OBJECTS), seed=3)
     objects = list(paths)
     one = {o: RefinerSession(paths[o], threads=1) for o in objects}
-    every = {o: RefinerSession(paths[o], threads=cores) for o in objects}
+    own = {o: RefinerSession(paths[o], threads=1) for o in objects}  # the parallel way's: no session shared by ways
+    every = {o: RefinerSession(paths[o], session_options=_no_spin_options(cores)) for o in objects}
     schemes = sorted({s.contract.quantization for s in one.values()})
 
     def call(sessions, i):
@@ -94,18 +113,21 @@ def main(argv=None) -> int:
     chunks = [list(range(w, len(objects), cores)) for w in range(cores)]
 
     def parallel():
-        list(pool.map(lambda idx: [call(one, i) for i in idx], chunks))
+        list(pool.map(lambda idx: [call(own, i) for i in idx], chunks))
 
     ways = {"one core": lambda: sequential(one)}
     if cores > 1:
         ways["all cores, objects in parallel"] = parallel
-        ways["all cores, threads per call"] = lambda: sequential(every)
+        ways["all cores, threads per call (spinning off)"] = lambda: sequential(every)
     for fn in ways.values():  # warm-up
         for _ in range(10):
             fn()
     times = {k: [] for k in ways}
     for _ in range(args.rounds):
         for k, fn in ways.items():
+            # The previous way's onnxruntime workers spin for a while after its last call; let them park first, so
+            # that they do not take the core from this way's first frames.
+            time.sleep(PAUSE_S)
             for _ in range(args.frames):
                 t0 = time.perf_counter()
                 fn()
