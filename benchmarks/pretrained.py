@@ -12,16 +12,22 @@ A rerun skips the objects already shipped with this recipe, so an interrupted bu
     python benchmarks/pretrained.py speed                        # INT8/fp32 speed of every shipped model
     python benchmarks/pretrained.py card                         # models.json and MODELS.md from the JSON
     python benchmarks/pretrained.py requantize --data data/ycb9_v1 --run runs/v1   # INT8 again from the shipped fp32
+    python benchmarks/pretrained.py requantize --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22
+                                                                 # the same without checkpoints (the shipped files)
 
 INT8 scheme: each object's INT8 model is quantised with every scheme of :data:`INT8_SCHEMES_FASTEST_FIRST` and
-evaluated beside fp32 on the held-out test crops; the fastest whose mean error stays within
-:data:`MAX_INT8_COST_DEG` of fp32's ships (the scheme is in the model's metadata ``quantization``), or, when none
-does, the one that costs least. Static schemes are calibrated on the object's training crops, never its test crops.
-``requantize`` redoes this from the shipped fp32 files (no training), e.g. after a faster scheme was added.
+evaluated beside fp32 on held-out crops; the fastest whose mean error stays within :data:`MAX_INT8_COST_DEG` of
+fp32's ships (the scheme is in the model's metadata ``quantization``), or, when none does, the one that costs least.
+Static schemes are calibrated on crops the scoring never sees: the object's training crops (``build``, ``requantize
+--data/--run``) or a second folder of fresh scenes (``requantize --calibration``). ``requantize`` redoes this from the
+shipped fp32 files (no training), e.g. after a faster scheme was added.
 
-Errors are measured on rendered images (``refiner-rt render``): scenes held out whole (``scenes`` split drawn over
-the nine objects, so every object's test scenes are the same), instances with BOP ``visib_fract >= 0.3`` (the
-silhouette beyond the image border counted), coarse inputs U(0, 30) degrees around the truth, one network pass.
+Errors are measured on rendered images (``refiner-rt render``), instances with BOP ``visib_fract >= 0.3`` (the
+silhouette beyond the image border counted), coarse inputs U(0, 30) degrees around the truth, one network pass: by
+``build`` (and ``requantize --data/--run``) on scenes held out whole from the training set (``scenes`` split drawn
+over the nine objects, so every object's test scenes are the same); by ``requantize --heldout`` on every instance of
+a folder of scenes rendered with another seed, which then becomes the card's evaluation (the training split's is
+kept as ``eval_training_split``).
 """
 
 from __future__ import annotations
@@ -55,11 +61,14 @@ OBJECT_FRAME = ("YCB google_16k scan frame (models/data/ycb_models/<id>/textured
 SCHEMA = "refiner-rt/pretrained-eval/1"
 
 # The held-out-scenes recipe of the shipped models, as this build names its options: a view of the one definition,
-# ``heldout-scenes-v1`` in models/recipe.py (the best measured for unseen scenes: benchmarks/studies/heldout_scenes,
-# "Five conv blocks on all nine objects", and benchmarks/studies/scene_count).
-_NAMED = NAMED_RECIPES["heldout-scenes-v1"]
+# ``heldout-scenes-v2`` in models/recipe.py (v1, the best measured for unseen scenes in benchmarks/studies/heldout_scenes,
+# "Five conv blocks on all nine objects", and benchmarks/studies/scene_count, on a four times larger rendered set).
+# Model version 1 was trained with heldout-scenes-v1 (3,500 crops per object from ycb9_v1's 2,362 scenes).
+RECIPE_NAME = "heldout-scenes-v2"
+MODEL_VERSION = "2"
+_NAMED = NAMED_RECIPES[RECIPE_NAME]
 RECIPE = {
-    "name": "heldout-scenes-v1",
+    "name": RECIPE_NAME,
     "arch": _NAMED["arch"],
     "config": _NAMED["arch_config"],
     "rotation_frame": _NAMED["rotation_frame"],
@@ -72,14 +81,13 @@ RECIPE = {
     "test": _NAMED["test_per_object"],
     "seed": _NAMED["seed"],
 }
-MODEL_VERSION = "1"
 
 # INT8 schemes in the order of their speed on the shipped architecture, fastest first (benchmarks/studies/int8_convs:
-# batch 1, one thread, interleaved medians). With onnxruntime's QDQPropagationTransformer off (RefinerSession does
-# that, refiner_rt.session.DISABLED_OPTIMIZERS) the conv scheme's first max-pool stays in fp32 NCHWc and its integer
-# convolutions run 2-3x faster than the fp32 ones on AVX-512 VNNI: 1.77x the dynamic scheme's speed per call. (With
-# the transformer on, the uint8 max-pool it creates cost more than the integer convs saved: 0.7-0.8x on an AVX2-only
-# EPYC, 0.87x on AVX-512 VNNI.) Then the accuracy an INT8 model may give up.
+# full refine() path, batch 1, one thread, interleaved medians). With onnxruntime's QDQPropagationTransformer off
+# (RefinerSession does that, refiner_rt.session.DISABLED_OPTIMIZERS) the conv scheme's first max-pool stays in fp32
+# NCHWc and its integer convolutions run 2.5-3x faster than the fp32 ones on AVX-512 VNNI: 1.59x the dynamic
+# scheme's refine() speed (results_vnni.json). With the transformer on, the uint8 max-pool it creates cost more than
+# the integer convs saved (0.7-0.8x on an AVX2-only EPYC, results.json). Then the accuracy an INT8 model may give up.
 INT8_SCHEMES_FASTEST_FIRST = ("static-qdq-int8-conv", "dynamic-int8")
 MAX_INT8_COST_DEG = 0.2        # per object: INT8 held-out mean error at most this much above fp32's
 MAX_MEAN_INT8_COST_DEG = 0.1   # goal over the shipped objects (reported by requantize)
@@ -172,9 +180,10 @@ def whole_folder_spec(data: Path, obj: str, part: str):
     from models.pipeline import DataSpec, load_samples
 
     spec = DataSpec(data=str(data), objects=[obj], split_mode="scenes", sizes=(0, 0, 0, 0))
-    n = len(load_samples(spec))
-    if n == 0:
-        raise SystemExit(f"{data}: no visible instance of {obj}")
+    try:
+        n = len(load_samples(spec))
+    except (FileNotFoundError, ValueError) as exc:  # not a dataset, or no visible instance of obj
+        raise SystemExit(f"{data}: {exc}") from None
     return DataSpec.from_dict({**spec.as_dict(), "sizes": (n, 0, 0, 0) if part == "train_base" else (0, 0, 0, n)})
 
 
@@ -188,7 +197,7 @@ def evaluate_fresh(onnx_paths: dict[str, Path], obj: str, data: Path, cache: Pat
     splits = load_splits(spec)
     test = cropset_for(splits, "test", spec, input_size, crop_context, cache_root=cache, progress=False)
     scored = _score(onnx_paths, test, list(splits.test), rotation_frame)
-    folder_scenes = sum(1 for p in Path(data).iterdir() if p.is_dir() and p.name.isdigit())
+    folder_scenes = sum(1 for p in Path(data).iterdir() if (p / "scene_gt.json").is_file())  # BOP scenes
     return {"test_scenes": scored.pop("test_scenes"), "folder_scenes": folder_scenes,
             "split": {**spec.as_dict(), "data": data.resolve().name}, **scored}
 
@@ -254,7 +263,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         "object_frame": OBJECT_FRAME, "data": data_meta,
         "heldout_error_deg": {"int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
                               "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3),
-                              "split": "scenes held out whole, rendered, visib_fract >= 0.3, inputs U(0, 30)"},
+                              "split": BUILD_SPLIT},
     }
     for p in (fp32, int8):
         stamp(p, card_meta)
@@ -358,6 +367,7 @@ def _fresh_quantization(fp32: Path, obj: str, heldout: Path, calibration: Path, 
 
 
 FRESH_SPLIT = "rendered scenes of a set no shipped model trained on, visib_fract >= 0.3, inputs U(0, 30)"
+BUILD_SPLIT = "scenes held out whole, rendered, visib_fract >= 0.3, inputs U(0, 30)"
 
 
 def requantize(data: Path | None, run: Path | None, cache: Path | None, objects=None,
@@ -398,12 +408,17 @@ def requantize(data: Path | None, run: Path | None, cache: Path | None, objects=
             tmp = Path(work) / int8.name
             scheme, ev, tried = quantize_for_shipping(fp32, tmp, *tools, schemes)
             shutil.copyfile(tmp, int8)
-        split_text = doc["metadata"]["heldout_error_deg"].get("split")
-        if fresh:
+        split_text = BUILD_SPLIT
+        if not fresh:
+            # The build's own test split again: the card's evaluation is that split's, as after `build`.
+            doc.pop("eval_training_split", None)
+            ev["split"]["data"] = "DATA"
+        else:
             if "eval_training_split" not in doc:
                 doc["eval_training_split"] = {**doc["eval"], "int8_file": "the previous INT8 file ("
                                               + doc["export"].get("int8_scheme", "dynamic-int8") + ")"}
-            ev["calibration"] = {"data": calibration.resolve().name, "crops": "every instance of the object"}
+            ev["calibration"] = {"data": calibration.resolve().name,
+                                 "crops": "three quarters of the object's instances (the rest check the agreement)"}
             split_text = FRESH_SPLIT
         doc["eval"] = ev
         doc["heldout"] = {**{k: ev["int8"]["all"][k] for k in ("mean_deg", "median_deg", "under_5_deg", "under_10_deg",
@@ -411,8 +426,8 @@ def requantize(data: Path | None, run: Path | None, cache: Path | None, objects=
                           "split": "fresh held-out scenes" if fresh else "held-out scenes"}
         doc["export"] = {**doc["export"], "int8_scheme": scheme, "int8_candidates": tried,
                          "int8_machine": machine()}
-        held = {**doc["metadata"]["heldout_error_deg"], "int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
-                "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3), "split": split_text}
+        held = {"int8_mean": round(ev["int8"]["all"]["mean_deg"], 3), "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3),
+                "split": split_text}
         if fresh:
             held["data"] = ev["split"]["data"]
             held["fp32_mean_training_split"] = round(doc["eval_training_split"]["fp32"]["all"]["mean_deg"], 3)
@@ -436,7 +451,7 @@ def requantize(data: Path | None, run: Path | None, cache: Path | None, objects=
         schemes_used = sorted({docs[o]["export"]["int8_scheme"] for o in costs})
         _commit(changed + [WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md"],
                 f"weights: the INT8 models quantised again ({', '.join(schemes_used)}), mean cost {mean_cost:+.3f} deg "
-                "against fp32 on held-out scenes")
+                "against fp32 on " + ("fresh rendered scenes" if fresh else "held-out scenes"))
     return {"costs_deg": costs, "mean_cost_deg": mean_cost, "held": held}
 
 
@@ -529,14 +544,20 @@ def _fresh(d: dict) -> bool:
 
 
 def card_markdown(docs: list[dict], speed: dict) -> str:
-    fresh = bool(docs) and all(_fresh(d) for d in docs)
+    fresh_docs = [d for d in docs if _fresh(d)]
+    fresh = bool(fresh_docs)  # the extra column; all docs fresh is what requantize --heldout leaves
+    sets = sorted({d["eval"]["split"]["data"] for d in fresh_docs})
     if fresh:
-        ev0 = docs[0]["eval"]
+        ev0 = fresh_docs[0]["eval"]
+        scenes = f"{ev0['folder_scenes']:,} scenes" if len(sets) == 1 and ev0.get("folder_scenes") else "scenes"
+        which = "" if len(fresh_docs) == len(docs) else (
+            " for the objects with a value in the last column; the others on the scenes held out whole from their "
+            "own training set")
         measured_on = (
-            f"measured on **rendered scenes of a set that no shipped model trained on** (`{ev0['split']['data']}`: "
-            f"{ev0['folder_scenes']:,} scenes rendered with another seed than the training set, every instance of "
-            "each object scored; `benchmarks/DATA.md` has its command). The last column is the fp32 model on its training "
-            "set's own held-out test scenes (the split is drawn over the nine objects)."
+            f"measured on **rendered scenes of a set that no shipped model trained on** ("
+            + ", ".join(f"`{x}`" for x in sets) + f": {scenes} rendered with another seed than the training set, "
+            "every instance of each object scored; `benchmarks/DATA.md` has its command)" + which + ". The last column "
+            "is the fp32 model on its training set's own held-out test scenes (the split is drawn over the nine objects)."
         )
     else:
         measured_on = ("measured on **rendered scenes held out whole** from its training (every object's test scenes "
@@ -563,9 +584,11 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
         means.append(e["all"]["mean_deg"])
         inputs.append(e["all"]["input_mean_deg"])
         extra = ""
-        if fresh:
+        if _fresh(d):
             own.append(d["eval_training_split"]["fp32"]["all"]["mean_deg"])
             extra = f" {own[-1]:.2f} |"
+        elif fresh:
+            extra = " - |"
         lines.append(
             f"| {d['object_id']} | **{_deg(e['all'])}** | {_deg(e['all'], 'median_deg')} | {_pct(e['all']['under_5_deg'])} "
             f"| {_pct(e['all']['under_10_deg'])} | {_deg(e['all'], 'input_mean_deg')} | "
@@ -574,7 +597,7 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
             + extra)
     if docs:
         lines.append(f"| **mean of {len(docs)}** | **{np.mean(means):.2f}** | | | | {np.mean(inputs):.2f} | | | | | |"
-                     + (f" {np.mean(own):.2f} |" if fresh else ""))
+                     + (f" {np.mean(own):.2f} |" if fresh and len(own) == len(docs) else " |" if fresh else ""))
     lines += ["", "## How each model was made", ""]
     for d in docs:
         t = d["train"]
@@ -594,13 +617,17 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
         for d in docs:
             by_scheme.setdefault(d["export"].get("int8_scheme", "dynamic-int8"), []).append(d["object_id"])
         schemes = "; ".join(f"{sc}: {', '.join(objs)}" for sc, objs in by_scheme.items())
-        lines += ["", "Then, for each: `refiner-rt export CKPT -o OBJ.onnx` and the INT8 sibling, quantised with the "
-                  "fastest scheme whose held-out mean error stays within "
-                  f"{MAX_INT8_COST_DEG} deg of fp32's ({schemes}; static schemes calibrated on "
-                  + (f"every instance of the object in `{docs[0]['eval']['calibration']['data']}`, other fresh scenes"
-                     if fresh else "the object's training crops")
-                  + "), evaluated through `RefinerSession.refine_crops` on the test crops "
-                  "(`benchmarks/pretrained.py`" + (" requantize --heldout" if fresh else "") + ")."]
+        calib = sorted({d["eval"]["calibration"]["data"] for d in fresh_docs if "calibration" in d["eval"]})
+        lines += ["", "Then, for each: `refiner-rt export CKPT -o OBJ.onnx` (the fp32 file) and the INT8 file, quantised "
+                  "from it with the fastest scheme whose mean error on the scored crops stays within "
+                  f"{MAX_INT8_COST_DEG} deg of fp32's ({schemes}). Static schemes calibrate on "
+                  + (f"three quarters of the object's instances in " + ", ".join(f"`{c}`" for c in calib)
+                     + " (other fresh scenes; the rest check the agreement), by "
+                     "`python benchmarks/pretrained.py requantize --heldout HELDOUT --calibration CALIB`"
+                     if calib else "the object's training crops, by `python benchmarks/pretrained.py build`")
+                  + (" (objects without a fresh evaluation: on their training crops, by `build`)"
+                     if calib and len(fresh_docs) < len(docs) else "")
+                  + "; every model is scored through `RefinerSession.refine_crops`."]
     if speed:
         m = speed.get("machine", {})
         lines += ["", "## Speed", "",
@@ -690,10 +717,17 @@ def main(argv=None) -> int:
         if bad or not schemes:
             ap.error(f"--schemes: unknown INT8 scheme(s) {bad}; known: {', '.join(SCHEMES)}")
         objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
-        if (args.heldout is None) == (args.data is None or args.run is None):
+        by_checkpoints = args.data is not None or args.run is not None
+        by_folders = args.heldout is not None or args.calibration is not None
+        if by_checkpoints == by_folders:
             ap.error("give either --data and --run (the build's checkpoints) or --heldout and --calibration")
-        if args.heldout is not None and args.calibration is None:
-            ap.error("--heldout needs --calibration (a folder of other fresh scenes)")
+        if by_checkpoints and (args.data is None or args.run is None):
+            ap.error("--data and --run go together (the dataset, and the build's checkpoints that name its split)")
+        if by_folders and (args.heldout is None or args.calibration is None):
+            ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
+        if by_folders and args.heldout.resolve() == args.calibration.resolve():
+            ap.error("--calibration must be another folder than --heldout: calibrating on the scored crops would "
+                     "hide what quantisation costs")
         out = requantize(args.data, args.run, args.cache, objects, schemes, args.commit, args.heldout,
                          args.calibration)
         return 0 if out["held"] else 1

@@ -122,7 +122,7 @@ def export_cmd(
     if calib is not None and int8_scheme == "dynamic-int8":
         raise click.BadParameter(
             "dynamic-int8 quantises activations per call and takes no calibration data; "
-            "use --int8-scheme static-qdq-int8 with --calib, or drop --calib",
+            "drop --int8-scheme (--calib then picks a static scheme) or drop --calib",
             param_hint="'--calib'",
         )
     # With --calib and no scheme named, each model gets the fastest static scheme it has layers for

@@ -234,7 +234,8 @@ class QuantizeReport:
 
     Attributes:
         path: the INT8 ONNX file written.
-        scheme: ``"dynamic-int8"`` or ``"static-qdq-int8"`` (also in the metadata ``quantization``).
+        scheme: one of :data:`SCHEMES` (``"dynamic-int8"``, ``"static-qdq-int8"``, ``"static-qdq-int8-conv"``; also in
+            the metadata ``quantization``).
         agreement: INT8 vs fp32 on the parity inputs (always measured).
         heldout_agreement: INT8 vs fp32 on held-out crops of the calibration dataset (dataset calibration only).
         size_bytes: INT8 file size.
@@ -323,7 +324,9 @@ def dataset_calibration(
             it in ``train_base``); its ``data`` is replaced by ``data_dir``.
 
     Returns:
-        :class:`Calibration` in the model's channel order (``source="dataset:<dir>:train_base:<n>"``).
+        :class:`Calibration` in the model's channel order (``source="dataset:<folder name>:train_base:<n>"``: the
+        folder's name only, since the source goes into the model's metadata and a model must not carry the paths of
+        the machine that made it).
 
     Raises:
         FileNotFoundError / ValueError: not a dataset, or a training split with fewer than 2 crops.
@@ -362,7 +365,7 @@ def dataset_calibration(
     images, q_in = draw(order[:n])
     check_images, check_q_in = draw(order[n : n + n_check])
     return Calibration(
-        images=images, q_in=q_in, source=f"dataset:{data_dir}:train_base:{n}",
+        images=images, q_in=q_in, source=f"dataset:{Path(data_dir).resolve().name}:train_base:{n}",
         check_images=check_images, check_q_in=check_q_in,
     )
 
@@ -579,8 +582,9 @@ def quantize_model(
         fp32_path: an fp32 refiner-rt ONNX model (metadata ``quantization`` = ``"none"``).
         out_path: destination; default :func:`int8_path_for` (``OUT.int8.onnx``). Its directory must exist;
             replaced only if the checks pass.
-        scheme: ``"dynamic-int8"`` (default) or ``"static-qdq-int8"``.
-        calibration: crops for the static scheme (default: :func:`random_calibration`); not accepted with
+        scheme: ``"dynamic-int8"`` (default), ``"static-qdq-int8"`` or ``"static-qdq-int8-conv"`` (see the module
+            docstring).
+        calibration: crops for the static schemes (default: :func:`random_calibration`); not accepted with
             the dynamic scheme, which needs none.
         n_check: number of parity inputs of the agreement check (at least 64).
         enforce: refuse to write a model beyond the agreement bounds (default). ``False`` measures and reports the

@@ -86,11 +86,11 @@ MAX_ITERATIONS = 16
 K_MIN_FOCAL = 1e-3
 K_MAX_ABS = 1e9
 # onnxruntime graph transformers every session turns off. QDQPropagationTransformer moves the first QuantizeLinear
-# of a static-qdq-int8-conv model above the first block's max-pool, which then runs on uint8 in NCHW: 115 us of a
-# 226 us call for the shipped five-block refiner, against 4 us for the fp32 NCHWc max-pool it replaces, and the whole
-# call takes half the time without it (113 us; AVX-512 VNNI EPYC, benchmarks/studies/int8_convs). Max-pooling
-# commutes with quantisation, so the outputs are the same bit for bit; fp32 and dynamic-int8 models have no
-# QuantizeLinear to move (same outputs, same speed).
+# of a static-qdq-int8-conv model above the first block's max-pool, which then runs on uint8 in NCHW: 146 us of a
+# 260 us call for the shipped five-block refiner, against about 4 us for the fp32 NCHWc max-pool it replaces; without
+# it the call takes 122 us (AVX-512 VNNI EPYC, benchmarks/studies/int8_convs/results_vnni.json). Max-pooling and
+# reshapes commute with quantisation, so the outputs are the same bit for bit (tests/test_quantize_conv.py checks both
+# static schemes); fp32 and dynamic-int8 models have no QuantizeLinear to move (same outputs; same speed measured).
 DISABLED_OPTIMIZERS = ("QDQPropagationTransformer",)
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity, which cgroups and ``taskset`` restrict)."""

@@ -132,3 +132,47 @@ def test_model_card_commands_name_no_machine_folders():
         "python benchmarks/data_scaling.py --data DATA --object 003_cracker_box --config "
         "'{\"conv_channels\": [16, 32]}' --cache DATA/.crops --save RUN/003_cracker_box "
         "--json RUN/003_cracker_box.train.json")
+
+
+def _card_docs():
+    build = load_benchmark("pretrained")
+    docs = build._load_results()
+    if not docs:
+        pytest.skip("no shipped model")
+    return build, docs
+
+
+def test_model_card_names_the_set_each_model_was_scored_on():
+    """All models scored on fresh scenes: the header names the set and the fp32 column of the training split is
+    filled; one object rebuilt on its own split (no fresh evaluation): the card says which rows are which."""
+    import copy
+
+    build, docs = _card_docs()
+    if not all(build._fresh(d) for d in docs):
+        pytest.skip("the shipped evaluation is not the fresh-scene one")
+    card = build.card_markdown(docs, {})
+    fresh_set = docs[0]["eval"]["split"]["data"]
+    assert f"`{fresh_set}`" in card and "for the objects with a value in the last column" not in card
+    assert "fp32, training set's test scenes |" in card
+    mixed = copy.deepcopy(docs)
+    del mixed[0]["eval_training_split"]
+    card = build.card_markdown(mixed, {})
+    assert "for the objects with a value in the last column" in card
+    row = next(line for line in card.splitlines() if line.startswith(f"| {mixed[0]['object_id']} |"))
+    assert row.endswith(" - |")
+    assert "(objects without a fresh evaluation: on their training crops, by `build`)" in card
+
+
+def test_shipped_models_name_no_machine_folder():
+    """No metadata value of a shipped model holds an absolute path of the machine that built it (the INT8
+    calibration source names its folder only)."""
+    import onnx
+
+    for m in pt.pretrained_models():
+        for kind in ("int8", "fp32"):
+            if not m.files.get(kind):
+                continue
+            props = {p.key: p.value for p in onnx.load(str(m.path(int8=kind == "int8")),
+                                                       load_external_data=False).metadata_props}
+            for key, value in props.items():
+                assert "/work/" not in value and "/home/" not in value and "/tmp/" not in value, (m.object_id, key)

@@ -162,10 +162,11 @@ def test_the_runtime_keeps_the_max_pool_before_the_integer_convs_in_fp32(fp32, t
     assert _pools_on_uint8(_runtime_graph(path, tmp_path, DISABLED_OPTIMIZERS)) == []
 
 
-def test_turning_qdq_propagation_off_changes_no_output(fp32, tmp_path):
-    # Max-pooling commutes with a monotonic quantisation, so RefinerSession (transformer off) must agree bit for bit
-    # with a plain onnxruntime session (transformer on) on the same crops.
-    path = q8.quantize_model(fp32, tmp_path / "m.int8.onnx", scheme=SCHEME).path
+@pytest.mark.parametrize("scheme", ["static-qdq-int8-conv", "static-qdq-int8"])
+def test_turning_qdq_propagation_off_changes_no_output(fp32, tmp_path, scheme):
+    # Max-pooling (and a reshape) commute with a monotonic quantisation, so RefinerSession (transformer off) must
+    # agree bit for bit with a plain onnxruntime session (transformer on) on the same crops, for both static schemes.
+    path = q8.quantize_model(fp32, tmp_path / "m.int8.onnx", scheme=scheme).path
     images, q_in = random_inputs(CONFIG["input_size"], 16, seed=7)
     plain = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     expected = plain.run(["q_out"], {"image": images, "q_in": q_in.astype(np.float32)})[0]

@@ -1,7 +1,8 @@
 """Which INT8 scheme makes the shipped five-block refiner fast on a CPU, and what it costs in accuracy.
 
 For each shipped object: its fp32 model (``refiner_rt/weights/<obj>.onnx``) quantised with each candidate scheme,
-static ones calibrated on crops of the object's *training* split (never the test crops); then, in one run:
+static ones calibrated on crops the scoring never sees (the object's *training* split with ``--data/--run``, or a
+folder of other fresh scenes with ``--calibration``); then, in one run:
 
 1. the optimised graph onnxruntime builds from each (which operators it really runs: ``QLinearConv`` from the QDQ
    pairs, ``FusedConv`` from Conv + ReLU, NCHWc / NHWC layouts);
@@ -9,8 +10,10 @@ static ones calibrated on crops of the object's *training* split (never the test
 3. speed of the full ``refine()`` path with K (batch 1, one thread, a 640x480 frame), candidates interleaved call
    by call over several rounds, medians; ratios only within this run;
 4. session options on the fastest candidate (graph optimisation level, denormals as zero, spinning with 2 threads);
-5. accuracy through the runtime on the object's held-out test scenes (``benchmarks/pretrained.py``'s ``evaluate``),
-   as the change of the mean error against fp32.
+5. accuracy through the runtime on the object's held-out test scenes (``benchmarks/pretrained.py``'s ``evaluate``)
+   or on every instance of a folder of fresh scenes (``evaluate_fresh``, ``--heldout``), as the change of the mean
+   error against fp32;
+6. onnxruntime's QDQPropagationTransformer on and off for the shipped conv scheme (bare ``session.run`` and profile).
 
 Usage (from the repository root; DATA is the rendered dataset, RUN the build's run folder with the checkpoints; or,
 without checkpoints, HELDOUT and CALIB: rendered scenes of seeds no model trained on, benchmarks/DATA.md)::
@@ -93,21 +96,24 @@ def build_candidate(fp32: Path, out: Path, name: str, calibration) -> Path:
 
 
 def shallow_models(work: Path) -> dict:
-    """The paper's shallow network with random weights: fp32, dynamic-int8 and static-qdq-int8-conv (calibrated on
-    random crops; for speed only)."""
+    """The paper's shallow network and the default two-block ``fusion`` refiner (the architectures `refiner-rt
+    train` builds by default) with random weights: fp32 and each INT8 scheme, the static ones calibrated on random
+    crops (for speed only: which scheme ``export --int8 --calib`` should pick for them)."""
     import torch
 
     import models
     from export import export_model
     from export.quantize import quantize_model
 
-    torch.manual_seed(0)
-    path = work / "shallow.onnx"
-    export_model(models.build_refiner("shallow").eval(), path, checkpoint_sha256="random-weights")
-    out = {"paper shallow, fp32": path}
-    for scheme in ("dynamic-int8", "static-qdq-int8-conv"):
-        out[f"paper shallow, {scheme}"] = quantize_model(path, work / f"shallow.{scheme}.onnx", scheme=scheme,
-                                                         enforce=False).path
+    out = {}
+    for arch, label in (("shallow", "paper shallow"), ("fusion", "default fusion (2 blocks)")):
+        torch.manual_seed(0)
+        path = work / f"{arch}.onnx"
+        export_model(models.build_refiner(arch).eval(), path, checkpoint_sha256="random-weights")
+        out[f"{label}, fp32"] = path
+        for scheme in ("dynamic-int8", "static-qdq-int8", "static-qdq-int8-conv"):
+            out[f"{label}, {scheme}"] = quantize_model(path, work / f"{arch}.{scheme}.onnx", scheme=scheme,
+                                                       enforce=False).path
     return out
 
 
@@ -331,7 +337,8 @@ def speed(doc: dict, first: dict, rounds: int) -> None:
     paper = doc["refine_per_s_1_thread"].get("paper shallow, dynamic-int8")
     for n, v in doc["refine_per_s_1_thread"].items():
         print(f"speed {n}: {v:,.0f}/s ({v / base:.2f}x the first shipped files, {v / paper:.2f}x paper shallow INT8)", flush=True)
-    best = max((n for n in first if n != "fp32" and not n.startswith("paper")), key=doc["refine_per_s_1_thread"].get)
+    best = max((n for n in first if n != "fp32" and not n.startswith(("paper", "default"))),
+               key=doc["refine_per_s_1_thread"].get)
     conv = "qdq conv>=16 + large FC dynamic (7-bit)"
     if conv in first:
         doc["propagation"] = propagation_speed(first[conv], rounds=rounds)
