@@ -289,8 +289,10 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
           f"{ev['fp32']['all']['mean_deg']:.2f}, input {ev['int8']['all']['input_mean_deg']:.2f})", flush=True)
     if commit:
         _commit([WEIGHTS_DIR / fp32.name, WEIGHTS_DIR / int8.name, result_json, WEIGHTS_DIR / INDEX_FILE,
-                 WEIGHTS_DIR / "MODELS.md"],
-                f"weights: the {obj} refiner, {ev['int8']['all']['mean_deg']:.2f} deg INT8 on held-out rendered scenes "
+                 WEIGHTS_DIR / "MODELS.md", ROOT / "README.md", ROOT / "benchmarks" / "RESULTS.md"], regenerate=True,
+                message=
+                f"weights: the {obj} refiner (version {MODEL_VERSION}), {ev['int8']['all']['mean_deg']:.2f} deg INT8 on "
+                "held-out rendered scenes "
                 f"(input {ev['int8']['all']['input_mean_deg']:.2f})")
     return doc
 
@@ -449,8 +451,9 @@ def requantize(data: Path | None, run: Path | None, cache: Path | None, objects=
           f"{'held' if held else 'NOT held'}", flush=True)
     if commit and costs:
         schemes_used = sorted({docs[o]["export"]["int8_scheme"] for o in costs})
-        _commit(changed + [WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md"],
-                f"weights: the INT8 models quantised again ({', '.join(schemes_used)}), mean cost {mean_cost:+.3f} deg "
+        _commit(changed + [WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md", ROOT / "README.md",
+                           ROOT / "benchmarks" / "RESULTS.md"], regenerate=True,
+                message=f"weights: the INT8 models of {', '.join(costs)} quantised again ({', '.join(schemes_used)}), mean cost {mean_cost:+.3f} deg "
                 "against fp32 on " + ("fresh rendered scenes" if fresh else "held-out scenes"))
     return {"costs_deg": costs, "mean_cost_deg": mean_cost, "held": held}
 
@@ -463,11 +466,17 @@ def _git_commit() -> str:
         return "unknown"
 
 
-def _commit(paths: list[Path], message: str) -> None:
-    """Commit exactly ``paths`` (a lock keeps two builds side by side from committing at once)."""
-    rel = [str(p.relative_to(ROOT)) for p in paths if p.exists()]
+def _commit(paths: list[Path], message: str, regenerate: bool = False) -> None:
+    """Commit exactly ``paths`` (a lock keeps two builds side by side from committing at once). ``regenerate``:
+    first, under the lock, write the card and index from every result JSON and the README's and RESULTS.md's tables
+    from the index (``benchmarks/report.py``), so that every commit of a build has docs that match its models."""
     with open(ROOT / ".git" / "pretrained-build.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
+        if regenerate:
+            write_card()
+            subprocess.run([sys.executable, str(ROOT / "benchmarks" / "report.py")], check=True, cwd=ROOT,
+                           stdout=subprocess.DEVNULL)
+        rel = [str(p.relative_to(ROOT)) for p in paths if p.exists()]
         subprocess.run(["git", "add", "--", *rel], cwd=ROOT, check=True)
         subprocess.run(["git", "commit", "-q", "-m", message, "--", *rel], cwd=ROOT, check=True)
 
@@ -688,6 +697,9 @@ def main(argv=None) -> int:
     b.add_argument("--force", action="store_true", help="rebuild objects that already ship")
     b.add_argument("--val", type=int, help=f"validation crops per object (default {RECIPE['val']}; smaller for smoke tests)")
     b.add_argument("--test", type=int, help=f"test crops per object (default {RECIPE['test']})")
+    b.add_argument("--heldout", type=Path, help="then score each new model on this folder of fresh scenes and "
+                   "quantise it again calibrated on --calibration, as `requantize --heldout` does (the card's evaluation)")
+    b.add_argument("--calibration", type=Path, help="with --heldout: the folder of other fresh scenes to calibrate on")
     sub.add_parser("card", help="regenerate weights/models.json and weights/MODELS.md from the JSON")
     r = sub.add_parser("requantize", help="quantise the shipped INT8 models again from their fp32 files with the "
                        "fastest scheme that holds accuracy, re-evaluate, regenerate the card")
@@ -741,6 +753,8 @@ def main(argv=None) -> int:
             _commit([RESULTS_DIR / "_speed.json", WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md"],
                     "weights: the shipped models' speed, measured interleaved on one core")
         return 0
+    if (args.heldout is None) != (args.calibration is None):
+        ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
     args.run.mkdir(parents=True, exist_ok=True)
     cache = args.cache or args.data / ".crops"
     for obj in [o.strip() for o in args.objects.split(",") if o.strip()]:
@@ -760,6 +774,9 @@ def main(argv=None) -> int:
             if done.is_file() and not args.force and json.loads(done.read_text()).get("recipe", {}).get("name") == RECIPE["name"]:
                 continue  # finished by the other build while this one waited
             ship_object(obj, args.data, args.run, cache, args.samples, args.sizes, args.commit, args.val, args.test)
+            if args.heldout is not None:
+                requantize(None, None, None, [obj], INT8_SCHEMES_FASTEST_FIRST, args.commit, args.heldout,
+                           args.calibration)
     return 0
 
 
