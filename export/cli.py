@@ -79,15 +79,15 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
     f"static-qdq-int8 (MatMul/Gemm with calibrated activation ranges) or static-qdq-int8-conv (also the convolutions "
     f"with 16+ input channels, per-channel 7-bit weights: the fast one for deep image stages such as the shipped "
     f"five-block refiner; give --calib).  [default: {DEFAULT_SCHEME}; with --calib static-qdq-int8-conv for a "
-    f"model with such convolutions, else static-qdq-int8]",
+    f"model with two or more such convolutions, else static-qdq-int8]",
 )
 @click.option(
     "--calib",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
     default=None,
     help="Dataset (BOP split folder or YCB-Video root) whose training-split crops calibrate the static schemes and, "
-    "held out, check them; implies a static scheme (static-qdq-int8-conv where the model has convolutions of 16+ "
-    "input channels, else static-qdq-int8) unless --int8-scheme names one. Without it the static schemes calibrate "
+    "held out, check them; implies a static scheme (static-qdq-int8-conv where the model has two or more "
+    "convolutions of 16+ input channels, else static-qdq-int8) unless --int8-scheme names one. Without it the static schemes calibrate "
     "on random crops.",
 )
 def export_cmd(

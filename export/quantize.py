@@ -528,11 +528,15 @@ def _quantize_static_qdq_conv(src: Path, dst: Path, calibration: Calibration, *,
 
 def calibrated_scheme_for(fp32_path) -> str:
     """The static scheme ``refiner-rt export --int8 --calib`` uses when none is named: ``"static-qdq-int8-conv"``
-    for a model with convolutions of at least :data:`CONV_MIN_CHANNELS` input channels (:func:`wide_conv_chain`;
-    the shipped five-block refiner: 1.6x the dynamic scheme's speed and within 0.05 degree of fp32 on AVX-512 VNNI,
-    ``benchmarks/studies/int8_convs``), else ``"static-qdq-int8"`` (the fully connected layers only)."""
+    for a model with at least two convolutions of :data:`CONV_MIN_CHANNELS` or more input channels
+    (:func:`wide_conv_chain`), a deep image stage such as the shipped five-block refiner's (1.6x the dynamic
+    scheme's speed and within 0.05 degree of fp32 on AVX-512 VNNI, ``benchmarks/studies/int8_convs``); else
+    ``"static-qdq-int8"`` (the fully connected layers only), as before for the two-block defaults, whose one wide
+    convolution was not measured under this scheme against it."""
     proto = onnx.load(str(fp32_path), load_external_data=False)
-    return "static-qdq-int8-conv" if wide_conv_chain(proto) else "static-qdq-int8"
+    nodes = {n.name: n.op_type for n in proto.graph.node}
+    wide_convs = [name for name in wide_conv_chain(proto) if nodes[name] == "Conv"]
+    return "static-qdq-int8-conv" if len(wide_convs) >= 2 else "static-qdq-int8"
 
 
 _QUANTIZERS = {"dynamic-int8": _quantize_dynamic, "static-qdq-int8": _quantize_static_qdq,

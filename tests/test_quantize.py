@@ -174,9 +174,9 @@ def test_cli_export_int8(tmp_path, cubes):
     assert result.exit_code == 0, result.output
     assert "held-out calibration crops" in result.output
     assert _props(tmp_path / "g.int8.onnx")["quantization"] == "static-qdq-int8"  # two 3/8-channel convs: FC only
-    # A network with convolutions of 16+ input channels gets the conv scheme from --calib alone.
+    # A network with two or more convolutions of 16+ input channels gets the conv scheme from --calib alone.
     torch.manual_seed(0)
-    wide = models.build_refiner("fusion", **{**CONFIGS["fusion"], "conv_channels": [8, 16, 16]})
+    wide = models.build_refiner("fusion", **{**CONFIGS["fusion"], "conv_channels": [8, 16, 16, 16]})
     wide_ckpt = models.save_checkpoint(wide, tmp_path / "w.pt", **INFO)
     result = runner.invoke(cli_main, ["export", str(wide_ckpt), "--int8", "--calib", str(cubes)])
     assert result.exit_code == 0, result.output
