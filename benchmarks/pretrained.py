@@ -750,8 +750,9 @@ def main(argv=None) -> int:
         write_card()
         print(json.dumps(doc["models"], indent=1))
         if args.commit:
-            _commit([RESULTS_DIR / "_speed.json", WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md"],
-                    "weights: the shipped models' speed, measured interleaved on one core")
+            _commit([RESULTS_DIR / "_speed.json", WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md",
+                     ROOT / "README.md", ROOT / "benchmarks" / "RESULTS.md"],
+                    "weights: the shipped models' speed, measured interleaved on one core", regenerate=True)
         return 0
     if (args.heldout is None) != (args.calibration is None):
         ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
