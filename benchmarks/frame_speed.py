@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 from refiner_rt import RefinerSession  # noqa: E402
 from refiner_rt.bench import FRAME_K, machine_info, synthetic_frame  # noqa: E402
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
-from refiner_rt.session import available_cores  # noqa: E402
+from refiner_rt.session import available_cores, default_session_options  # noqa: E402
 
 PAUSE_S = 0.05  # between ways, in every round (see the loop)
 PAPER_OBJECTS = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "006_mustard_bottle", "009_gelatin_box",
@@ -67,22 +67,6 @@ def frame_models(model_dir: Path | None, int8: bool) -> tuple[dict, dict]:
     return paths, stand_in
 
 
-def _no_spin_options(threads: int):
-    """RefinerSession's default options on ``threads`` threads, with onnxruntime's worker spinning off: nine sessions
-    each with spinning workers (one pool per session) fight over the cores between their calls (14-19 ms per frame
-    on 2 cores, and they slowed the other ways measured beside them)."""
-    import onnxruntime as ort
-
-    o = ort.SessionOptions()
-    o.intra_op_num_threads = threads
-    o.inter_op_num_threads = 1
-    o.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    o.log_severity_level = 3
-    o.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return o
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model-dir", type=Path, help="folder of <obj>.int8.onnx / <obj>.onnx (default: the shipped models)")
@@ -98,7 +82,10 @@ def main(argv=None) -> int:
     objects = list(paths)
     one = {o: RefinerSession(paths[o], threads=1) for o in objects}
     own = {o: RefinerSession(paths[o], threads=1) for o in objects}  # the parallel way's: no session shared by ways
-    every = {o: RefinerSession(paths[o], session_options=_no_spin_options(cores)) for o in objects}
+    # Worker spinning off: nine sessions each with a spinning pool fight over the cores between their calls (14-19 ms
+    # per frame on 2 cores, and they slowed the other ways measured beside them).
+    no_spin = {"session.intra_op.allow_spinning": "0"}
+    every = {o: RefinerSession(paths[o], session_options=default_session_options(cores, **no_spin)) for o in objects}
     schemes = sorted({s.contract.quantization for s in one.values()})
 
     def call(sessions, i):

@@ -158,7 +158,12 @@ def _score(onnx_paths: dict[str, Path], test, samples, rotation_frame: str) -> d
         out[name] = {"all": _stats(errors.err_out_deg, errors.err_in_deg),
                      "inside_image": _stats(errors.err_out_deg[~cut], errors.err_in_deg[~cut]),
                      "cut_by_border": _stats(errors.err_out_deg[cut], errors.err_in_deg[cut])}
-    return {"test_scenes": len(set(test.scene_ids.astype(str).tolist())), **out}
+    return out
+
+
+def _scenes(test) -> int:
+    """How many scenes the crops ``test`` come from."""
+    return len(set(test.scene_ids.astype(str).tolist()))
 
 
 def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -> dict:
@@ -169,8 +174,8 @@ def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -
 
     net, info = models.load_checkpoint(ckpt)
     test, spec, samples = checkpoint_test_set(net, info, data=data, cache_root=cache, with_samples=True)
-    scored = _score(onnx_paths, test, samples, info.get("rotation_frame", "camera"))
-    return {"test_scenes": scored.pop("test_scenes"), "split": spec.as_dict(), **scored}
+    return {"test_scenes": _scenes(test), "split": spec.as_dict(),
+            **_score(onnx_paths, test, samples, info.get("rotation_frame", "camera"))}
 
 
 def whole_folder_spec(data: Path, obj: str, part: str):
@@ -196,10 +201,10 @@ def evaluate_fresh(onnx_paths: dict[str, Path], obj: str, data: Path, cache: Pat
     spec = whole_folder_spec(data, obj, "test")
     splits = load_splits(spec)
     test = cropset_for(splits, "test", spec, input_size, crop_context, cache_root=cache, progress=False)
-    scored = _score(onnx_paths, test, list(splits.test), rotation_frame)
     folder_scenes = sum(1 for p in Path(data).iterdir() if (p / "scene_gt.json").is_file())  # BOP scenes
-    return {"test_scenes": scored.pop("test_scenes"), "folder_scenes": folder_scenes,
-            "split": {**spec.as_dict(), "data": data.resolve().name}, **scored}
+    return {"test_scenes": _scenes(test), "folder_scenes": folder_scenes,
+            "split": {**spec.as_dict(), "data": data.resolve().name},
+            **_score(onnx_paths, test, list(splits.test), rotation_frame)}
 
 
 def _metadata(path: Path) -> dict:
@@ -366,6 +371,23 @@ def _fresh_quantization(fp32: Path, obj: str, heldout: Path, calibration: Path, 
     return (lambda paths: evaluate_fresh(paths, obj, heldout, cache, c.rotation_frame, c.input_size, c.crop_context),
             lambda: dataset_calibration(calibration, c, cache_root=cache,
                                         spec=whole_folder_spec(calibration, obj, "train_base")))
+
+
+def scoring_mode(ap: argparse.ArgumentParser, args) -> bool:
+    """Check the two ways to score INT8 candidates (``--data`` and ``--run``, or ``--heldout`` and ``--calibration``)
+    on parsed ``args``; True for the fresh folders. ``ap.error`` names what is missing or mixed."""
+    by_checkpoints = args.data is not None or args.run is not None
+    by_folders = args.heldout is not None or args.calibration is not None
+    if by_checkpoints == by_folders:
+        ap.error("give either --data and --run (the build's checkpoints) or --heldout and --calibration")
+    if by_checkpoints and (args.data is None or args.run is None):
+        ap.error("--data and --run go together (the dataset, and the build's checkpoints that name its split)")
+    if by_folders and (args.heldout is None or args.calibration is None):
+        ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
+    if by_folders and args.heldout.resolve() == args.calibration.resolve():
+        ap.error("--calibration must be another folder than --heldout: calibrating on the scored crops would "
+                 "hide what quantisation costs")
+    return by_folders
 
 
 FRESH_SPLIT = "rendered scenes of a set no shipped model trained on, visib_fract >= 0.3, inputs U(0, 30)"
@@ -729,17 +751,7 @@ def main(argv=None) -> int:
         if bad or not schemes:
             ap.error(f"--schemes: unknown INT8 scheme(s) {bad}; known: {', '.join(SCHEMES)}")
         objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
-        by_checkpoints = args.data is not None or args.run is not None
-        by_folders = args.heldout is not None or args.calibration is not None
-        if by_checkpoints == by_folders:
-            ap.error("give either --data and --run (the build's checkpoints) or --heldout and --calibration")
-        if by_checkpoints and (args.data is None or args.run is None):
-            ap.error("--data and --run go together (the dataset, and the build's checkpoints that name its split)")
-        if by_folders and (args.heldout is None or args.calibration is None):
-            ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
-        if by_folders and args.heldout.resolve() == args.calibration.resolve():
-            ap.error("--calibration must be another folder than --heldout: calibrating on the scored crops would "
-                     "hide what quantisation costs")
+        scoring_mode(ap, args)
         out = requantize(args.data, args.run, args.cache, objects, schemes, args.commit, args.heldout,
                          args.calibration)
         return 0 if out["held"] else 1

@@ -61,7 +61,7 @@ from refiner_rt.geometry import (  # noqa: F401  (re-exported under their old na
 )
 from refiner_rt.preprocess import MAX_BOX_COORDINATE, crop_to_square, resize_crop, validate_boxes, validate_image
 
-__all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS",
+__all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "default_session_options", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS",
            "K_MAX_ABS", "K_MIN_FOCAL", "available_cores", "ray_quaternions", "view_boxes", "view_offsets"]
 
 log = logging.getLogger(__name__)
@@ -92,6 +92,22 @@ K_MAX_ABS = 1e9
 # reshapes commute with quantisation, so the outputs are the same bit for bit (tests/test_quantize_conv.py checks both
 # static schemes); fp32 and dynamic-int8 models have no QuantizeLinear to move (same outputs; same speed measured).
 DISABLED_OPTIMIZERS = ("QDQPropagationTransformer",)
+def default_session_options(threads: int, **config_entries: str) -> ort.SessionOptions:
+    """The ``onnxruntime.SessionOptions`` a :class:`RefinerSession` on ``threads`` threads uses (the class docstring
+    says why each is chosen), plus extra ``add_session_config_entry`` settings, e.g.
+    ``default_session_options(2, **{"session.intra_op.allow_spinning": "0"})``: for callers who change one option
+    and keep the rest."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.log_severity_level = 3
+    for key, value in config_entries.items():
+        options.add_session_config_entry(key, value)
+    return options
+
+
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity, which cgroups and ``taskset`` restrict)."""
     try:
@@ -322,12 +338,7 @@ class RefinerSession:
                 raise ValueError(f"provider {name!r} is not available in this onnxruntime; available: {available}")
 
         if session_options is None:
-            session_options = ort.SessionOptions()
-            session_options.intra_op_num_threads = self.threads
-            session_options.inter_op_num_threads = 1
-            session_options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-            session_options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-            session_options.log_severity_level = 3
+            session_options = default_session_options(self.threads)
         else:
             self.threads = session_options.intra_op_num_threads
         try:

@@ -833,3 +833,12 @@ def test_fuzz_refine_crops_gives_a_finite_unit_rotation_or_names_the_argument(da
     iterations = data.draw(count("iterations" in bad))
     sess = fuzz_session(data.draw(st.sampled_from(["camera", "ray"])))
     assert_finite_unit_or_named_error(lambda: sess.refine_crops(crops, q_in, iterations=iterations), bad)
+
+
+def test_default_session_options_are_the_sessions_own_plus_entries():
+    from refiner_rt.session import default_session_options
+
+    o = default_session_options(2, **{"session.intra_op.allow_spinning": "0"})
+    assert o.intra_op_num_threads == 2 and o.inter_op_num_threads == 1
+    assert o.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    assert o.get_session_config_entry("session.intra_op.allow_spinning") == "0"

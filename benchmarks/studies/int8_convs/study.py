@@ -49,7 +49,7 @@ from refiner_rt import RefinerSession  # noqa: E402
 from refiner_rt.bench import FRAME_K, frame_K, machine_info, synthetic_frame  # noqa: E402
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, parse_metadata  # noqa: E402
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
-from refiner_rt.session import DISABLED_OPTIMIZERS  # noqa: E402
+from refiner_rt.session import DISABLED_OPTIMIZERS, default_session_options  # noqa: E402
 
 # name -> (scheme written to the metadata, quantiser options); "fp32" and the two older schemes take none.
 _BIG = 65536  # weights of a "large" fully connected layer (export.quantize.large_fully_connected)
@@ -118,15 +118,10 @@ def shallow_models(work: Path) -> dict:
 
 
 def session_options(threads: int = 1, level=ort.GraphOptimizationLevel.ORT_ENABLE_ALL, **configs) -> ort.SessionOptions:
-    """RefinerSession's defaults, with ``level`` and extra ``add_session_config_entry`` settings."""
-    o = ort.SessionOptions()
-    o.intra_op_num_threads = threads
-    o.inter_op_num_threads = 1
-    o.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    """RefinerSession's defaults (:func:`refiner_rt.session.default_session_options`), with ``level`` and extra
+    ``add_session_config_entry`` settings."""
+    o = default_session_options(threads, **configs)
     o.graph_optimization_level = level
-    o.log_severity_level = 3
-    for k, v in configs.items():
-        o.add_session_config_entry(k, v)
     return o
 
 
@@ -262,11 +257,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args(argv)
     from export.quantize import dataset_calibration
-    from pretrained import evaluate, evaluate_fresh, whole_folder_spec
+    from pretrained import evaluate, evaluate_fresh, scoring_mode, whole_folder_spec
 
-    fresh = args.heldout is not None
-    if fresh == (args.data is not None and args.run is not None) or (fresh and args.calibration is None):
-        ap.error("give either --data and --run, or --heldout and --calibration")
+    fresh = scoring_mode(ap, args)
     cache = args.cache or (args.heldout if fresh else args.data) / ".crops"
     objects = args.objects.split(",") if args.objects else [m.object_id for m in pretrained_models()]
     names = [n.strip() for n in args.candidates.split(";")] if args.candidates else list(CANDIDATES)
