@@ -217,6 +217,14 @@ def _initial_model(args, spec, config: dict):
     except ValueError as exc:
         raise SystemExit(f"--init {args.init}: {exc}") from None
     mine, theirs = spec.held_out().as_dict(), recorded.held_out().as_dict()
+    if Path(str(theirs.get("data"))).name != Path(str(mine.get("data"))).name:
+        # Trained on another set: its held-out crops are not this folder's, so the rule below has nothing to compare.
+        # What matters is that it never trained on this folder's test scenes: a set grown with `render --first-scene`
+        # (the scenes after the other set's) has none of them; that is the caller's to ensure.
+        print(f"--init {args.init}: trained on the set {Path(str(theirs.get('data'))).name!r}, not on "
+              f"{Path(str(mine.get('data'))).name!r}: its scenes must not be this set's (render --first-scene)",
+              file=sys.stderr)
+        return model.train()
     differ = [k for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
     if differ:
         raise SystemExit(f"--init {args.init}: trained on another split ({', '.join(f'{k} {theirs.get(k)!r}' for k in differ)}"
