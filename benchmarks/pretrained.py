@@ -61,11 +61,15 @@ OBJECT_FRAME = ("YCB google_16k scan frame (models/data/ycb_models/<id>/textured
 SCHEMA = "refiner-rt/pretrained-eval/1"
 
 # The held-out-scenes recipe of the shipped models, as this build names its options: a view of the one definition,
-# ``heldout-scenes-v2`` in models/recipe.py (v1, the best measured for unseen scenes in benchmarks/studies/heldout_scenes,
-# "Five conv blocks on all nine objects", and benchmarks/studies/scene_count, on a four times larger rendered set).
-# Model version 1 was trained with heldout-scenes-v1 (3,500 crops per object from ycb9_v1's 2,362 scenes).
-RECIPE_NAME = "heldout-scenes-v2"
-MODEL_VERSION = "2"
+# ``heldout-scenes-v3`` in models/recipe.py (v1, the best measured for unseen scenes in benchmarks/studies/heldout_scenes,
+# "Five conv blocks on all nine objects", and benchmarks/studies/scene_count; v2 on a four times larger rendered set;
+# v3 continues each object's shipped model on new scenes). Model version 1 was trained with heldout-scenes-v1 (3,500
+# crops per object from ycb9_v1's 2,362 scenes), version 2 with heldout-scenes-v2 (ycb9_v2's 10,000 scenes).
+RECIPE_NAME = "heldout-scenes-v3"
+MODEL_VERSION = "3"
+# Version 3 starts each object from the model that ships now (its fp32 file, turned back into a checkpoint by
+# export.recover); the build refuses to start from a model of this same version (that would be training twice).
+INIT_FROM_SHIPPED = True
 _NAMED = NAMED_RECIPES[RECIPE_NAME]
 RECIPE = {
     "name": RECIPE_NAME,
@@ -80,6 +84,8 @@ RECIPE = {
     "val": _NAMED["val_per_object"],
     "test": _NAMED["test_per_object"],
     "seed": _NAMED["seed"],
+    "bf16": _NAMED.get("bf16", False),
+    "init_from_shipped": INIT_FROM_SHIPPED,
 }
 
 # INT8 schemes in the order of their speed on the shipped architecture, fastest first (benchmarks/studies/int8_convs:
@@ -108,8 +114,8 @@ def machine() -> dict:
 
 
 def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cache: Path, val: int | None = None,
-                  test: int | None = None) -> list[str]:
-    """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model."""
+                  test: int | None = None, init: Path | None = None) -> list[str]:
+    """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given)."""
     r = {**RECIPE, **({"val": val} if val else {}), **({"test": test} if test else {})}
     return [sys.executable, str(ROOT / "benchmarks" / "data_scaling.py"), "--data", str(data), "--object", obj,
             "--modes", r["split_mode"], "--sizes", str(sizes), "--val", str(r["val"]), "--test", str(r["test"]),
@@ -117,7 +123,37 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
             "--rotation-frame", r["rotation_frame"], "--lr", str(r["lr"]), "--seed", str(r["seed"]),
             "--augment", "--background", str(r["background"]), "--skip-plain", "--skip-jitter",
             "--samples", str(samples), "--cache", str(cache), "--threads", "1",
+            *(["--bf16"] if r["bf16"] else []), *(["--init", str(init)] if init is not None else []),
             "--save", str(run / obj), "--json", str(run / f"{obj}.train.json")]
+
+
+def recover_shipped(obj: str, data: Path, run: Path, cache: Path) -> tuple[Path, dict]:
+    """``(checkpoint, its recovered_from record)``: the shipped fp32 model of ``obj`` as a trainable checkpoint
+    (``RUN/<obj>.init.pt``, :func:`export.recover.checkpoint_from_onnx`), its BatchNorm statistics rebuilt from 320 of
+    ``data``'s training crops (the split the model recorded, drawn on ``data``). Reused when it exists."""
+    import models
+    from export.quantize import dataset_calibration
+    from export.recover import RecoverError, checkpoint_from_onnx
+    from refiner_rt.metadata import parse_metadata
+
+    out = run / f"{obj}.init.pt"
+    if not out.is_file():
+        src = WEIGHTS_DIR / model_file_name(obj, int8=False)
+        if not src.is_file():
+            raise SystemExit(f"[{obj}] no shipped fp32 model to start from ({src})")
+        props = _metadata(src)
+        if props.get("model_version") == MODEL_VERSION:
+            raise SystemExit(f"[{obj}] the shipped model is already version {MODEL_VERSION}; version {MODEL_VERSION} "
+                             "starts from the version before it")
+        cal = dataset_calibration(data, parse_metadata(props), cache_root=cache)
+        images = np.concatenate([cal.images, cal.check_images])
+        q_in = np.concatenate([cal.q_in, cal.check_q_in])
+        try:
+            checkpoint_from_onnx(src, out, images, q_in)
+        except RecoverError as exc:
+            raise SystemExit(f"[{obj}] {exc}") from None
+    _, info = models.load_checkpoint(out)
+    return out, {**info["recovered_from"], "max_abs_dq": info["recover_max_abs_dq"]}
 
 
 def _cut_by_border(samples) -> np.ndarray:
@@ -236,8 +272,9 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
     from export.onnx_export import export_checkpoint
 
     result_json = RESULTS_DIR / f"{obj}.json"
-    cmd = train_command(data, obj, run, samples, sizes, cache, val, test)
     t0 = time.perf_counter()
+    init, init_record = recover_shipped(obj, data, run, cache) if RECIPE["init_from_shipped"] else (None, None)
+    cmd = train_command(data, obj, run, samples, sizes, cache, val, test, init)
     ckpts = sorted((run / obj).glob("*.pt")) if (run / obj).is_dir() else []
     if not ckpts:
         print(f"[{obj}] training: {shlex.join(cmd)}", flush=True)
@@ -266,6 +303,8 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         "object_id": obj, "model_version": MODEL_VERSION, "recipe": RECIPE["name"],
         "mesh": {"file": f"models/data/ycb_models/{obj}/textured.obj", "sha256": file_sha256(mesh)},
         "object_frame": OBJECT_FRAME, "data": data_meta,
+        **({"init_from": {k: init_record[k] for k in ("file", "sha256", "model_version", "recipe")}}
+           if init_record else {}),
         "heldout_error_deg": {"int8_mean": round(ev["int8"]["all"]["mean_deg"], 3),
                               "fp32_mean": round(ev["fp32"]["all"]["mean_deg"], 3),
                               "split": BUILD_SPLIT},
@@ -283,6 +322,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         "export": {"max_abs_dq": exp.max_abs_dq, "int8_scheme": scheme, "int8_candidates": tried},
         "eval": ev, "heldout": heldout, "metadata": card_meta,
         "files": {"int8": int8.name, "fp32": fp32.name},
+        **({"init_from": init_record} if init_record else {}),
         "sizes_bytes": {"int8": int8.stat().st_size, "fp32": fp32.stat().st_size},
         "checkpoint_sha256": file_sha256(ckpt), "machine": machine(), "git_commit": _git_commit(),
         "build_s": round(time.perf_counter() - t0, 1),
@@ -635,7 +675,10 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
         lines += [f"- `{d['object_id']}` (version {d['model_version']}, recipe `{d['recipe']['name']}`): "
                   f"{t['train_crops']:,} training crops from {t['scenes']['train_base']:,} scenes, "
                   f"{t['samples']:,} samples, best epoch {t['best_epoch']} of {t['epochs']}, "
-                  f"training {t['wall_s']:,.0f} s on one thread of {d['machine']['cpu']} "
+                  + (f"started from the version-{d['init_from']['model_version']} model ({d['init_from']['recipe']}; "
+                     f"`{d['init_from']['file']}` sha256 {d['init_from']['sha256'][:12]}, turned back into the "
+                     "checkpoint `RUN/<object>.init.pt` by `export.recover`), " if d.get("init_from") else "")
+                  + f"training {t['wall_s']:,.0f} s on one thread of {d['machine']['cpu']} "
                   f"({', '.join(d['machine']['isa_flags']) or 'no AVX flags read'}); "
                   + (f"{d['eval_training_split']['int8']['all']['n']} test crops from "
                      f"{d['eval_training_split']['test_scenes']} held-out scenes of its training set; "

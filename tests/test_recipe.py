@@ -54,9 +54,11 @@ def test_named_recipes_are_valid_and_paper_is_the_defaults():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from benchmarks.pretrained import RECIPE
 
-    assert (held.val_per_object, held.test_per_object, held.lr, held.background, held.seed) == (
-        RECIPE["val"], RECIPE["test"], RECIPE["lr"], RECIPE["background"], RECIPE["seed"])
-    assert held.arch_config == RECIPE["config"] and held.rotation_frame == RECIPE["rotation_frame"]
+    built = load_recipe(RECIPE["name"])
+    assert (built.val_per_object, built.test_per_object, built.lr, built.background, built.seed, built.bf16) == (
+        RECIPE["val"], RECIPE["test"], RECIPE["lr"], RECIPE["background"], RECIPE["seed"], RECIPE["bf16"])
+    assert built.arch_config == RECIPE["config"] == held.arch_config
+    assert built.rotation_frame == RECIPE["rotation_frame"] == held.rotation_frame
 
 
 def test_recipe_files_round_trip_and_toml_reads(tmp_path):
