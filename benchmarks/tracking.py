@@ -15,6 +15,10 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
   of each refined rotation; an object it moves by more than that is lost) and the detector asked only then, for the
   same fresh draw ``per_frame`` refines on that frame. Its re-detection rate is reported (detector poses per
   refined object and frame).
+* ``track_fuse``: ``track`` with a detector's pose every ``--fuse-every`` frames (default every frame: the same
+  fresh draw ``per_frame`` refines), refined beside the track and fused with it
+  (``RefinerTracker(detector_weight=--detector-weight)``): the same detector input as ``per_frame`` at twice its
+  network passes.
 
 Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
@@ -56,11 +60,13 @@ from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
 from refiner_rt.tracker import RefinerTracker  # noqa: E402
 
-METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect", "track_lost")
+METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect", "track_lost", "track_fuse")
+TRACKERS = ("track", "track_predict", "track_redetect", "track_lost", "track_fuse")
 LABELS = {"hold": "(a) hold the initial coarse pose", "per_frame": "(b) refine each frame from U(0, 30)",
           "track": "(c) track from an initial U(0, 30)", "track_predict": "(c) + constant-velocity prediction",
           "track_redetect": "(c) + a detector's U(0, 30) pose every N frames",
-          "track_lost": "(c) + loss-of-track check, detector only when lost"}
+          "track_lost": "(c) + loss-of-track check, detector only when lost",
+          "track_fuse": "(c) + a detector's pose fused every N frames"}
 DIVERGED_DEG = 30.0
 
 
@@ -102,7 +108,7 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
               n_frames: int, timing: dict, methods=METHODS, redetect: int = 10, lost_deg: float = 1.5,
-              detections: dict | None = None) -> dict:
+              detections: dict | None = None, detector_weight: float = 0.5, fuse_every: int = 1) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
     start_noise = {s.object_id: rq.sample_rotation_noise(1, "uniform", 0, 30, rng[s.object_id])[0] for s in seqs}
@@ -148,10 +154,11 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                     out["hold"][step][s.object_id][f - f0] = rq.geodesic_angle(q_start[s.object_id], s.q_gt[f])
                     if "per_frame" in methods:
                         out["per_frame"][step][s.object_id][f - f0] = per_frame[s.object_id][f]
-        for method in [m for m in ("track", "track_predict", "track_redetect", "track_lost") if m in methods]:
+        for method in [m for m in TRACKERS if m in methods]:
             tracker = RefinerTracker({s.object_id: sessions[s.object_id] for s in live}, K, {},
                                      predict=method == "track_predict",
-                                     lost_deg=lost_deg if method == "track_lost" else None)
+                                     lost_deg=lost_deg if method == "track_lost" else None,
+                                     detector_weight=detector_weight if method == "track_fuse" else None)
             key = f"{method}_step{step}"
             last_detection = {}
             for f in grid:
@@ -166,15 +173,20 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                         last_detection[s.object_id] = f
                 boxes = {s.object_id: s.boxes[f] for s in live if s.object_id in tracker and f in s.images}
                 # a detector's pose, asked for only by track_lost's lost objects: that frame's fresh draw
+                # or fused by track_fuse every fuse_every frames (counted from each track's start)
                 detector = {s.object_id: rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])
                             for s in live if s.object_id in boxes} if method == "track_lost" else None
+                if method == "track_fuse":
+                    detector = {s.object_id: rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])
+                                for s in live if s.object_id in boxes and f != start[s.object_id]
+                                and (f - start[s.object_id]) % (fuse_every * step) == 0}
                 t0, c0 = time.perf_counter(), time.process_time()
                 before = tracker.redetections
                 q = tracker.update(images[f], boxes, detector=detector)
                 if detections is not None:
                     detections[key] = detections.get(key, 0) + tracker.redetections - before + (
                         sum(1 for s in live if s.object_id in boxes and last_detection.get(s.object_id) == f
-                            and f != start[s.object_id]))
+                            and f != start[s.object_id])) + (len(detector) if method == "track_fuse" else 0)
                 timing[key]["seconds"] += time.perf_counter() - t0
                 timing[key]["cpu_seconds"] += time.process_time() - c0
                 timing[key]["updates"] += 1
@@ -243,14 +255,15 @@ def plot(doc: dict, path: Path) -> None:
     steps = doc["steps"]
     fig, axes = plt.subplots(2, len(steps), figsize=(4.6 * len(steps), 6.6), sharey="row", squeeze=False)
     colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange",
-               "track_redetect": "tab:green", "track_lost": "tab:purple"}
+               "track_redetect": "tab:green", "track_lost": "tab:purple", "track_fuse": "tab:brown"}
     for row, (key, stat) in enumerate((("curves", "mean"), ("curves_median", "median"))):
         for ax, step in zip(axes[row], steps):
             for m in [m for m in METHODS if m in doc[key]]:
                 y = np.array([np.nan if v is None else v for v in doc[key][m][str(step)]])
                 x = np.arange(len(y))
                 ok = ~np.isnan(y)
-                label = LABELS[m].replace("every N", f"every {doc['redetect']}")
+                every = doc.get("fuse_every", 1) if m == "track_fuse" else doc["redetect"]
+                label = LABELS[m].replace("every N frames", "every frame" if every == 1 else f"every {every} frames")
                 ax.plot(x[ok], y[ok], color=colours[m], label=label, lw=1.3, ls="--" if m == "track_predict" else "-")
             if row == 0:
                 ax.set_title({1: "step 1 (every frame)", 2: "step 2 (every 2nd frame)"}.get(
@@ -274,7 +287,9 @@ def report(doc: dict) -> str:
     short = {"hold": "(a) hold initial pose", "per_frame": "(b) refine each frame from U(0, 30)",
              "track": "(c) track", "track_predict": "(c) track + constant velocity",
              "track_redetect": f"(c) track + detector every {doc['redetect']} frames",
-             "track_lost": f"(c) track + loss check ({doc.get('lost_deg')} deg), detector when lost"}
+             "track_lost": f"(c) track + loss check ({doc.get('lost_deg')} deg), detector when lost",
+             "track_fuse": f"(c) track + detector fused (weight {doc.get('detector_weight')}) every "
+                           + ("frame" if doc.get("fuse_every", 1) == 1 else f"{doc.get('fuse_every')} frames")}
     lines = ["| step | method | mean | median | last frame | diverged (> 30 deg) | beats (b) per sequence "
              "| detector poses per frame | CPU ms per update |",
              "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -310,6 +325,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="track_redetect: frames between a detector's poses (default 10, e.g. 3 Hz in 30 Hz video)")
     p.add_argument("--lost-deg", type=float, default=1.5,
                    help="track_lost: the tracker's lost_deg (degrees a second refinement may move a rotation; default 1.5)")
+    p.add_argument("--detector-weight", type=float, default=0.5,
+                   help="track_fuse: the tracker's detector_weight (the refined detection's share; default 0.5)")
+    p.add_argument("--fuse-every", type=int, default=1,
+                   help="track_fuse: updates between a detector's poses (default 1: every update)")
     p.add_argument("--json", type=Path, help="write the results here")
     p.add_argument("--plot", type=Path, help="write the error-vs-frame plot here (PNG)")
     p.add_argument("--detections-out", type=Path, metavar="DIR",
@@ -327,6 +346,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--methods must list some of {','.join(METHODS)}, hold included; got {args.methods!r}")
     if not 0 < args.lost_deg <= 180:
         p.error(f"--lost-deg must be in (0, 180] degrees; got {args.lost_deg}")
+    if not 0 < args.detector_weight <= 1:
+        p.error(f"--detector-weight must be in (0, 1]; got {args.detector_weight}")
+    if args.fuse_every < 1:
+        p.error(f"--fuse-every must be a positive integer; got {args.fuse_every}")
     if any(s < 1 for s in steps):
         p.error(f"--steps must be positive integers; got {args.steps!r}")
 
@@ -372,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
         res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods, args.redetect,
-                        args.lost_deg, detections)
+                        args.lost_deg, detections, args.detector_weight, args.fuse_every)
         for s in scene_seqs:
             if s.object_id in res["hold"][steps[0]]:
                 row = {"scene": scene, "object": s.object_id, "frames": len(s.images)}
@@ -396,7 +419,7 @@ def main(argv: list[str] | None = None) -> int:
             for st in steps:
                 better = [np.nanmean(a) < np.nanmean(b) for a, b in zip(errors[m][st], errors["per_frame"][st])]
                 summary[m][str(st)]["beats_per_frame_share"] = round(float(np.mean(better)), 4)
-    for m in ("track", "track_predict", "track_redetect", "track_lost"):
+    for m in TRACKERS:
         for st in steps:
             if m in methods:  # detector poses per scored frame after the start (per_frame: one on every frame)
                 summary[m][str(st)]["detector_share"] = round(
@@ -426,12 +449,12 @@ def main(argv: list[str] | None = None) -> int:
                      f"deg of azimuth per scene) of {len(objects)} object(s); frames with visib_fract >= "
                      f"{args.min_visib} scored, sequences with >= {args.min_frames} such frames; coarse poses U(0, 30) deg "
                      f"around the truth, seed {args.seed}; one network pass per object and update (track_lost: two, and one more "
-                     f"per detector pose), threads=1"),
+                     f"per detector pose; track_fuse: one more per detector pose), threads=1"),
         "data": str(args.data), "render_seed": render_record.get("seed"), "scenes": len(scenes),
-        "sequences_per_object": {o: len(v) for o, v in sorted(per_object["track"][steps[0]].items())},
+        "sequences_per_object": {o: len(v) for o, v in sorted(per_object["hold"][steps[0]].items())},
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
-        "lost_deg": args.lost_deg,
+        "lost_deg": args.lost_deg, "detector_weight": args.detector_weight, "fuse_every": args.fuse_every,
         "summary": summary, "per_object": objects_table, "per_sequence_first_step": per_sequence,
         "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
         "curves_median": {m: {str(st): curve(errors[m][st], np.median) for st in steps} for m in methods},

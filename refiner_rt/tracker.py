@@ -26,6 +26,15 @@ second pass moves by more than ``lost_deg`` degrees is flagged lost (the refiner
 output: near the truth it moves little). A flagged object is listed in :attr:`RefinerTracker.lost`; when
 :meth:`RefinerTracker.update` is given a ``detector``, it is re-initialised from the detector's coarse pose and
 refined from it in the same update, and :attr:`RefinerTracker.redetections` counts it.
+
+Fusing a detector (``detector_weight``): when a detector gives poses in many frames (every frame, or every few), a
+track need not choose between them and its own estimate. Each update then refines both, the tracked rotation and the
+detector's pose (one batched network call, two rows per object), and keeps the rotation a fraction ``w`` of the way
+from the refined track to the refined detection along the shortest arc (``q = (q_det * q_track^-1) ** w * q_track``).
+The track carries what earlier frames saw, so a poor refinement in one frame moves it by only ``w`` of its error;
+the detections pull a drifting track back (a turn the refiner cannot see, such as a can's about its own axis, is not
+left to accumulate). ``w = 1`` is the paper's per-frame refinement; the frames without a detector pose are plain
+tracking.
 """
 
 from __future__ import annotations
@@ -94,6 +103,9 @@ class RefinerTracker:
         lost_deg: the loss-of-track check (module docstring): flag an object lost when a second refinement of its
             refined rotation moves it by more than this many degrees; a finite number in ``(0, 180]``, or ``None``
             (default) for no check (one network pass per object and update; the check costs a second).
+        detector_weight: fuse the detector's poses given to :meth:`update` (module docstring): the weight ``w`` in
+            ``(0, 1]`` of the refined detection against the refined track, or ``None`` (default): the detector is
+            used only by the loss-of-track check. Fusing costs a second network pass per object with a detection.
 
     Raises:
         ValueError / TypeError: a bad argument, named, with what was expected and what was given.
@@ -107,12 +119,16 @@ class RefinerTracker:
     """
 
     def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1,
-                 lost_deg: float | None = None):
+                 lost_deg: float | None = None, detector_weight: float | None = None):
         self.K = _validate_K(K).copy()
         if not isinstance(predict, bool):
             raise TypeError(f"predict must be True or False; got {predict!r}")
         self.predict = predict
         self.lost_deg = _check_lost_deg(lost_deg)
+        self.detector_weight = _check_detector_weight(detector_weight)
+        if self.lost_deg is not None and self.detector_weight is not None:
+            raise ValueError("lost_deg and detector_weight are two uses of a detector's poses (only when a track is "
+                             "lost, or fused in every frame); choose one")
         self.lost: list[str] = []  # objects the last update flagged lost (and could not re-detect)
         self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
         self.iterations = RefinerSession._validate_iterations(iterations)
@@ -225,13 +241,13 @@ class RefinerTracker:
             boxes: ``{object id: (4,) box (x1, y1, x2, y2)}`` in pixels (continuous coordinates), one per tracked
                 object seen in this frame; each non-empty and overlapping the image. Tracked objects without a box
                 keep their rotation; an id that is not tracked is an error.
-            detector: where a lost object's new coarse pose comes from (used only with ``lost_deg``): a callable
-                ``detector(object_id) -> (4,)`` or a mapping ``{object id: (4,)}``, object-to-camera ``wxyz``
-                rotations (e.g. your pose detector's). Asked only for the objects this update flags lost; each is
-                re-initialised from that pose and refined from it in this update (one more network pass), its
-                motion forgotten. An object the detector has no pose for (a mapping without it, or ``None``
-                returned) stays lost. ``None`` (default): lost objects keep their refined rotation; see
-                :attr:`lost`.
+            detector: a detector's coarse poses: a callable ``detector(object_id) -> (4,)`` or a mapping
+                ``{object id: (4,)}``, object-to-camera ``wxyz`` rotations (e.g. your pose detector's); ``None`` or
+                missing for an object it has no pose for. With ``lost_deg``, asked only for the objects this update
+                flags lost; each is re-initialised from that pose and refined from it in this update (one more
+                network pass), its motion forgotten, and one without a pose stays lost (see :attr:`lost`). With
+                ``detector_weight``, asked for every object in ``boxes``; each pose is refined beside the track
+                and fused with it. ``None`` (default): no detector in this frame.
 
         Returns:
             ``{object id: (4,) float64 wxyz, w >= 0}``: the refined object-to-camera rotation of each object in
@@ -269,8 +285,18 @@ class RefinerTracker:
         # can fail any more: a bad pose from the detector leaves the tracker as it was.
         results = []
         for sess, ids, rows in groups.values():
-            q_in = np.array([self._prediction(self._tracks[i]) for i in ids])
-            refined = self._refine(sess, image, rows, q_in).tolist()
+            q_in = [self._prediction(self._tracks[i]) for i in ids]
+            fused = []  # (index into ids, the detector's pose) to refine and fuse
+            if self.detector_weight is not None and detector is not None:
+                for i, object_id in enumerate(ids):
+                    q_det = self._ask(detector, object_id)
+                    if q_det is not None:
+                        fused.append((i, q_det))
+            both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
+                                np.array(q_in + [q for _, q in fused])).tolist()
+            refined = both[: len(ids)]
+            for (i, _), q_det in zip(fused, both[len(ids):]):
+                refined[i] = _blend(refined[i], q_det, self.detector_weight)
             results.append((sess, ids, rows, refined, self._flag_lost(sess, image, ids, rows, refined)))
         redetected, lost = {}, []
         for sess, ids, rows, refined, flagged in results:
@@ -368,7 +394,7 @@ class RefinerTracker:
 
     def __repr__(self) -> str:
         return (f"RefinerTracker(objects={self.object_ids}, predict={self.predict}, iterations={self.iterations}, "
-                f"lost_deg={self.lost_deg})")
+                f"lost_deg={self.lost_deg}, detector_weight={self.detector_weight})")
 
 
 def _check_lost_deg(value) -> float | None:
@@ -379,6 +405,24 @@ def _check_lost_deg(value) -> float | None:
     if not (0.0 < float(value) <= 180.0):
         raise ValueError(f"lost_deg must be in (0, 180] degrees (or None for no check); got {value!r}")
     return float(value)
+
+
+def _check_detector_weight(value) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"detector_weight must be a number in (0, 1] or None; got {value!r}")
+    if not (0.0 < float(value) <= 1.0):
+        raise ValueError(f"detector_weight must be in (0, 1] (the refined detection's share; None: no fusion); "
+                         f"got {value!r}")
+    return float(value)
+
+
+def _blend(q_track: list, q_det: list, w: float) -> list:
+    """The rotation ``w`` of the way from ``q_track`` to ``q_det`` along the shortest arc, ``w >= 0`` canonical:
+    ``(q_det * q_track^-1) ** w * q_track`` (unit ``[w, x, y, z]`` lists)."""
+    step = _unit_rows(_multiply_rows([q_det], _conjugate_rows([q_track])))[0]
+    return rq.canonical(rq.multiply(_fraction(step, w), q_track)).tolist()
 
 
 def _fraction(q: list, power: float) -> list:

@@ -164,6 +164,12 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(lost_deg=float("nan")), ValueError, r"lost_deg must be in \(0, 180\] degrees"),
     (dict(lost_deg="2"), TypeError, "lost_deg must be a number of degrees"),
     (dict(lost_deg=True), TypeError, "lost_deg must be a number of degrees"),
+    (dict(detector_weight=0), ValueError, r"detector_weight must be in \(0, 1\]"),
+    (dict(detector_weight=1.5), ValueError, r"detector_weight must be in \(0, 1\]"),
+    (dict(detector_weight=float("nan")), ValueError, r"detector_weight must be in \(0, 1\]"),
+    (dict(detector_weight="0.3"), TypeError, r"detector_weight must be a number in \(0, 1\] or None"),
+    (dict(detector_weight=True), TypeError, r"detector_weight must be a number in \(0, 1\] or None"),
+    (dict(detector_weight=0.3, lost_deg=2.0), ValueError, "lost_deg and detector_weight are two uses"),
 ])
 def test_bad_construction_is_named(kwargs, error, match):
     args = dict(session=session(), K=K, q0={"003_cracker_box": Q0[0]})
@@ -251,6 +257,44 @@ def test_no_check_and_no_detector_call_without_lost_deg():
     assert tracker.lost == [] and tracker.redetections == 0
 
 
+# ------------------------------------------------------------------------------ fusing a detector
+@pytest.mark.parametrize("frame", ["camera", "ray"])
+@pytest.mark.parametrize("w", [0.3, 1.0])
+def test_a_fused_detection_moves_the_track_w_of_the_way(frame, w):
+    """Refined track q_t * c and refined detection q_det * c (the constant model's c), fused: SciPy's Slerp at w
+    between them; w = 1 is the refined detection (per-frame refinement); an update without a pose is plain tracking."""
+    from scipy.spatial.transform import Slerp
+
+    q_det = rq.from_axis_angle([1.0, 0.2, 0.0], 25.0)
+    tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]}, detector_weight=w)
+    q = tracker.update(IMG, {"003_cracker_box": BOX_A}, detector={"003_cracker_box": q_det})["003_cracker_box"]
+    ends = Rotation.concatenate([scipy_q(Q0[0]) * scipy_q(Q_OUT), scipy_q(q_det) * scipy_q(Q_OUT)])
+    want = Slerp([0.0, 1.0], ends)([w])[0]
+    assert_same_rotation(q, want)
+    assert q[0] >= 0
+    q2 = tracker.update(IMG, {"003_cracker_box": BOX_A}, detector=lambda object_id: None)["003_cracker_box"]
+    assert_same_rotation(q2, want * scipy_q(Q_OUT))
+
+
+def test_fusing_refines_tracks_and_detections_in_one_call(monkeypatch):
+    shared = session(objects=("003_cracker_box", "011_banana"))
+    calls = []
+    real = shared.refine
+
+    def spy(image, boxes, q_in, **kw):
+        calls.append((np.asarray(boxes).copy(), np.asarray(q_in).copy()))
+        return real(image, boxes, q_in, **kw)
+
+    monkeypatch.setattr(shared, "refine", spy)
+    tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0], "011_banana": Q0[1]}, detector_weight=0.5)
+    q_det = rq.from_axis_angle([0.0, 1.0, 0.0], 10.0)
+    tracker.update(IMG, {"003_cracker_box": BOX_A, "011_banana": BOX_B}, detector={"011_banana": q_det})
+    assert len(calls) == 1
+    boxes, q_in = calls[0]
+    np.testing.assert_allclose(boxes, [BOX_A, BOX_B, BOX_B])  # the banana twice: its track and its detection
+    np.testing.assert_allclose(q_in, np.stack([Q0[0], Q0[1], q_det]), atol=1e-12)
+
+
 @pytest.mark.parametrize("detector, error, match", [
     (3, TypeError, "detector must be a callable detector"),
     ({"003_cracker_box": [0, 0, 0, 0]}, ValueError, r"detector pose for '003_cracker_box' must be non-zero"),
@@ -310,6 +354,33 @@ def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
     assert res.exit_code == 0, res.output
     assert (tmp_path / "v.avi").stat().st_size > 0
     assert json.loads(out.read_text())["lost"] == {}
+
+
+def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path):
+    """A "q" on the third frame: without --detector-weight it restarts the track (q_det * c); with 0.5 it is refined
+    beside the track and the rotation is half way between the two (SciPy's Slerp)."""
+    import json
+
+    from click.testing import CliRunner
+    from scipy.spatial.transform import Slerp
+
+    from refiner_rt.cli import main
+
+    q_det = rq.from_axis_angle([0.0, 0.0, 1.0], 20.0)
+    frames, dets, model = write_sequence(tmp_path, n=3)
+    doc = json.loads(dets.read_text())
+    doc["frames"]["000002.png"]["003_cracker_box"] = {"box": BOX_A, "q": list(q_det)}
+    dets.write_text(json.dumps(doc))
+    track = scipy_q(Q0[0]) * scipy_q(Q_OUT) ** 3
+    det = scipy_q(q_det) * scipy_q(Q_OUT)
+    for extra, want in (([], det), (["--detector-weight", "0.5"], Slerp([0, 1], Rotation.concatenate([track, det]))([0.5])[0])):
+        out = tmp_path / "rot.json"
+        res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model), *extra])
+        assert res.exit_code == 0, res.output
+        assert_same_rotation(np.array(json.loads(out.read_text())["frames"]["000002.png"]["003_cracker_box"]), want)
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--detector-weight", "0"])
+    assert res.exit_code == 2 and "--detector-weight" in res.output and "Traceback" not in res.output
 
 
 @pytest.mark.parametrize("lost_deg, lost_frames", [("5", ["000001.png", "000002.png"]), ("10", [])])
@@ -440,15 +511,18 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
         # A model that never corrects agrees with itself: the loss check never fires, no detector is asked.
         assert s["track_lost"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
         assert s["track_lost"][step]["detector_share"] == 0 and s["per_frame"][step]["detector_share"] == 1
+        # Fusing the fresh draws pulls the held pose towards the truth.
+        assert s["track_fuse"][step]["mean_deg"] < s["hold"][step]["mean_deg"]
     assert s["track_redetect"]["1"]["detector_share"] == round(4 / 23, 4)  # frames 4 and 8 of both, frame 5 unscored
     assert s["hold"]["1"]["frames"] == 23  # 2 x 12 frames, one below --min-visib
+    assert s["track_fuse"]["1"]["detector_share"] == round(21 / 23, 4)  # every scored frame after each start
     # Holding the pose drifts by the 2-degree turn per frame: the curve rises over the sequence.
     curve = doc["curves"]["hold"]["1"]
     assert curve[11] > curve[0] + 10
     assert doc["cost"]["track_step1"]["refinements"] == 23 and doc["machine"]["cpu"]
     assert png.stat().st_size > 10_000
     table = bench.report(doc)
-    assert len(table.splitlines()) == 2 + 3 * 6 and "| 1 | (c) track |" in table
+    assert len(table.splitlines()) == 2 + 3 * 7 and "| 1 | (c) track |" in table
     # The detections it writes run through `refiner-rt track`: with this model the rotation stays the initial pose.
     from click.testing import CliRunner
 
