@@ -377,7 +377,7 @@ NAMED_RECIPES: dict[str, dict] = {
         "arch": "fusion", "arch_config": {"conv_channels": [16, 32, 64, 128, 128]}, "rotation_frame": "ray",
         "lr": 5e-4, "lr_schedule": "cosine", "augment": True, "background": 0.5, "split_mode": "scenes",
         "split_objects": ["paper"], "per_object": 0, "val_per_object": 300, "test_per_object": 700, "seed": 0,
-        "samples": 600_000, "base_per_object": 16000, "bf16": True,
+        "samples": 500_000, "base_per_object": 16000, "bf16": True,
     },
     # The defaults of benchmarks/data_scaling.py (one object, a sample budget, no fine-tuning): the fusion network
     # in the ray frame with a cosine schedule from 1e-3; the study's runs change the images and augmentations.
