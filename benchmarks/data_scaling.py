@@ -217,13 +217,18 @@ def _initial_model(args, spec, config: dict):
     except ValueError as exc:
         raise SystemExit(f"--init {args.init}: {exc}") from None
     mine, theirs = spec.held_out().as_dict(), recorded.held_out().as_dict()
-    if Path(str(theirs.get("data"))).name != Path(str(mine.get("data"))).name:
-        # Trained on another set: its held-out crops are not this folder's, so the rule below has nothing to compare.
-        # What matters is that it never trained on this folder's test scenes: a set grown with `render --first-scene`
-        # (the scenes after the other set's) has none of them; that is the caller's to ensure.
-        print(f"--init {args.init}: trained on the set {Path(str(theirs.get('data'))).name!r}, not on "
-              f"{Path(str(mine.get('data'))).name!r}: its scenes must not be this set's (render --first-scene)",
-              file=sys.stderr)
+    theirs_name, mine_name = Path(str(theirs.get("data"))).name, Path(str(mine.get("data"))).name
+    if theirs_name != mine_name:
+        # Trained on another set: the rule below has nothing to compare. What matters then is that it never trained
+        # on this set's test scenes, which the checkpoint cannot show (a copy of its set under another name would
+        # pass any name check): the caller says so with --init-other-set, e.g. for a set grown with `render
+        # --first-scene` (the scenes after the other set's).
+        if not args.init_other_set:
+            raise SystemExit(f"--init {args.init}: trained on the set {theirs_name!r}, not on {mine_name!r}, so its "
+                             "training scenes may be this set's test scenes; if this set's scenes are new to it (a set "
+                             "grown with `refiner-rt render --first-scene`), pass --init-other-set")
+        print(f"--init {args.init}: trained on the set {theirs_name!r}, not on {mine_name!r} (--init-other-set: "
+              "this set's scenes are new to it)", file=sys.stderr)
         return model.train()
     differ = [k for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
     if differ:
@@ -523,6 +528,9 @@ def main(argv: list[str] | None = None) -> int:
                         "runs)")
     p.add_argument("--iterations", type=int, default=1, metavar="N",
                    help="also measure the test error after 2..N refinement passes (default: one pass only)")
+    p.add_argument("--init-other-set", action="store_true",
+                   help="accept an --init checkpoint trained on another dataset folder: you vouch that none of "
+                        "--data's scenes were in its training (e.g. --data grown with render --first-scene)")
     p.add_argument("--save", type=Path, metavar="DIR",
                    help="write each run's model here as a checkpoint (`refiner-rt eval` and `export` take it)")
     p.add_argument("--json", type=Path, help="write the rows and the command here")
@@ -549,6 +557,8 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--extra-train: not a folder: {folder}")
     if args.init and not args.init.is_file():
         p.error(f"--init: checkpoint not found: {args.init}")
+    if args.init_other_set and not args.init:
+        p.error("--init-other-set needs --init CKPT")
     if args.iterations < 1:
         p.error(f"--iterations: expected a number of refinement passes >= 1; got {args.iterations}")
     if args.save:

@@ -123,7 +123,9 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
             "--rotation-frame", r["rotation_frame"], "--lr", str(r["lr"]), "--seed", str(r["seed"]),
             "--augment", "--background", str(r["background"]), "--skip-plain", "--skip-jitter",
             "--samples", str(samples), "--cache", str(cache), "--threads", "1",
-            *(["--bf16"] if r["bf16"] else []), *(["--init", str(init)] if init is not None else []),
+            *(["--bf16"] if r["bf16"] else []),
+            # the shipped model trained on another set (DATA is the scenes after it: benchmarks/DATA.md)
+            *(["--init", str(init), "--init-other-set"] if init is not None else []),
             "--save", str(run / obj), "--json", str(run / f"{obj}.train.json")]
 
 
@@ -145,7 +147,10 @@ def recover_shipped(obj: str, data: Path, run: Path, cache: Path) -> tuple[Path,
         if props.get("model_version") == MODEL_VERSION:
             raise SystemExit(f"[{obj}] the shipped model is already version {MODEL_VERSION}; version {MODEL_VERSION} "
                              "starts from the version before it")
-        cal = dataset_calibration(data, parse_metadata(props), cache_root=cache)
+        try:
+            cal = dataset_calibration(data, parse_metadata(props), cache_root=cache)
+        except (FileNotFoundError, ValueError) as exc:
+            raise SystemExit(f"[{obj}] crops of {data} to start from the shipped model: {exc}") from None
         images = np.concatenate([cal.images, cal.check_images])
         q_in = np.concatenate([cal.q_in, cal.check_q_in])
         try:
@@ -675,7 +680,7 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
         lines += [f"- `{d['object_id']}` (version {d['model_version']}, recipe `{d['recipe']['name']}`): "
                   f"{t['train_crops']:,} training crops from {t['scenes']['train_base']:,} scenes, "
                   f"{t['samples']:,} samples, best epoch {t['best_epoch']} of {t['epochs']}, "
-                  + (f"started from the version-{d['init_from']['model_version']} model ({d['init_from']['recipe']}; "
+                  + (f"started from the version-{d['init_from']['model_version'] or '?'} model ({d['init_from']['recipe']}; "
                      f"`{d['init_from']['file']}` sha256 {d['init_from']['sha256'][:12]}, turned back into the "
                      "checkpoint `RUN/<object>.init.pt` by `export.recover`), " if d.get("init_from") else "")
                   + f"training {t['wall_s']:,.0f} s on one thread of {d['machine']['cpu']} "

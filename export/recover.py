@@ -87,6 +87,8 @@ def checkpoint_from_onnx(onnx_path, out, images: np.ndarray, q_in: np.ndarray, *
     folded = {}  # BatchNorm name -> the conv before it
     for bn_name in bns:
         parent, _, idx = bn_name.rpartition(".")
+        if not idx.isdigit():
+            raise RecoverError(f"{onnx_path}: BatchNorm {bn_name} is not in a Sequential; cannot find its convolution")
         conv_name = f"{parent}.{int(idx) - 1}" if parent else str(int(idx) - 1)
         if not isinstance(modules.get(conv_name), torch.nn.Conv2d):
             raise RecoverError(f"{onnx_path}: BatchNorm {bn_name} does not follow a convolution; cannot unfold it")

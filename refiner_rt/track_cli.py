@@ -11,7 +11,8 @@ Input: a folder of images (``.png`` / ``.jpg``, taken in file-name order) and a 
     }
 
 A detection is a box, or a box with a coarse rotation ``q`` (a detector's pose): ``q`` starts tracking the object,
-or re-initialises it (with ``--detector-weight W``: is refined beside the track and fused with it, weight ``W``). Frames without an entry have no detections (the tracked objects keep their rotations).
+or re-initialises it (with ``--detector-weight W``: is refined beside the track and fused with it, weight ``W``).
+Frames without an entry have no detections (the tracked objects keep their rotations).
 Output: the refined rotation of every object in every frame where it had a box, as JSON
 ``{"frames": {"000000.png": {"003_cracker_box": [w, x, y, z]}}, ...}``.
 
@@ -204,8 +205,9 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
                    "those frames, for a detector's new \"q\". Default: no check.")
 @click.option("--detector-weight", type=click.FloatRange(0.0, 1.0, min_open=True), default=None,
               help="Fuse a tracked object's later detector poses (\"q\") instead of restarting from them: refine each "
-                   "beside the track and keep the rotation this share of the way to it (0.5 measured best on "
-                   "rendered video; one more pass per pose). Default: a \"q\" re-initialises the object.")
+                   "beside the track and keep the rotation this share of the way to it (0.5: the weight measured "
+                   "best on rendered video, benchmarks/RESULTS.md; one more pass per pose). Not with --lost-deg. "
+                   "Default: a \"q\" re-initialises the object.")
 @click.option("--iterations", type=click.IntRange(1, MAX_ITERATIONS), default=1, show_default=True,
               help="Refinement passes per object and frame.")
 @click.option("--threads", type=click.IntRange(1, 256), default=1, show_default=True,
@@ -227,6 +229,9 @@ def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, lost_
     """
     from refiner_rt.tracker import RefinerTracker
 
+    if lost_deg is not None and detector_weight is not None:
+        raise click.UsageError("--lost-deg and --detector-weight are two uses of the detections' \"q\" (restart a "
+                               "lost track, or fuse every pose); give one")
     try:
         K, dets = read_detections(detections)
     except ValueError as exc:

@@ -294,12 +294,13 @@ class RefinerTracker:
                         fused.append((i, q_det))
             both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
                                 np.array(q_in + [q for _, q in fused])).tolist()
-            refined = both[: len(ids)]
+            tracked = both[: len(ids)]  # the refined tracks: what the refiner saw move (the velocity's source)
+            refined = list(tracked)
             for (i, _), q_det in zip(fused, both[len(ids):]):
-                refined[i] = _blend(refined[i], q_det, self.detector_weight)
-            results.append((sess, ids, rows, refined, self._flag_lost(sess, image, ids, rows, refined)))
+                refined[i] = _blend(tracked[i], q_det, self.detector_weight)
+            results.append((sess, ids, rows, refined, tracked, self._flag_lost(sess, image, ids, rows, refined)))
         redetected, lost = {}, []
-        for sess, ids, rows, refined, flagged in results:
+        for sess, ids, rows, refined, tracked, flagged in results:
             found, poses = [], []
             for i in flagged:
                 q = self._ask(detector, ids[i])
@@ -312,16 +313,17 @@ class RefinerTracker:
                 again = self._refine(sess, image, [rows[i] for i in found], np.array(poses)).tolist()
                 redetected.update({ids[i]: q for i, q in zip(found, again)})
         out = {}
-        for sess, ids, rows, refined, flagged in results:
-            for object_id, q in zip(ids, refined):
+        for sess, ids, rows, refined, tracked, flagged in results:
+            for object_id, q, q_tracked in zip(ids, refined, tracked):
                 track = self._tracks[object_id]
                 if object_id in redetected:  # a detector's pose, refined: a new start, not motion
                     track.q, track.refined, track.velocity, track.missed = redetected[object_id], True, None, 0
                     out[object_id] = np.array(track.q)
                     continue
                 if self.predict and track.refined:
-                    # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py)
-                    step = _unit_rows(_multiply_rows([q], _conjugate_rows([track.q])))[0]
+                    # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py),
+                    # from the refined track alone: a fused detection's pull is a correction, not motion
+                    step = _unit_rows(_multiply_rows([q_tracked], _conjugate_rows([track.q])))[0]
                     track.velocity = step if track.missed == 0 else _fraction(step, 1.0 / (track.missed + 1))
                 track.q, track.refined, track.missed = q, True, 0
                 out[object_id] = np.array(q)
@@ -347,7 +349,7 @@ class RefinerTracker:
         return [i for i, m in zip(checked, moved) if m > self.lost_deg]
 
     def _ask(self, detector, object_id: str) -> list | None:
-        """The detector's coarse pose for a lost object (checked, unit), or None when it has none."""
+        """The detector's coarse pose for an object (checked, unit), or None when it has none."""
         if detector is None:
             return None
         q = detector(object_id) if callable(detector) else detector.get(object_id)

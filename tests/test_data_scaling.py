@@ -289,12 +289,15 @@ def test_extra_train_adds_new_scenes_and_init_starts_from_a_trained_model(tmp_pa
         with pytest.raises(SystemExit, match=message):
             study.main([*argv, *extra])
     capsys.readouterr()
-    # A model trained on another set (by name: a set grown with `render --first-scene` has new scenes) is accepted,
-    # and the run says where it came from.
-    shutil.copytree(first, tmp_path / "cubes_next")
-    assert study.main(["--data", str(tmp_path / "cubes_next"), *common, "--init", plain["checkpoint"],
-                       "--json", str(tmp_path / "next.json")]) == 0
-    assert "trained on the set 'cubes', not on 'cubes_next'" in capsys.readouterr().err
+    # A model trained on another set is refused (its training scenes may be this set's test scenes: here they are,
+    # a copy under another name), unless the caller vouches with --init-other-set; the run then says so.
+    shutil.copytree(first, tmp_path / "cubes_copy")
+    other = ["--data", str(tmp_path / "cubes_copy"), *common, "--init", plain["checkpoint"],
+             "--json", str(tmp_path / "copy.json")]
+    with pytest.raises(SystemExit, match="trained on the set 'cubes', not on 'cubes_copy'.*--init-other-set"):
+        study.main(other)
+    assert study.main([*other, "--init-other-set"]) == 0
+    assert "trained on the set 'cubes', not on 'cubes_copy' (--init-other-set" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         study.main([*argv, "--extra-train", str(tmp_path / "missing")])
     assert "--extra-train: not a folder" in capsys.readouterr().err

@@ -92,3 +92,19 @@ def test_refuses_quantised_files_and_bad_inputs(exported, tmp_path):
     with pytest.raises(RecoverError, match=r"q_in must be \(32, 4\)"):
         checkpoint_from_onnx(path, tmp_path / "x.pt", images, q[:, :3])
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_a_file_without_a_weight_the_network_has_is_named(exported, tmp_path):
+    import onnx
+
+    _, path = exported
+    proto = onnx.load(str(path))
+    kept = [t for t in proto.graph.initializer if t.name != "head.layers.0.weight"]
+    del proto.graph.initializer[:]
+    proto.graph.initializer.extend(kept)
+    broken = tmp_path / "broken.onnx"
+    onnx.save(proto, str(broken))
+    images, q = _inputs(16)
+    with pytest.raises(RecoverError, match=r"weights \['head.layers.0.weight'\] not in the file"):
+        checkpoint_from_onnx(broken, tmp_path / "x.pt", images, q)
+    assert not (tmp_path / "x.pt").exists()

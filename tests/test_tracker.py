@@ -293,6 +293,33 @@ def test_fusing_refines_tracks_and_detections_in_one_call(monkeypatch):
     boxes, q_in = calls[0]
     np.testing.assert_allclose(boxes, [BOX_A, BOX_B, BOX_B])  # the banana twice: its track and its detection
     np.testing.assert_allclose(q_in, np.stack([Q0[0], Q0[1], q_det]), atol=1e-12)
+    # ... and each result is its own: the cracker box plainly tracked, the banana fused with its detection.
+    from scipy.spatial.transform import Slerp
+
+    out = tracker.rotations
+    assert_same_rotation(out["003_cracker_box"], scipy_q(Q0[0]) * scipy_q(Q_OUT))
+    ends = Rotation.concatenate([scipy_q(Q0[1]) * scipy_q(Q_OUT), scipy_q(q_det) * scipy_q(Q_OUT)])
+    assert_same_rotation(out["011_banana"], Slerp([0.0, 1.0], ends)([0.5])[0])
+
+
+def test_a_fused_detection_far_from_the_track_takes_the_shortest_arc():
+    """A detection 150 degrees from the track: the fused rotation lies on the shorter arc (75 degrees from each)."""
+    q_det = rq.multiply(Q0[0], rq.from_axis_angle([0.0, 1.0, 0.0], 150.0))
+    tracker = RefinerTracker(session(q_out=rq.identity()), K, {"003_cracker_box": Q0[0]}, detector_weight=0.5)
+    q = tracker.update(IMG, {"003_cracker_box": BOX_A}, detector={"003_cracker_box": q_det})["003_cracker_box"]
+    assert rq.geodesic_angle(q, Q0[0]) == pytest.approx(75.0, abs=1e-6)
+    assert rq.geodesic_angle(q, q_det) == pytest.approx(75.0, abs=1e-6)
+
+
+def test_fused_detections_do_not_become_velocity():
+    """With predict=True the velocity comes from the refined track, not from the detector's pull: a model that never
+    corrects and a fused detection far away leave a still object's velocity the identity."""
+    tracker = RefinerTracker(session(q_out=rq.identity()), K, {"003_cracker_box": Q0[0]}, detector_weight=0.5,
+                             predict=True)
+    tracker.update(IMG, {"003_cracker_box": BOX_A})
+    tracker.update(IMG, {"003_cracker_box": BOX_A}, detector={"003_cracker_box": rq.from_axis_angle([1, 0, 0], 20.0)})
+    velocity = tracker._tracks["003_cracker_box"].velocity
+    assert rq.geodesic_angle(velocity, rq.identity()) == pytest.approx(0.0, abs=1e-6)
 
 
 @pytest.mark.parametrize("detector, error, match", [
@@ -378,9 +405,9 @@ def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path)
         res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model), *extra])
         assert res.exit_code == 0, res.output
         assert_same_rotation(np.array(json.loads(out.read_text())["frames"]["000002.png"]["003_cracker_box"]), want)
-    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
-                                    "--detector-weight", "0"])
-    assert res.exit_code == 2 and "--detector-weight" in res.output and "Traceback" not in res.output
+    for bad in (["--detector-weight", "0"], ["--detector-weight", "0.5", "--lost-deg", "2"]):
+        res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model), *bad])
+        assert res.exit_code == 2 and "--detector-weight" in res.output and "Traceback" not in res.output
 
 
 @pytest.mark.parametrize("lost_deg, lost_frames", [("5", ["000001.png", "000002.png"]), ("10", [])])
