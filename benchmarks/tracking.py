@@ -172,14 +172,13 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                         tracker.reset(s.object_id, rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames]))
                         last_detection[s.object_id] = f
                 boxes = {s.object_id: s.boxes[f] for s in live if s.object_id in tracker and f in s.images}
-                # a detector's pose, asked for only by track_lost's lost objects: that frame's fresh draw
-                # or fused by track_fuse every fuse_every frames (counted from each track's start)
-                detector = {s.object_id: rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])
-                            for s in live if s.object_id in boxes} if method == "track_lost" else None
-                if method == "track_fuse":
+                # a detector's pose (that frame's fresh draw): asked for only by track_lost's lost objects, or
+                # fused by track_fuse every fuse_every updates after each track's start
+                detector = None
+                if method in ("track_lost", "track_fuse"):
                     detector = {s.object_id: rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])
-                                for s in live if s.object_id in boxes and f != start[s.object_id]
-                                and (f - start[s.object_id]) % (fuse_every * step) == 0}
+                                for s in live if s.object_id in boxes and (method == "track_lost" or (
+                                    f != start[s.object_id] and (f - start[s.object_id]) % (fuse_every * step) == 0))}
                 t0, c0 = time.perf_counter(), time.process_time()
                 before = tracker.redetections
                 q = tracker.update(images[f], boxes, detector=detector)

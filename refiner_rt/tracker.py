@@ -399,25 +399,24 @@ class RefinerTracker:
                 f"lost_deg={self.lost_deg}, detector_weight={self.detector_weight})")
 
 
-def _check_lost_deg(value) -> float | None:
+def _optional_share(value, name: str, high: float, number: str, in_range: str) -> float | None:
+    """``value`` as a float in ``(0, high]``, or None; the errors name ``name`` and what it means."""
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise TypeError(f"lost_deg must be a number of degrees in (0, 180] or None; got {value!r}")
-    if not (0.0 < float(value) <= 180.0):
-        raise ValueError(f"lost_deg must be in (0, 180] degrees (or None for no check); got {value!r}")
+        raise TypeError(f"{name} must be {number} in (0, {high:g}] or None; got {value!r}")
+    if not (0.0 < float(value) <= high):
+        raise ValueError(f"{name} must be in (0, {high:g}]{in_range}; got {value!r}")
     return float(value)
+
+
+def _check_lost_deg(value) -> float | None:
+    return _optional_share(value, "lost_deg", 180.0, "a number of degrees", " degrees (or None for no check)")
 
 
 def _check_detector_weight(value) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise TypeError(f"detector_weight must be a number in (0, 1] or None; got {value!r}")
-    if not (0.0 < float(value) <= 1.0):
-        raise ValueError(f"detector_weight must be in (0, 1] (the refined detection's share; None: no fusion); "
-                         f"got {value!r}")
-    return float(value)
+    return _optional_share(value, "detector_weight", 1.0, "a number",
+                           " (the refined detection's share; None: no fusion)")
 
 
 def _blend(q_track: list, q_det: list, w: float) -> list:
