@@ -22,7 +22,8 @@ the background of a crop with probability ``P``, ``--occlude P`` one that pastes
 ``--skip-jitter`` drops the run with jitter alone. ``--relight P`` gives every augmented run another scene's light and
 camera on a crop with probability ``P`` (a smooth shading field, light colour, gamma, blur, noise).
 ``--train-scenes S,...`` makes the runs take every crop of the first S training scenes instead of the first N crops
-(more scenes against fewer, with the same split and test crops).
+(more scenes against fewer, with the same split and test crops; ``all``: every training scene, those of
+``--extra-train`` included).
 ``--extra-train DIR`` (repeatable) adds every crop of another dataset folder to the training part after the split
 is drawn, so the split and the test crops stay those of ``--data``; render its scenes as the next ones of ``--data``'s
 seed (``refiner-rt render --first-scene``). ``--init CKPT`` starts every run from a checkpoint's weights (same
@@ -107,6 +108,11 @@ def _parse_sizes(text: str, flag: str = "--sizes") -> list[int]:
     return sizes
 
 
+def _parse_train_scenes(text: str) -> list[int | str]:
+    """``--train-scenes``: scene counts, or ``all`` (every training scene of the split and of ``--extra-train``)."""
+    return ["all"] if text.strip() == "all" else _parse_sizes(text, "--train-scenes")
+
+
 def _parse_probabilities(text: str) -> list[float]:
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
@@ -172,6 +178,7 @@ def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]
         scene_ids = train_all.scene_ids.astype(str)
         scene_order = np.random.default_rng(args.seed).permutation(np.unique(scene_ids))
         for s in args.train_scenes:
+            s = len(scene_order) if s == "all" else s
             if s > len(scene_order):
                 print(f"{mode}: only {len(scene_order)} training scenes, skipping --train-scenes {s}", file=sys.stderr)
                 continue
@@ -517,10 +524,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--augment-sizes", type=lambda t: _parse_sizes(t, "--augment-sizes"), metavar="N[,N...]",
                    help="training crops of the --augment/--background/--occlude runs (default: the largest of --sizes;"
                         " each at most that, since the split is made with it)")
-    p.add_argument("--train-scenes", type=lambda t: _parse_sizes(t, "--train-scenes"), metavar="S[,S...]",
+    p.add_argument("--train-scenes", type=_parse_train_scenes, metavar="S[,S...]|all",
                    help="train each run on every crop of the first S training scenes (a seeded permutation of the "
                         "split's training scenes) instead of the first N crops: more scenes against fewer, on one "
-                        "split made with the one --sizes")
+                        "split made with the one --sizes; 'all': every training scene (with --extra-train, theirs "
+                        "too)")
     p.add_argument("--skip-plain", action="store_true",
                    help="skip the runs without augmentation (one per size), e.g. when an earlier result has them")
     p.add_argument("--skip-jitter", action="store_true",

@@ -4,7 +4,7 @@ One complete, rerunnable command per shipped model (the way torchvision's ``refe
 Each object is one chunk: it is trained (``benchmarks/data_scaling.py`` with the recipe below), exported to fp32 and
 INT8 ONNX (parity-checked), evaluated through the runtime on the scenes held out from its training, stamped with
 its model-card metadata, copied into the package and, with ``--commit``, committed before the next object starts.
-A rerun skips the objects already shipped with this recipe, so an interrupted build resumes at the object it was on
+A rerun skips the objects already shipped as this model version, so an interrupted build resumes at the object it was on
 (an object's training itself restarts from scratch).
 
     python benchmarks/pretrained.py build --data data/ycb9_v1 --run runs/v1 \\
@@ -61,13 +61,16 @@ OBJECT_FRAME = ("YCB google_16k scan frame (models/data/ycb_models/<id>/textured
 SCHEMA = "refiner-rt/pretrained-eval/1"
 
 # The held-out-scenes recipe of the shipped models, as this build names its options: a view of the one definition,
-# ``heldout-scenes-v3`` in models/recipe.py (v1, the best measured for unseen scenes in benchmarks/studies/heldout_scenes,
-# "Five conv blocks on all nine objects", and benchmarks/studies/scene_count; v2 on a four times larger rendered set;
-# v3 continues each object's shipped model on new scenes). Model version 1 was trained with heldout-scenes-v1 (3,500
-# crops per object from ycb9_v1's 2,362 scenes), version 2 with heldout-scenes-v2 (ycb9_v2's 10,000 scenes).
+# ``heldout-scenes-v3`` in models/recipe.py (v1, the best measured for unseen scenes in
+# benchmarks/studies/heldout_scenes, "Five conv blocks on all nine objects", and benchmarks/studies/scene_count; v2 on
+# a four times larger rendered set; v3 and v4 continue each object's shipped model on new scenes). Model version 1
+# was trained with heldout-scenes-v1 (3,500 crops per object from ycb9_v1's 2,362 scenes), version 2 with
+# heldout-scenes-v2 (ycb9_v2's 10,000 scenes), version 3 with heldout-scenes-v3 from version 2 on ycb9_v3's 8,000 new
+# scenes, version 4 with the same recipe from version 3 on ycb9_v4's 8,000 new scenes, every crop of ycb9_v3 joining
+# the training part (``build --extra-train``).
 RECIPE_NAME = "heldout-scenes-v3"
-MODEL_VERSION = "3"
-# Version 3 starts each object from the model that ships now (its fp32 file, turned back into a checkpoint by
+MODEL_VERSION = "4"
+# Versions 3 and 4 start each object from the model that ships now (its fp32 file, turned back into a checkpoint by
 # export.recover); the build refuses to start from a model of this same version (that would be training twice).
 INIT_FROM_SHIPPED = True
 _NAMED = NAMED_RECIPES[RECIPE_NAME]
@@ -114,8 +117,9 @@ def machine() -> dict:
 
 
 def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cache: Path, val: int | None = None,
-                  test: int | None = None, init: Path | None = None) -> list[str]:
-    """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given)."""
+                  test: int | None = None, init: Path | None = None, extra_train: list[Path] = ()) -> list[str]:
+    """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given; every
+    crop of the ``extra_train`` folders joins the training part of ``data``'s split)."""
     r = {**RECIPE, **({"val": val} if val else {}), **({"test": test} if test else {})}
     return [sys.executable, str(ROOT / "benchmarks" / "data_scaling.py"), "--data", str(data), "--object", obj,
             "--modes", r["split_mode"], "--sizes", str(sizes), "--val", str(r["val"]), "--test", str(r["test"]),
@@ -126,6 +130,9 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
             *(["--bf16"] if r["bf16"] else []),
             # the shipped model trained on another set (DATA is the scenes after it: benchmarks/DATA.md)
             *(["--init", str(init), "--init-other-set"] if init is not None else []),
+            # more sets: each run trains on every crop of the split's training part and of theirs
+            *[a for folder in extra_train for a in ("--extra-train", str(folder))],
+            *(["--train-scenes", "all"] if extra_train else []),
             "--save", str(run / obj), "--json", str(run / f"{obj}.train.json")]
 
 
@@ -270,7 +277,7 @@ def stamp(path: Path, extra: dict) -> None:
 
 
 def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, sizes: int, commit: bool,
-                val: int | None = None, test: int | None = None) -> dict:
+                val: int | None = None, test: int | None = None, extra_train: list[Path] = ()) -> dict:
     import logging
 
     logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)  # torchvision ops: n/a
@@ -279,7 +286,7 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
     result_json = RESULTS_DIR / f"{obj}.json"
     t0 = time.perf_counter()
     init, init_record = recover_shipped(obj, data, run, cache) if RECIPE["init_from_shipped"] else (None, None)
-    cmd = train_command(data, obj, run, samples, sizes, cache, val, test, init)
+    cmd = train_command(data, obj, run, samples, sizes, cache, val, test, init, extra_train)
     ckpts = sorted((run / obj).glob("*.pt")) if (run / obj).is_dir() else []
     if not ckpts:
         print(f"[{obj}] training: {shlex.join(cmd)}", flush=True)
@@ -301,6 +308,8 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
     ev["split"]["data"] = "DATA"
     data_meta = json.loads(_metadata(fp32)["data"])
     data_meta["data"] = data.resolve().name
+    if data_meta.get("extra_train"):
+        data_meta["extra_train"] = [Path(x).resolve().name for x in data_meta["extra_train"]]
     heldout = {**{k: ev["int8"]["all"][k] for k in ("mean_deg", "median_deg", "under_5_deg", "under_10_deg",
                                                     "input_mean_deg", "n")},
                "split": "held-out scenes"}
@@ -525,6 +534,11 @@ def requantize(data: Path | None, run: Path | None, cache: Path | None, objects=
     return {"costs_deg": costs, "mean_cost_deg": mean_cost, "held": held}
 
 
+def _built(doc: dict) -> bool:
+    """Whether a result JSON is this build's: the model version and recipe it would ship."""
+    return doc.get("model_version") == MODEL_VERSION and doc.get("recipe", {}).get("name") == RECIPE["name"]
+
+
 def _git_commit() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
@@ -596,14 +610,15 @@ def _deg(s: dict, key: str = "mean_deg") -> str:
 
 def portable_command(command: str) -> str:
     """``command`` as the model card prints it: the build machine's folders written ``DATA`` (the ``--data``
-    folder) and ``RUN`` (the folder holding ``--save``), so neither the card nor the JSON names a path outside the
-    repository. Idempotent."""
+    folder) and ``RUN`` (the folder holding ``--save``), and each ``--extra-train`` folder by its name (a set of
+    benchmarks/DATA.md), so neither the card nor the JSON names a path outside the repository. Idempotent."""
     args = shlex.split(command)
     folders = {}
     for flag, name in (("--data", "DATA"), ("--save", "RUN")):
         if flag in args[:-1]:
             value = Path(args[args.index(flag) + 1])
             folders[str(value if name == "DATA" else value.parent)] = name
+    args = [Path(a).name if i and args[i - 1] == "--extra-train" else a for i, a in enumerate(args)]
     out = []
     for a in args:
         for folder, name in folders.items():
@@ -770,6 +785,9 @@ def main(argv=None) -> int:
     b.add_argument("--heldout", type=Path, help="then score each new model on this folder of fresh scenes and "
                    "quantise it again calibrated on --calibration, as `requantize --heldout` does (the card's evaluation)")
     b.add_argument("--calibration", type=Path, help="with --heldout: the folder of other fresh scenes to calibrate on")
+    b.add_argument("--extra-train", type=Path, action="append", default=[], metavar="FOLDER",
+                   help="another rendered set whose every crop joins the training part (its scene ids must differ "
+                        "from --data's: the scenes rendered before them with --first-scene); repeatable")
     sub.add_parser("card", help="regenerate weights/models.json and weights/MODELS.md from the JSON")
     r = sub.add_parser("requantize", help="quantise the shipped INT8 models again from their fp32 files with the "
                        "fastest scheme that holds accuracy, re-evaluate, regenerate the card")
@@ -816,14 +834,17 @@ def main(argv=None) -> int:
         return 0
     if (args.heldout is None) != (args.calibration is None):
         ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
+    for folder in args.extra_train:
+        if not folder.is_dir():
+            ap.error(f"--extra-train: expected a rendered dataset folder; {folder} is not a folder")
     args.run.mkdir(parents=True, exist_ok=True)
     cache = args.cache or args.data / ".crops"
     for obj in [o.strip() for o in args.objects.split(",") if o.strip()]:
         done = RESULTS_DIR / f"{obj}.json"
         if done.is_file() and not args.force:
             d = json.loads(done.read_text())
-            if d.get("recipe", {}).get("name") == RECIPE["name"] and (WEIGHTS_DIR / d["files"]["int8"]).is_file():
-                print(f"[{obj}] already ships with recipe {RECIPE['name']}; skipped (--force rebuilds)", flush=True)
+            if _built(d) and (WEIGHTS_DIR / d["files"]["int8"]).is_file():
+                print(f"[{obj}] already ships as version {MODEL_VERSION}; skipped (--force rebuilds)", flush=True)
                 continue
         # Builds side by side share one object list: each object is built by whichever build holds its lock.
         with open(args.run / f"{obj}.lock", "w") as lock:
@@ -832,9 +853,10 @@ def main(argv=None) -> int:
             except BlockingIOError:
                 print(f"[{obj}] being built by another process; skipped", flush=True)
                 continue
-            if done.is_file() and not args.force and json.loads(done.read_text()).get("recipe", {}).get("name") == RECIPE["name"]:
+            if done.is_file() and not args.force and _built(json.loads(done.read_text())):
                 continue  # finished by the other build while this one waited
-            ship_object(obj, args.data, args.run, cache, args.samples, args.sizes, args.commit, args.val, args.test)
+            ship_object(obj, args.data, args.run, cache, args.samples, args.sizes, args.commit, args.val, args.test,
+                        args.extra_train)
             if args.heldout is not None:
                 requantize(None, None, None, [obj], INT8_SCHEMES_FASTEST_FIRST, args.commit, args.heldout,
                            args.calibration)

@@ -265,17 +265,19 @@ def test_extra_train_adds_new_scenes_and_init_starts_from_a_trained_model(tmp_pa
               "--quiet", "--save", str(tmp_path / "models")]
     assert study.main(["--data", str(first), *common, "--json", str(tmp_path / "plain.json")]) == 0
     plain = json.loads((tmp_path / "plain.json").read_text())["rows"][0]
-    argv = ["--data", str(first), *common, "--extra-train", str(more), "--train-scenes", "99",
+    argv = ["--data", str(first), *common, "--extra-train", str(more), "--train-scenes", "all",
             "--json", str(tmp_path / "grown.json")]
     spec = DataSpec(data=str(first), objects=["003_cracker_box"], split_mode="scenes", sizes=(30, 0, 10, 20),
                     extra_train=[str(more)])
-    train_scenes = len({s.scene_id for s in load_splits(spec).train_base})
+    train_base = load_splits(spec).train_base
+    train_scenes = len({s.scene_id for s in train_base})
     assert train_scenes == plain["scenes"]["train_base"] + 2
-    argv[argv.index("99")] = str(train_scenes)
     argv += ["--init", plain["checkpoint"]]
     assert study.main(argv) == 0
     grown = json.loads((tmp_path / "grown.json").read_text())["rows"][0]
     assert grown["scenes"]["train_base"] == train_scenes and grown["init"] == plain["checkpoint"]
+    # --train-scenes all: every crop of the split's training scenes and of the extra folder's
+    assert grown["train_scenes"] == train_scenes and grown["train_crops"] == len(train_base) > plain["train_crops"]
     assert grown["scenes"]["test"] == plain["scenes"]["test"] and grown["input_mean_deg"] == plain["input_mean_deg"]
     model, info = models.load_checkpoint(grown["checkpoint"])
     assert {"000006", "000007"} <= set(info["train_scene_ids"]) and info["data"]["extra_train"] == [str(more)]

@@ -127,11 +127,13 @@ def test_model_card_commands_name_no_machine_folders():
     build = load_benchmark("pretrained")
     cmd = ("python benchmarks/data_scaling.py --data /srv/d/ycb9_v1 --object 003_cracker_box --config "
            "'{\"conv_channels\": [16, 32]}' --cache /srv/d/ycb9_v1/.crops --save /srv/r/v1/003_cracker_box "
-           "--json /srv/r/v1/003_cracker_box.train.json")
-    assert build.portable_command(cmd) == (
+           "--json /srv/r/v1/003_cracker_box.train.json --extra-train /srv/d/ycb9_v0")
+    portable = build.portable_command(cmd)
+    assert portable == (
         "python benchmarks/data_scaling.py --data DATA --object 003_cracker_box --config "
         "'{\"conv_channels\": [16, 32]}' --cache DATA/.crops --save RUN/003_cracker_box "
-        "--json RUN/003_cracker_box.train.json")
+        "--json RUN/003_cracker_box.train.json --extra-train ycb9_v0")
+    assert build.portable_command(portable) == portable
 
 
 def _card_docs():
