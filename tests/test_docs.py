@@ -165,6 +165,27 @@ def test_model_card_names_the_set_each_model_was_scored_on():
     assert "(objects without a fresh evaluation: on their training crops, by `build`)" in card
 
 
+def test_model_card_gives_the_symmetry_aware_error_beside_the_plain_one():
+    """An object scored with its BOP symmetry too gets a sentence under the table; the table keeps the plain error."""
+    import copy
+
+    build, docs = _card_docs()
+    plain = build.card_markdown(docs, {})
+    docs = copy.deepcopy(docs)
+    d = next(d for d in docs if d["object_id"] == "002_master_chef_can")
+    d["eval"]["int8"].pop("symmetric", None)
+    assert "scored with BOP's symmetry" not in build.card_markdown(docs, {})
+    d["eval"]["int8"]["symmetric"] = {"n": 10, "mean_deg": 3.217, "median_deg": 2.9, "under_5_deg": 0.8,
+                                      "under_10_deg": 0.95, "input_mean_deg": 12.1, "std_deg": 1.0,
+                                      "symmetry": build.SYMMETRIES}
+    card = build.card_markdown(docs, {})
+    assert ("`002_master_chef_can` scored with BOP's symmetry for it (any turn about the axis [0, 0, 1] of the scan "
+            "frame leaves it looking the same" in card)
+    assert "INT8 mean **3.22**, median 2.90, under 5 degrees 80%, input mean 12.10" in card
+    table_row = next(line for line in plain.splitlines() if line.startswith("| 002_master_chef_can |"))
+    assert table_row in card
+
+
 def test_shipped_models_name_no_machine_folder():
     """No metadata value of a shipped model holds an absolute path of the machine that built it (the INT8
     calibration source names its folder only)."""
