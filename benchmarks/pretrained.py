@@ -9,6 +9,8 @@ A rerun skips the objects already shipped as this model version, so an interrupt
 
     python benchmarks/pretrained.py build --data data/ycb9_v1 --run runs/v1 \\
         --objects 003_cracker_box,004_sugar_box --commit        # two such commands side by side, one core each
+    python benchmarks/pretrained.py build --data data/ycb9_v4 --extra-train data/ycb9_v3 --run runs/v4 \\
+        --objects ... --commit --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22   # version 4
     python benchmarks/pretrained.py speed                        # INT8/fp32 speed of every shipped model
     python benchmarks/pretrained.py card                         # models.json and MODELS.md from the JSON
     python benchmarks/pretrained.py requantize --data data/ycb9_v1 --run runs/v1   # INT8 again from the shipped fp32
