@@ -4,8 +4,8 @@ One complete, rerunnable command per shipped model (the way torchvision's ``refe
 Each object is one chunk: it is trained (``benchmarks/data_scaling.py`` with the recipe below), exported to fp32 and
 INT8 ONNX (parity-checked), evaluated through the runtime on the scenes held out from its training, stamped with
 its model-card metadata, copied into the package and, with ``--commit``, committed before the next object starts.
-A rerun skips the objects already shipped as this model version, so an interrupted build resumes at the object it was on
-(an object's training itself restarts from scratch).
+A rerun skips the objects already shipped as this model version, so an interrupted build resumes at the object it
+was on (an object's training itself restarts from scratch).
 
     python benchmarks/pretrained.py build --data data/ycb9_v1 --run runs/v1 \\
         --objects 003_cracker_box,004_sugar_box --commit        # two such commands side by side, one core each
@@ -109,7 +109,6 @@ MAX_MEAN_INT8_COST_DEG = 0.1   # goal over the shipped objects (reported by requ
 # of height). The card's error stays the plain geodesic one; the symmetry-aware error (to the closest turn about the
 # axis, models.symmetry) is scored beside it, the inputs' too.
 SYMMETRIES = {"002_master_chef_can": {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [-17.1, -9.7, 0]}]}}
-
 
 
 def machine() -> dict:
