@@ -399,7 +399,7 @@ class RefinerTracker:
                 f"lost_deg={self.lost_deg}, detector_weight={self.detector_weight})")
 
 
-def _optional_share(value, name: str, high: float, number: str, in_range: str) -> float | None:
+def _optional_in_range(value, name: str, high: float, number: str, in_range: str) -> float | None:
     """``value`` as a float in ``(0, high]``, or None; the errors name ``name`` and what it means."""
     if value is None:
         return None
@@ -411,11 +411,11 @@ def _optional_share(value, name: str, high: float, number: str, in_range: str) -
 
 
 def _check_lost_deg(value) -> float | None:
-    return _optional_share(value, "lost_deg", 180.0, "a number of degrees", " degrees (or None for no check)")
+    return _optional_in_range(value, "lost_deg", 180.0, "a number of degrees", " degrees (or None for no check)")
 
 
 def _check_detector_weight(value) -> float | None:
-    return _optional_share(value, "detector_weight", 1.0, "a number",
+    return _optional_in_range(value, "detector_weight", 1.0, "a number",
                            " (the refined detection's share; None: no fusion)")
 
 
