@@ -9,8 +9,8 @@ was on (an object's training itself restarts from scratch).
 
     python benchmarks/pretrained.py build --data data/ycb9_v1 --run runs/v1 \\
         --objects 003_cracker_box,004_sugar_box --commit        # two such commands side by side, one core each
-    python benchmarks/pretrained.py build --data data/ycb9_v4 --extra-train data/ycb9_v3 --run runs/v4 \\
-        --objects ... --commit --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22   # version 4
+    python benchmarks/pretrained.py build --data data/ycb9_v5 --extra-train data/ycb9_v3 --extra-train data/ycb9_v4 \\
+        --run runs/v5 --objects ... --commit --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22  # version 5
     python benchmarks/pretrained.py speed                        # INT8/fp32 speed of every shipped model
     python benchmarks/pretrained.py card                         # models.json and MODELS.md from the JSON
     python benchmarks/pretrained.py requantize --data data/ycb9_v1 --run runs/v1   # INT8 again from the shipped fp32
@@ -65,14 +65,15 @@ SCHEMA = "refiner-rt/pretrained-eval/1"
 # The held-out-scenes recipe of the shipped models, as this build names its options: a view of the one definition,
 # ``heldout-scenes-v3`` in models/recipe.py (v1, the best measured for unseen scenes in
 # benchmarks/studies/heldout_scenes, "Five conv blocks on all nine objects", and benchmarks/studies/scene_count; v2 on
-# a four times larger rendered set; v3 and v4 continue each object's shipped model on new scenes). Model version 1
+# a four times larger rendered set; v3, v4 and v5 continue each object's shipped model on new scenes). Model version 1
 # was trained with heldout-scenes-v1 (3,500 crops per object from ycb9_v1's 2,362 scenes), version 2 with
 # heldout-scenes-v2 (ycb9_v2's 10,000 scenes), version 3 with heldout-scenes-v3 from version 2 on ycb9_v3's 8,000 new
 # scenes, version 4 with the same recipe from version 3 on ycb9_v4's 8,000 new scenes, every crop of ycb9_v3 joining
-# the training part (``build --extra-train``).
+# the training part (``build --extra-train``), version 5 likewise from version 4 on ycb9_v5's 5,000 new scenes, every
+# crop of ycb9_v3 and ycb9_v4 joining.
 RECIPE_NAME = "heldout-scenes-v3"
-MODEL_VERSION = "4"
-# Versions 3 and 4 start each object from the model that ships now (its fp32 file, turned back into a checkpoint by
+MODEL_VERSION = "5"
+# Versions 3 to 5 start each object from the model that ships now (its fp32 file, turned back into a checkpoint by
 # export.recover); the build refuses to start from a model of this same version (that would be training twice).
 INIT_FROM_SHIPPED = True
 _NAMED = NAMED_RECIPES[RECIPE_NAME]
