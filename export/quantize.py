@@ -305,7 +305,7 @@ def dataset_calibration(
     """Crops of a dataset's training split, cut by the shared crop rule, with coarse poses as in training.
 
     The split is rebuilt from the data spec recorded in the model's metadata (``data``, as ``refiner-rt
-    train`` writes it) when present, else from the defaults, and crops come through the crop cache
+    train`` writes it; its extra training folders left out) when present, else from the defaults, and crops come through the crop cache
     (:func:`models.pipeline.cropset_for`, reused when training built it). ``n + n_check`` distinct crops of
     ``train_base`` are drawn with ``seed`` (never the test split): ``n`` to calibrate, ``n_check`` held out
     for the agreement check (a quarter of the split each way when it is smaller). Their coarse rotations
@@ -339,7 +339,10 @@ def dataset_calibration(
     else:
         recorded = contract.extra.get("data")
         recorded = json.loads(recorded) if isinstance(recorded, str) else None
-        spec = DataSpec.from_dict({**recorded, "data": str(data_dir)}) if recorded else DataSpec(data=str(data_dir))
+        # The recorded split without its extra training folders: they only add training crops, a shipped model
+        # names them by folder name alone, and the split's own training part of data_dir is enough to draw from.
+        spec = (DataSpec.from_dict({**recorded, "data": str(data_dir), "extra_train": None}) if recorded
+                else DataSpec(data=str(data_dir)))
     crops = cropset_for(
         load_splits(spec), "train_base", spec, contract.input_size, contract.crop_context,
         cache_root=cache_root, progress=False,

@@ -146,6 +146,23 @@ def test_dataset_calibration_uses_held_out_training_crops(fp32_models, cubes, tm
     assert _props(report.path)["int8_calibration"] == cal.source
 
 
+def test_dataset_calibration_leaves_out_the_recorded_extra_training_folders(fp32_models, cubes, tmp_path):
+    # A shipped model records its extra training folders by name only (no machine paths), so they cannot be found
+    # from another folder: calibration draws from the recorded split's own training part of the data given.
+    import json
+
+    from models.pipeline import DataSpec
+
+    props = _props(fp32_models["fusion"])
+    spec = DataSpec(data="a_set").as_dict()
+    plain = parse_metadata({**props, "data": json.dumps(spec)})
+    named = parse_metadata({**props, "data": json.dumps({**spec, "extra_train": ["a_set_rendered_elsewhere"]})})
+    a = q8.dataset_calibration(cubes, plain, n=8, n_check=4, cache_root=tmp_path / "cache")
+    b = q8.dataset_calibration(cubes, named, n=8, n_check=4, cache_root=tmp_path / "cache")
+    np.testing.assert_array_equal(a.images, b.images)
+    np.testing.assert_array_equal(a.q_in, b.q_in)
+
+
 def test_cli_export_help_mentions_int8():
     result = CliRunner().invoke(cli_main, ["export", "--help"])
     assert result.exit_code == 0
