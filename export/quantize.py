@@ -304,13 +304,13 @@ def dataset_calibration(
 ) -> Calibration:
     """Crops of a dataset's training split, cut by the shared crop rule, with coarse poses as in training.
 
-    The split is rebuilt from the data spec recorded in the model's metadata (``data``, as ``refiner-rt
-    train`` writes it; its extra training folders left out) when present, else from the defaults, and crops come through the crop cache
-    (:func:`models.pipeline.cropset_for`, reused when training built it). ``n + n_check`` distinct crops of
-    ``train_base`` are drawn with ``seed`` (never the test split): ``n`` to calibrate, ``n_check`` held out
-    for the agreement check (a quarter of the split each way when it is smaller). Their coarse rotations
-    are ``q_gt * q_noise`` in the model's rotation frame with the model's ``train_noise`` (``uniform:0:30``
-    when that is not a noise spec).
+    The split is rebuilt from the data spec recorded in the model's metadata (``data``, as ``refiner-rt train``
+    writes it; its extra training folders left out) when present, else from the defaults, and crops come through
+    the crop cache (:func:`models.pipeline.cropset_for`, reused when training built it). ``n + n_check``
+    distinct crops of ``train_base`` are drawn with ``seed`` (never the test split): ``n`` to calibrate,
+    ``n_check`` held out for the agreement check (a quarter of the split each way when it is smaller). Their
+    coarse rotations are ``q_gt * q_noise`` in the model's rotation frame with the model's ``train_noise``
+    (``uniform:0:30`` when that is not a noise spec).
 
     Args:
         data_dir: BOP split folder or YCB-Video root.
