@@ -70,6 +70,8 @@ RECIPE_ARGUMENTS = {
     "--arch": ("arch", "arch", None),
     "--config": ("config", "arch_config", "JSON object of architecture config overrides, e.g. '{\"fuse_width\": 1024}'"),
     "--lr": ("lr", "lr", "peak learning rate of the cosine schedule"),
+    "--noise": ("noise", "noise", "training coarse-pose noise (uniform:0:30, normal:10:5, or twist:0:30 about the "
+                                  "object's z axis); the test crops always get uniform:0:30"),
     "--rotation-frame": ("rotation_frame", "rotation_frame", None),
     "--seed": ("seed", "seed", None),
     "--bf16": ("bf16", "bf16", None),

@@ -106,7 +106,7 @@ class TrainRecipe:
     epoch_samples: int = _opt(3000, "optimisation", "With --samples: samples per epoch at most (validation after "
                               "each).")
     noise: str = _opt("uniform:0:30", "optimisation", "Coarse-pose noise: uniform:LOW:HIGH or normal:MEAN:STD "
-                      "(degrees).")
+                      "about random axes, or twist:LOW:HIGH about the object's z axis (degrees).")
     lr: float = _opt(1e-4, "optimisation", "Adam learning rate (base training; the peak of the cosine schedule).")
     ft_lr: float | None = _opt(None, "optimisation", "Fine-tuning learning rate (default: --lr / 3).")
     lr_schedule: str = _opt("constant", "optimisation", "constant (paper) or cosine (warm-up, cosine decay).")

@@ -72,6 +72,12 @@ def test_bad_sizes_are_named():
         study.main(["--data", "x", "--sizes", "0"])
 
 
+def test_a_bad_noise_is_named_by_the_recipe():
+    study = _load()
+    with pytest.raises(SystemExit, match="twist noise needs 0 <= LOW <= HIGH"):
+        study.main(["--data", "x", "--noise", "twist:30:5"])
+
+
 def test_bad_config_is_named(capsys):
     study = _load()
     with pytest.raises(SystemExit):

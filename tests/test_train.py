@@ -45,6 +45,25 @@ def test_noise_spec_parse_and_perturb_labels():
     assert err.max() <= 30 + 1e-9 and abs(err.mean() - 15) < 1.5
 
 
+def test_twist_noise_turns_about_the_object_z_axis_only():
+    from scipy.spatial.transform import Rotation
+
+    spec = NoiseSpec.parse("twist:5:30")
+    assert str(spec) == "twist:5:30"
+    for bad in ("twist:30:5", "twist:-1:30", "twist:0:181"):
+        with pytest.raises(ValueError, match="twist"):
+            NoiseSpec.parse(bad)
+    q_gt = rq.sample_rotation_noise(400, "uniform", 0, 180, np.random.default_rng(0))
+    q_in, label = perturb(q_gt, spec, np.random.default_rng(1))
+    np.testing.assert_allclose(rq.geodesic_angle(rq.multiply(q_in, label), q_gt), 0, atol=1e-6)
+    # The error in the object's frame (q_gt^-1 q_in), by SciPy: a rotation vector along z, 5 to 30 degrees, both signs.
+    w, x, y, z = rq.multiply(rq.inverse(q_gt), q_in).T
+    rotvec = np.degrees(Rotation.from_quat(np.column_stack([x, y, z, w])).as_rotvec())
+    np.testing.assert_allclose(rotvec[:, :2], 0, atol=1e-6)
+    assert 5 - 1e-6 <= np.abs(rotvec[:, 2]).min() and np.abs(rotvec[:, 2]).max() <= 30 + 1e-6
+    assert (rotvec[:, 2] > 0).mean() == pytest.approx(0.5, abs=0.1)
+
+
 def test_cropset_validation_and_frames():
     data = tiny_data()
     assert data.objects == ["003_cracker_box", "011_banana"] and data.input_size == 16
