@@ -136,6 +136,22 @@ def test_model_card_commands_name_no_machine_folders():
     assert build.portable_command(portable) == portable
 
 
+def test_first_stage_commands_train_on_turns_then_go_on_from_that_network():
+    """An object of FIRST_STAGE trains twice: turns about its axis from scratch, then the recipe's stage from that
+    checkpoint of the same split (no --init-other-set); the card prints both commands."""
+    build = load_benchmark("pretrained")
+    run, data = Path("/srv/r/v5"), Path("/srv/d/ycb9_v5")
+    first = build.train_command(data, "002_master_chef_can", run, 200, 16000, data / ".crops", noise="twist:0:30",
+                                lr=1e-3, name="002_master_chef_can.stage1")
+    assert first[first.index("--noise") + 1] == "twist:0:30" and first[first.index("--lr") + 1] == "0.001"
+    assert first[first.index("--save") + 1] == str(run / "002_master_chef_can.stage1") and "--init" not in first
+    second = build.train_command(data, "002_master_chef_can", run, 300, 16000, data / ".crops",
+                                 init=run / "002_master_chef_can.stage1" / "a.pt", other_set=False)
+    assert "--noise" not in second and "--init-other-set" not in second
+    assert second[second.index("--save") + 1] == str(run / "002_master_chef_can")
+    assert "--init-other-set" in build.train_command(data, "x", run, 300, 16000, data / ".crops", init=run / "a.pt")
+
+
 def _card_docs():
     build = load_benchmark("pretrained")
     docs = build._load_results()
