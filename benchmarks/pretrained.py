@@ -317,6 +317,12 @@ def _run_training(cmd: list[str], save: Path, log_path: Path, obj: str) -> Path:
     return ckpts[0]
 
 
+def _card_command(cmd: list[str]) -> str:
+    """A :func:`train_command` as the card and the JSON record it: ``python benchmarks/...`` without the build
+    machine's interpreter or folders (:func:`portable_command`)."""
+    return portable_command(shlex.join(["python", "benchmarks/data_scaling.py", *cmd[2:]]))
+
+
 def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, sizes: int, commit: bool,
                 val: int | None = None, test: int | None = None, extra_train: list[Path] = ()) -> dict:
     import logging
@@ -372,9 +378,8 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         shutil.copyfile(p, WEIGHTS_DIR / p.name)
     doc = {
         "schema": SCHEMA, "object_id": obj, "model_version": MODEL_VERSION, "recipe": RECIPE,
-        "train_command": portable_command(shlex.join(["python", "benchmarks/data_scaling.py", *cmd[2:]])),
-        **({"first_stage": {**first, "command": portable_command(
-            shlex.join(["python", "benchmarks/data_scaling.py", *first_cmd[2:]]))}} if first else {}),
+        "train_command": _card_command(cmd),
+        **({"first_stage": {**first, "command": _card_command(first_cmd)}} if first else {}),
         "train": {k: row.get(k) for k in ("train_crops", "samples", "epochs", "best_epoch", "val_mean_deg", "wall_s",
                                           "scenes", "mean_deg", "median_deg")},
         "export": {"max_abs_dq": exp.max_abs_dq, "int8_scheme": scheme, "int8_candidates": tried},
