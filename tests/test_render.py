@@ -331,3 +331,73 @@ def test_render_speed_benchmark_finds_the_bmp_textures_change_nothing(tmp_path):
     # the shared study record, without torch: the renderer's benchmark does not need it
     assert doc["command"].startswith("python benchmarks/render_speed.py --models-dir ")
     assert doc["machine"]["processes"] == 1 and "torch" not in doc["machine"] and "threads" not in doc["machine"]
+
+
+def _base_origin_box(folder: Path, size=(0.05, 0.07, 0.16), seed=3) -> None:
+    """A tall textured box whose mesh origin sits on its base (as the YCB scans have theirs): z from 0 to its height."""
+    write_box_mesh(folder, size=size, seed=seed)
+    obj = folder / "textured.obj"
+    lines = []
+    for ln in obj.read_text().splitlines():
+        if ln.startswith("v "):
+            x, y, z = map(float, ln.split()[1:])
+            ln = f"v {x:.6f} {y:.6f} {z + size[2] / 2:.6f}"
+        lines.append(ln)
+    obj.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def base_origin_models(tmp_path_factory):
+    root = tmp_path_factory.mktemp("base_models")
+    _base_origin_box(root / "003_cracker_box")
+    return root
+
+
+def test_robot_layout_rests_objects_on_every_face_the_tabletop_layout_stands_them_up(base_origin_models, tmp_path):
+    """With the centre of mass at the mesh origin near the base (the tabletop layout) a dropped box rights itself;
+    in the robot layout (centre of mass at the mesh's middle) it comes to rest on its sides as often as physics
+    gives, besides the share set down upright."""
+    import models.data.render as r
+
+    meshes = find_models(base_origin_models, ("003_cracker_box",))
+    world = r._World(meshes, tmp_path / "w")
+    upright = {}
+    for layout in ("tabletop", "robot"):
+        cfg = RenderConfig.for_layout(layout, objects=("003_cracker_box",), objects_per_scene=(1, 1), K=small_cfg().K)
+        ups = []
+        for scene in range(24):
+            bodies, _ = r.build_scene(world, cfg, r._scene_rng(0, scene))
+            for b in bodies:
+                R_wo, t_wo = world.mesh_pose(b)
+                ups.append(R_wo[2, 2] > 0.9)  # the box's z axis points up
+                assert abs(t_wo[2]) < 0.01 or R_wo[2, 2] < 0.9  # upright: its base (the origin) on the table
+        upright[layout] = float(np.mean(ups))
+    assert upright["tabletop"] > 0.9
+    assert upright["robot"] < 0.7
+
+
+def test_robot_layout_ground_truth_matches_the_pixels_of_an_off_centre_mesh(base_origin_models, tmp_path):
+    """The body's frame sits at the mesh's middle in the robot layout; the written pose is still the mesh frame's."""
+    cfg = RenderConfig.for_layout("robot", width=160, height=120, K=small_cfg().K, frames_per_scene=3,
+                                  objects=("003_cracker_box",), objects_per_scene=(1, 1), distance=(0.8, 1.0))
+    out = tmp_path / "ds"
+    render_dataset(out, 12, base_origin_models, cfg, seed=2, progress=False)
+    meshes = find_models(base_origin_models, ("003_cracker_box",))
+    ious = []
+    for s in load_bop(out, min_visib=0.99):
+        scene, im = Path(s.image_path).parent.parent, int(Path(s.image_path).stem)
+        drawn = cv2.imread(str(scene / "mask_visib" / f"{im:06d}_{s.instance:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        full = silhouette(meshes[s.obj_id], s.R, s.t, s.K, 160, 120)
+        ious.append((drawn & full).sum() / (drawn | full).sum())
+    assert len(ious) >= 3 and min(ious) > 0.9
+
+
+def test_layouts_record_their_config_and_the_tabletop_record_is_the_earlier_one():
+    t = RenderConfig.for_layout("tabletop")
+    assert t.distance == (0.8, 1.6) and t.elevation_deg == (20.0, 70.0) and not t.cameras
+    assert not {"layout", "upright", "stack", "cameras"} & set(t.as_dict())  # older sets resume with it
+    r = RenderConfig.for_layout("robot")
+    assert r.layout == "robot" and len(r.cameras) >= 3 and r.as_dict()["cameras"][0][0][0] > 0
+    assert not RenderConfig.for_layout("robot", K=small_cfg().K).cameras  # a given K is the camera
+    with pytest.raises(ValueError, match="layout must be one of robot, tabletop"):
+        RenderConfig(layout="floor")

@@ -59,6 +59,17 @@ log = logging.getLogger(__name__)
 
 # YCB-Video's camera (sequences before 60), 640x480.
 YCBV_K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])
+LAYOUTS = ("robot", "tabletop")
+# Where a robot's camera sees a table from: an arm camera close above it, a head camera further away.
+ROBOT_DISTANCE = (0.4, 1.5)  # metres from the arrangement's centre
+ROBOT_ELEVATION_DEG = (10.0, 80.0)  # above the table
+# Common RGB-D colour cameras at 640x480 (fx, fy, cx, cy in pixels): YCB-Video's Asus Xtion, a RealSense D435/D415
+# colour stream, a Kinect v1-like and an Orbbec/Xtion-like default calibration.
+COMMON_CAMERAS = tuple(
+    ((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0))
+    for fx, fy, cx, cy in ((1066.778, 1067.487, 312.9869, 241.3109), (615.0, 615.0, 320.0, 240.0),
+                           (525.0, 525.0, 319.5, 239.5), (570.3, 570.3, 319.5, 239.5))
+)
 TABLE_HALF = 0.6  # the table top is the square [-0.6, 0.6]^2 m at z = 0 (world frame, z up)
 
 
@@ -84,6 +95,18 @@ class RenderConfig:
         gamma: (min, max) tone curve exponent per scene (after the gain; a soft shoulder follows it).
         shadows: draw the objects' cast shadows on the table.
         table_gloss: (min, max) strength of the table's specular highlight (0: matte).
+        layout: how objects are placed and seen. ``"robot"`` (the default): each object's centre of mass at its
+            mesh's centre, so a dropped object comes to rest in one of its stable poses (a box on any face, a drill
+            on its side) as often as physics gives it; ``upright`` of the objects are set down standing in their
+            scan frame's upright pose; ``stack`` of them dropped onto another (stacked, leaning); cameras where a
+            robot's arm or head would be (:data:`ROBOT_DISTANCE`, :data:`ROBOT_ELEVATION_DEG`), each scene through
+            one of ``cameras``. ``"tabletop"``: the layout of the data sets before it (``ycb9_v2`` to ``ycb9_v5``,
+            benchmarks/DATA.md): every object dropped with its centre of mass at the mesh origin, which for the YCB
+            scans sits near the base, so most objects right themselves and stand upright.
+        upright: ``"robot"`` layout: share of objects set down upright (the rest are dropped at random).
+        stack: ``"robot"`` layout: share of objects (after the first) dropped onto an earlier one.
+        cameras: ``"robot"`` layout: intrinsics to draw one of per scene (empty: ``K``); see
+            :data:`COMMON_CAMERAS`.
     """
 
     width: int = 640
@@ -92,8 +115,8 @@ class RenderConfig:
     frames_per_scene: int = 100
     objects_per_scene: tuple[int, int] = (3, 6)
     objects: tuple[str, ...] = PAPER_OBJECTS
-    distance: tuple[float, float] = (0.8, 1.6)
-    elevation_deg: tuple[float, float] = (20.0, 70.0)
+    distance: tuple[float, float] = ROBOT_DISTANCE
+    elevation_deg: tuple[float, float] = ROBOT_ELEVATION_DEG
     sweep_deg: tuple[float, float] = (60.0, 180.0)
     jpeg_quality: int = 95
     noise_std: tuple[float, float] = (1.0, 4.0)
@@ -103,11 +126,35 @@ class RenderConfig:
     gamma: tuple[float, float] = (0.75, 1.35)
     shadows: bool = True
     table_gloss: tuple[float, float] = (0.0, 0.6)
+    layout: str = "robot"
+    upright: float = 0.35
+    stack: float = 0.2
+    cameras: tuple = ()
+
+    def __post_init__(self):
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}; got {self.layout!r}")
+
+    @classmethod
+    def for_layout(cls, layout: str, **kw) -> "RenderConfig":
+        """The defaults of ``layout``: ``"robot"`` (the dataclass defaults, and :data:`COMMON_CAMERAS` unless ``K`` is
+        given) or ``"tabletop"`` (the earlier data sets' config); ``kw`` overrides them."""
+        if layout == "robot":
+            base = {} if "K" in kw else {"cameras": COMMON_CAMERAS}
+        elif layout == "tabletop":
+            base = dict(distance=(0.8, 1.6), elevation_deg=(20.0, 70.0))
+        else:
+            raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}; got {layout!r}")
+        return cls(**{**base, "layout": layout, **kw})
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
         d["K"] = [list(r) for r in self.K]
         d["objects"] = list(self.objects)
+        d["cameras"] = [[list(r) for r in K] for K in self.cameras]
+        if self.layout == "tabletop":  # as the earlier data sets recorded it (they resume with the same record)
+            for key in ("layout", "upright", "stack", "cameras"):
+                d.pop(key)
         return d
 
 
@@ -334,6 +381,7 @@ class _World:
         self.meshes = meshes
         self.tmp_dir = Path(tmp_dir)
         self._textures: dict[str, Path] = {}
+        self.offsets: dict[int, np.ndarray] = {}  # body -> its frame's position in the mesh frame
 
     def _texture(self, obj: str) -> Path:
         """Mesh ``obj``'s texture as an uncompressed BMP in ``tmp_dir``, written on first use."""
@@ -349,20 +397,37 @@ class _World:
                 self._textures[obj] = dst
         return self._textures[obj]
 
-    def add_object(self, obj: str, pos, orn) -> int:
-        """A dynamic, textured body of mesh ``obj`` (its collision shape is the mesh's convex hull)."""
+    def add_object(self, obj: str, pos, orn, centred: bool = False) -> int:
+        """A dynamic, textured body of mesh ``obj`` (its collision shape is the mesh's convex hull).
+
+        ``centred``: the body's frame (its centre of mass) at the middle of the mesh's bounding box, ``pos`` its
+        position; otherwise at the mesh origin (where the YCB scans have it, near the base, a body rights itself).
+        :meth:`mesh_pose` gives the mesh frame's pose either way.
+        """
         pb, c = self.pb, self.client
         m = self.meshes[obj]
-        vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
-        col = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(m.obj_path), physicsClientId=c)
+        offset = (m.vertices.min(axis=0) + m.vertices.max(axis=0)) / 2 if centred else np.zeros(3)
+        frame = (-offset).tolist()
+        vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(m.obj_path), visualFramePosition=frame,
+                                   physicsClientId=c)
+        col = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(m.obj_path), collisionFramePosition=frame,
+                                      physicsClientId=c)
         body = pb.createMultiBody(0.3, col, vis, basePosition=pos, baseOrientation=orn, physicsClientId=c)
         tex = pb.loadTexture(str(self._texture(obj)), physicsClientId=c)
         pb.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
         pb.changeDynamics(body, -1, lateralFriction=0.8, rollingFriction=0.001, spinningFriction=0.001, physicsClientId=c)
+        self.offsets[body] = offset
         return body
+
+    def mesh_pose(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        """World pose ``(R_wo, t_wo)`` of body ``body``'s mesh frame: ``x_world = R_wo @ x_mesh + t_wo``."""
+        pos, orn = self.pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
+        R = np.asarray(self.pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        return R, np.asarray(pos) - R @ self.offsets.get(body, np.zeros(3))
 
     def clear(self):
         self.pb.resetSimulation(physicsClientId=self.client)
+        self.offsets.clear()
 
 
 class _Backdrop:
@@ -504,10 +569,13 @@ def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> t
     k = int(rng.integers(lo, hi + 1))
     chosen = rng.choice(list(cfg.objects), size=min(k, len(cfg.objects)), replace=False)
     bodies = {}
-    for i, obj in enumerate(chosen):
-        pos = [rng.uniform(-0.18, 0.18), rng.uniform(-0.18, 0.18), 0.12 + 0.1 * i]
-        orn = pb.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
-        bodies[world.add_object(str(obj), pos, orn)] = str(obj)
+    if cfg.layout == "tabletop":
+        for i, obj in enumerate(chosen):
+            pos = [rng.uniform(-0.18, 0.18), rng.uniform(-0.18, 0.18), 0.12 + 0.1 * i]
+            orn = pb.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
+            bodies[world.add_object(str(obj), pos, orn)] = str(obj)
+    else:
+        bodies = _place_robot(world, cfg, rng, [str(o) for o in chosen])
     for _ in range(480):  # 2 s at 240 Hz
         pb.stepSimulation(physicsClientId=c)
     # pybullet draws a body without a visual shape by its collision shape: remove the table once settled.
@@ -520,6 +588,38 @@ def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> t
             del bodies[b]
     centre = np.mean([pb.getBasePositionAndOrientation(b, physicsClientId=c)[0] for b in bodies], axis=0) if bodies else np.zeros(3)
     return bodies, centre
+
+
+def scene_camera(cfg: RenderConfig, rng: np.random.Generator) -> np.ndarray:
+    """The scene's intrinsics: one of ``cfg.cameras`` (drawn), or ``cfg.K`` (no draw, as the earlier data sets)."""
+    if cfg.cameras:
+        return np.asarray(cfg.cameras[int(rng.integers(len(cfg.cameras)))], dtype=np.float64)
+    return np.asarray(cfg.K, dtype=np.float64)
+
+
+def _place_robot(world: _World, cfg: RenderConfig, rng: np.random.Generator, chosen: list[str]) -> dict[int, str]:
+    """The ``"robot"`` layout's objects, before physics settles them: each set down upright (``cfg.upright``: its
+    mesh's z axis up, a random turn about it), dropped onto an earlier object (``cfg.stack``), or dropped at a
+    random orientation; centres of mass at the mesh's middle, so a dropped object rests in any of its stable poses."""
+    pb = world.pb
+    bodies: dict[int, str] = {}
+    spots: list[np.ndarray] = []
+    for i, obj in enumerate(chosen):
+        verts = world.meshes[obj].vertices
+        half_height = (verts[:, 2].max() - verts[:, 2].min()) / 2
+        xy = rng.uniform(-0.2, 0.2, 2)
+        r = rng.uniform()
+        if spots and r < cfg.stack:
+            xy = spots[int(rng.integers(len(spots)))] + rng.normal(0.0, 0.02, 2)
+            pos, euler = [*xy, 0.3 + 0.1 * i], rng.uniform(-np.pi, np.pi, 3)
+        elif r < cfg.stack + cfg.upright:
+            pos, euler = [*xy, half_height + 0.003], [0.0, 0.0, rng.uniform(-np.pi, np.pi)]
+        else:
+            pos, euler = [*xy, 0.15 + 0.1 * i], rng.uniform(-np.pi, np.pi, 3)
+        body = world.add_object(obj, pos, pb.getQuaternionFromEuler(list(map(float, euler))), centred=True)
+        bodies[body] = obj
+        spots.append(np.asarray(xy))
+    return bodies
 
 
 def camera_path(cfg: RenderConfig, rng: np.random.Generator, centre: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -575,7 +675,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     (tmp / "rgb").mkdir(parents=True)
     (tmp / "mask_visib").mkdir()
     bodies, centre = build_scene(world, cfg, rng)
-    K = np.asarray(cfg.K, dtype=np.float64)
+    K = scene_camera(cfg, rng)
     W, H = cfg.width, cfg.height
     proj = projection_matrix_gl(K, W, H)
     tinted = rng.uniform() < cfg.light_tint
@@ -593,16 +693,15 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     if cfg.shadows:
         points = []
         for b, obj in bodies.items():
-            pos, orn = pb.getBasePositionAndOrientation(b, physicsClientId=c)
-            R_wo = np.asarray(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
-            points.append(world.meshes[obj].vertices[::8] @ R_wo.T + np.asarray(pos))
+            R_wo, t_wo = world.mesh_pose(b)
+            points.append(world.meshes[obj].vertices[::8] @ R_wo.T + t_wo)
         backdrop.cast_shadows(points, softness=rng.uniform(1.0, 6.0))
     tone = _ToneCurve(rng, cfg)
     cv2.setRNGSeed(int(rng.integers(1 << 31)))
     noise_std = rng.uniform(*cfg.noise_std)
     blur = rng.uniform(*cfg.blur_sigma)
     obj_ids = {b: world.meshes[o].number for b, o in bodies.items()}
-    poses_w = {b: pb.getBasePositionAndOrientation(b, physicsClientId=c) for b in bodies}
+    poses_w = {b: world.mesh_pose(b) for b in bodies}
     gt, info, cam = {}, {}, {}
     visible = {}
     for im, (R_cw, t_cw) in enumerate(camera_path(cfg, rng, centre, cfg.frames_per_scene)):
@@ -623,9 +722,8 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
         gts, infos = [], []
         Rt = {}
         for b in bodies:
-            pos, orn = poses_w[b]
-            R_wo = np.asarray(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
-            Rt[b] = (R_cw @ R_wo, R_cw @ np.asarray(pos) + t_cw)
+            R_wo, t_wo = poses_w[b]
+            Rt[b] = (R_cw @ R_wo, R_cw @ t_wo + t_cw)
         for k, b in enumerate(bodies):
             R, t = Rt[b]
             vis = seg == b
@@ -880,13 +978,18 @@ def _default_objects(models_dir: Path | None) -> tuple[str, ...]:
 @click.option("--K", "camera", callback=_camera_option, metavar="fx,fy,cx,cy|camera.json",
               help="Camera intrinsics in pixels (OpenCV: pixel centres at integers), or a BOP camera.json. Default: "
                    "YCB-Video's, scaled to --width/--height.")
+@click.option("--layout", type=click.Choice(LAYOUTS), default="robot", show_default=True,
+              help="robot: objects in all their stable resting poses, upright, stacked and leaning, cameras 0.4-1.5 m "
+                   "away and 10-80 deg above the table, common RGB-D intrinsics unless --K is given. tabletop: the "
+                   "earlier data sets' layout (ycb9_v2 to ycb9_v5: objects mostly upright, cameras 0.8-1.6 m, "
+                   "20-70 deg, YCB-Video's K); use it to resume or grow one of them.")
 @click.option("--preview", "preview_png", type=click.Path(dir_okay=False, path_type=Path),
               help="Write a contact sheet of crops with ground-truth axes (from --data, or from --out after rendering).")
 @click.option("--data", "preview_data", type=click.Path(exists=True, file_okay=False, path_type=Path),
               help="With --preview and no --out: the dataset to preview.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first_scene, objects, frames_per_scene, width,
-               height, camera, preview_png, preview_data, quiet):
+               height, camera, layout, preview_png, preview_data, quiet):
     """Render BOP-format scenes of YCB objects, or your own, on the CPU (pybullet TinyRenderer).
 
     Each scene is one settled tabletop arrangement seen along a smooth camera path, like a
@@ -913,17 +1016,19 @@ def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first
             click.echo(f"--frames {frames} rounds up to {n_scenes} whole scene(s) of {frames_per_scene} frames "
                        f"({n_scenes * frames_per_scene} frames)", err=True)
         objects = objects or _default_objects(models_dir)
+        cameras = {}
         if camera is None:
             width, height = width or 640, height or 480
-            K = np.array(YCBV_K)
-            K[0, 2] *= width / 640
-            K[1, 2] *= height / 480
-            K[:2, :2] *= width / 640
+            scale = np.diag([width / 640, height / 480, 1.0])
+            K = scale @ YCBV_K
+            if layout == "robot":
+                cameras = {"cameras": tuple(tuple(map(tuple, scale @ np.asarray(c))) for c in COMMON_CAMERAS)}
         else:
             K, cam_w, cam_h = camera
             width, height = width or cam_w or 640, height or cam_h or 480
-        cfg = RenderConfig(width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
-                           objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))))
+        cfg = RenderConfig.for_layout(
+            layout, width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
+            objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))), **cameras)
         # `kill PID` stops a render as Ctrl-C does: the pool's workers are terminated with it (rather than left
         # writing to a closed pipe), and the finished scenes are kept for a rerun to resume.
         on_main = threading.current_thread() is threading.main_thread()
