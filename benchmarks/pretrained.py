@@ -52,6 +52,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from models.data.objects import SCAN_FRAME_SYMMETRIES  # noqa: E402
 from models.recipe import NAMED_RECIPES  # noqa: E402
 from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.pretrained import INDEX_FILE, INDEX_FORMAT, WEIGHTS_DIR, model_file_name  # noqa: E402
@@ -92,6 +93,7 @@ RECIPE = {
     "seed": _NAMED["seed"],
     "bf16": _NAMED.get("bf16", False),
     "init_from_shipped": INIT_FROM_SHIPPED,
+    "photometric": {k[len("aug_"):]: v for k, v in _NAMED.items() if k.startswith("aug_")},
 }
 
 # INT8 schemes in the order of their speed on the shipped architecture, fastest first (benchmarks/studies/int8_convs:
@@ -104,12 +106,9 @@ INT8_SCHEMES_FASTEST_FIRST = ("static-qdq-int8-conv", "dynamic-int8")
 MAX_INT8_COST_DEG = 0.2        # per object: INT8 held-out mean error at most this much above fp32's
 MAX_MEAN_INT8_COST_DEG = 0.1   # goal over the shipped objects (reported by requantize)
 
-# BOP's symmetry of the shipped objects that have one (YCB-Video's models_info.json: the master chef can turns about
-# its axis; the other eight have none), in the scan frame of models/data/ycb_models, where the can's axis is z (its
-# side is a cylinder of radius 49.8 mm about x = -17.1, y = -9.7 mm, the fitted centre moving under 0.1 mm over 60 mm
-# of height). The card's error stays the plain geodesic one; the symmetry-aware error (to the closest turn about the
-# axis, models.symmetry) is scored beside it, the inputs' too.
-SYMMETRIES = {"002_master_chef_can": {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [-17.1, -9.7, 0]}]}}
+# The shipped objects' symmetries (models.data.objects): the card's error stays the plain geodesic one; the
+# symmetry-aware error (to the closest turn about the can's axis) is scored beside it, the inputs' too.
+SYMMETRIES = SCAN_FRAME_SYMMETRIES
 
 
 # Objects trained from scratch in two stages instead of from the shipped model: a first stage whose coarse inputs are
@@ -135,19 +134,21 @@ def machine() -> dict:
 def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cache: Path, val: int | None = None,
                   test: int | None = None, init: Path | None = None, extra_train: list[Path] = (), *,
                   noise: str | None = None, lr: float | None = None, name: str | None = None,
-                  other_set: bool = True) -> list[str]:
+                  other_set: bool = True, photometric: dict | None = None) -> list[str]:
     """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given, a model
     of another set unless ``other_set`` is False; every crop of the ``extra_train`` folders joins the training part of
-    ``data``'s split). ``noise`` and ``lr`` replace the recipe's; ``name`` (default ``obj``) names the outputs in
-    ``run``."""
+    ``data``'s split). ``noise``, ``lr`` and ``photometric`` (``{operation: probability}``, models.augment) replace the
+    recipe's; ``name`` (default ``obj``) names the outputs in ``run``."""
     r = {**RECIPE, **({"val": val} if val else {}), **({"test": test} if test else {}), **({"lr": lr} if lr else {})}
     name = name or obj
+    aug = r["photometric"] if photometric is None else photometric
     return [sys.executable, str(ROOT / "benchmarks" / "data_scaling.py"), "--data", str(data), "--object", obj,
             "--modes", r["split_mode"], "--sizes", str(sizes), "--val", str(r["val"]), "--test", str(r["test"]),
             "--split-objects", r["split_objects"], "--arch", r["arch"], "--config", json.dumps(r["config"]),
             "--rotation-frame", r["rotation_frame"], "--lr", str(r["lr"]), *(["--noise", noise] if noise else []),
             "--seed", str(r["seed"]),
             "--augment", "--background", str(r["background"]), "--skip-plain", "--skip-jitter",
+            *[a for op, p in aug.items() for a in (f"--aug-{op.replace('_', '-')}", str(p))],
             "--samples", str(samples), "--cache", str(cache), "--threads", "1",
             *(["--bf16"] if r["bf16"] else []),
             # the shipped model trained on another set (DATA is the scenes after it: benchmarks/DATA.md)
@@ -622,16 +623,37 @@ def _speed() -> dict:
     return json.loads(p.read_text()) if p.is_file() else {}
 
 
+REAL_JSON = ROOT / "benchmarks" / "results" / "real" / "real_ycbv_dev.json"
+
+
+def _real() -> dict:
+    """Per object, the real-frame record of ``benchmarks/real.py`` (:data:`REAL_JSON`) for the INT8 file that ships now
+    (a record of another file, an older version's, is left out)."""
+    if not REAL_JSON.is_file():
+        return {}
+    doc = json.loads(REAL_JSON.read_text())
+    out = {}
+    for obj, o in doc.get("objects", {}).items():
+        shipped = WEIGHTS_DIR / model_file_name(obj, int8=True)
+        if shipped.is_file() and o.get("sha256") == file_sha256(shipped):
+            out[obj] = {**{k: round(o[k], 3) for k in ("mean_deg", "median_deg", "input_mean_deg", "drift_mean_deg",
+                                                       "video_mean_deg", "under_5_deg")},
+                        "instances": o["instances"], "videos": len(o["videos"]), "data": doc["data"],
+                        "draws": doc["draws"], "symmetric": o.get("symmetric", False)}
+    return out
+
+
 def write_card() -> None:
-    """``weights/models.json`` (what the runtime lists) and ``weights/MODELS.md`` from the evaluation JSON."""
-    docs, speed = _load_results(), _speed()
+    """``weights/models.json`` (what the runtime lists) and ``weights/MODELS.md`` from the evaluation JSON (and the
+    real-frame record of ``benchmarks/real.py``, :data:`REAL_JSON`)."""
+    docs, speed, real = _load_results(), _speed(), _real()
     models = {}
     for d in docs:
         obj = d["object_id"]
         sp = speed.get("models", {}).get(obj, {})
         models[obj] = {
             "arch": d["recipe"]["arch"], "config": d["recipe"]["config"], "version": d["model_version"],
-            "files": d["files"], "heldout": d["heldout"],
+            "files": d["files"], "heldout": d["heldout"], **({"real": real[obj]} if obj in real else {}),
             "card": {"fp32_heldout_mean_deg": d["eval"]["fp32"]["all"]["mean_deg"],
                      "heldout_data": d["eval"]["split"].get("data"),
                      "fp32_training_split_mean_deg": d.get("eval_training_split", {}).get("fp32", {}).get(
@@ -646,7 +668,7 @@ def write_card() -> None:
         }
     WEIGHTS_DIR.mkdir(exist_ok=True)
     (WEIGHTS_DIR / INDEX_FILE).write_text(json.dumps({"format": INDEX_FORMAT, "models": models}, indent=1) + "\n")
-    (WEIGHTS_DIR / "MODELS.md").write_text(card_markdown(docs, speed))
+    (WEIGHTS_DIR / "MODELS.md").write_text(card_markdown(docs, speed, real))
 
 
 def _pct(x) -> str:
@@ -697,7 +719,7 @@ def _symmetry_sentence(d: dict) -> str:
             "error.")
 
 
-def card_markdown(docs: list[dict], speed: dict) -> str:
+def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> str:
     fresh_docs = [d for d in docs if _fresh(d)]
     fresh = bool(fresh_docs)  # the extra column; all docs fresh is what requantize --heldout leaves
     sets = sorted({d["eval"]["split"]["data"] for d in fresh_docs})
@@ -728,9 +750,11 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
         "(origin near the object's base), **not** the YCB-Video or BOP model frame.",
         "",
         "| object | INT8 mean | median | under 5 | under 10 | input mean | inside the image: mean (n) | cut by the border: "
-        "mean (n) | INT8 - fp32 | INT8 refinements/s | test crops |" + (" fp32, training set's test scenes |" if fresh else ""),
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if fresh else ""),
+        "mean (n) | INT8 - fp32 | INT8 refinements/s | test crops |" + (" fp32, training set's test scenes |" if fresh else "")
+        + (" real frames: mean / drift (n) |" if real else ""),
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if fresh else "") + ("---:|" if real else ""),
     ]
+    real = real or {}
     means, inputs, own = [], [], []
     for d in docs:
         e, f = d["eval"]["int8"], d["eval"]["fp32"]
@@ -743,6 +767,9 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
             extra = f" {own[-1]:.2f} |"
         elif fresh:
             extra = " - |"
+        if real:
+            r = real.get(d["object_id"])
+            extra += f" {r['mean_deg']:.2f} / {r['drift_mean_deg']:.2f} ({r['instances']}) |" if r else " - |"
         lines.append(
             f"| {d['object_id']} | **{_deg(e['all'])}** | {_deg(e['all'], 'median_deg')} | {_pct(e['all']['under_5_deg'])} "
             f"| {_pct(e['all']['under_10_deg'])} | {_deg(e['all'], 'input_mean_deg')} | "
@@ -751,7 +778,17 @@ def card_markdown(docs: list[dict], speed: dict) -> str:
             + extra)
     if docs:
         lines.append(f"| **mean of {len(docs)}** | **{np.mean(means):.2f}** | | | | {np.mean(inputs):.2f} | | | | | |"
-                     + (f" {np.mean(own):.2f} |" if fresh and len(own) == len(docs) else " |" if fresh else ""))
+                     + (f" {np.mean(own):.2f} |" if fresh and len(own) == len(docs) else " |" if fresh else "")
+                     + (f" **{np.mean([r['mean_deg'] for r in real.values()]):.2f}** / "
+                        f"{np.mean([r['drift_mean_deg'] for r in real.values()]):.2f} |" if real else ""))
+    if real:
+        r0 = next(iter(real.values()))
+        lines += ["", f"Real frames: every instance of the object in `{r0['data']}` (real YCB-Video camera frames, "
+                  f"`visib_fract >= 0.3`, the visible box), {r0['draws']} coarse inputs U(0, 30) each, one pass, INT8; "
+                  "the master chef can up to turns about its axis (its real annotations are unreliable about it); "
+                  "drift: the error when the input is the true pose. Written by `python benchmarks/real.py --data "
+                  "REAL --card` (`benchmarks/results/real/real_ycbv_dev.json`). The real frames are for measuring "
+                  "only: no model was trained, calibrated or chosen on them."]
     lines += [line for d in docs if "symmetric" in d["eval"]["int8"] for line in ("", _symmetry_sentence(d))]
     lines += ["", "## How each model was made", ""]
     for d in docs:

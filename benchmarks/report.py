@@ -127,39 +127,55 @@ def shipped_models(short: bool = False) -> str:
     models = _shipped()
     if not models:
         return "No shipped model yet: `benchmarks/pretrained.py build` trains them (`refiner-rt models` lists them)."
+    real = any(m.get("real") for _, m in models)
+    rcol, rsep = (" real frames: mean / drift (deg) |", "---:|") if real else ("", "")
     if short:
-        lines = ["| object | held-out error, INT8: mean / median (deg) | under 5 deg | input mean (deg) | INT8 refinements/s |",
-                 "|---|---:|---:|---:|---:|"]
+        lines = ["| object | held-out error, INT8: mean / median (deg) | under 5 deg | input mean (deg) |" + rcol
+                 + " INT8 refinements/s |", "|---|---:|---:|---:|" + rsep + "---:|"]
     else:
         lines = ["| object | arch | INT8 mean (deg) | median | under 5 deg | under 10 deg | input mean | fp32 mean | "
-                 "INT8 refinements/s | test crops |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    means, inputs = [], []
+                 "INT8 refinements/s | test crops |" + rcol, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|" + rsep]
+    means, inputs, reals, drifts = [], [], [], []
     for obj, m in models:
         h, c = m["heldout"], m.get("card", {})
         sp = c.get("int8_refinements_per_s")
         sp = "-" if sp is None else f"{sp:,.0f}"
         means.append(h["mean_deg"])
         inputs.append(h["input_mean_deg"])
+        r = m.get("real")
+        rcell = ""
+        if real:
+            rcell = f" {r['mean_deg']:.2f} / {r['drift_mean_deg']:.2f} |" if r else " - |"
+            if r:
+                reals.append(r["mean_deg"])
+                drifts.append(r["drift_mean_deg"])
         if short:
             lines.append(f"| {obj} | **{h['mean_deg']:.2f}** / {h['median_deg']:.2f} | {h['under_5_deg']:.0%} | "
-                         f"{h['input_mean_deg']:.2f} | {sp} |")
+                         f"{h['input_mean_deg']:.2f} |{rcell} {sp} |")
         else:
             fp32 = c.get("fp32_heldout_mean_deg")
             lines.append(f"| {obj} | {m['arch']} | **{h['mean_deg']:.2f}** | {h['median_deg']:.2f} | "
                          f"{h['under_5_deg']:.0%} | {h['under_10_deg']:.0%} | {h['input_mean_deg']:.2f} | "
-                         f"{'-' if fp32 is None else f'{fp32:.2f}'} | {sp} | {h['n']} |")
+                         f"{'-' if fp32 is None else f'{fp32:.2f}'} | {sp} | {h['n']} |{rcell}")
     mean = sum(means) / len(means)
     inp = sum(inputs) / len(inputs)
+    rmean = (f" **{sum(reals) / len(reals):.2f}** / {sum(drifts) / len(drifts):.2f} |"
+             if reals and len(reals) == len(models) else " |" if real else "")
     if short:
-        lines.append(f"| **mean of {len(models)}** | **{mean:.2f}** | | {inp:.2f} | |")
+        lines.append(f"| **mean of {len(models)}** | **{mean:.2f}** | | {inp:.2f} |{rmean} |")
     else:
-        lines.append(f"| **mean of {len(models)}** | | **{mean:.2f}** | | | | {inp:.2f} | | | |")
+        lines.append(f"| **mean of {len(models)}** | | **{mean:.2f}** | | | | {inp:.2f} | | | |{rmean}")
     split = models[0][1]["heldout"].get("split", "held-out scenes")
     lines += ["", f"Geodesic error of the INT8 model on rendered {split}, coarse inputs U(0, 30) degrees around the "
               "truth, one pass; speed at batch 1 on one thread through `refine()` with `K`. From "
               "`refiner_rt/weights/models.json` (written with the model card "
               "[`refiner_rt/weights/MODELS.md`](" + ("../" if not short else "") + "refiner_rt/weights/MODELS.md) by "
               "`python benchmarks/pretrained.py card`)."]
+    if real:
+        r0 = next(m["real"] for _, m in models if m.get("real"))
+        lines[-1] += (f" Real frames: every instance in `{r0['data']}` (real YCB-Video camera frames), {r0['draws']} "
+                      "coarse inputs U(0, 30) each, the same INT8 model; drift: how far it moves a perfect input pose. "
+                      "From `python benchmarks/real.py --data REAL --card`.")
     return "\n".join(lines)
 
 

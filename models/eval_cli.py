@@ -1,4 +1,5 @@
-"""``refiner-rt eval MODEL --data DIR``: the paper's metric on a dataset's test split.
+"""``refiner-rt eval MODEL --data DIR``: the paper's metric on a dataset's test split; with ``--all``, on every
+instance of a folder (real frames, or rendered scenes no model trained on).
 
 MODEL is a checkpoint (``.pt``, run in PyTorch) or an exported model (``.onnx``, run through
 ``refiner_rt.RefinerSession``, the deployed path). When per-object fine-tuned siblings exist
@@ -137,6 +138,50 @@ def run_eval(
     }
 
 
+def run_eval_all(model: Path, data: Path, *, noise: str = "uniform:0:30", draws: int = 10, seed: int = 2024,
+                 objects: list[str] | None = None, threads: int = 0, cache_root: Path | None = None,
+                 progress: bool = True, device: str = "auto", base_only: bool = False) -> dict:
+    """Evaluate ``model`` on every instance of ``data`` (``visib_fract >= 0.3``, the visible box, boxes of 16 px
+    or more): ``draws`` coarse inputs per instance and the drift from the true pose
+    (:func:`models.evaluate.evaluate_folder`). Objects with a symmetry (the model's, or
+    :data:`models.data.objects.SCAN_FRAME_SYMMETRIES`) are scored to the closest symmetric pose."""
+    from models.data.objects import SCAN_FRAME_SYMMETRIES
+    from models.evaluate import evaluate_folder, folder_cropset
+
+    t0 = time.perf_counter()
+    predictor, c = _load(model, threads, device)
+    per_object = {} if base_only else _siblings(model)
+    objects = list(objects or c["objects"] or [])
+    if not objects:
+        raise ValueError(f"{model} records no objects: give --objects")
+    crops, _ = folder_cropset(data, objects, int(c["input_size"]), float(c["crop_context"]), cache_root=cache_root,
+                              progress=progress)
+    if per_object:
+        predictor = {obj: (_load(per_object[obj], threads, device)[0] if obj in per_object else predictor)
+                     for obj in crops.objects}
+    symmetries = {**{o: s for o, s in SCAN_FRAME_SYMMETRIES.items() if o in crops.objects}, **c["symmetries"]}
+    result = evaluate_folder(predictor, crops, rotation_frame=c["rotation_frame"], noise=noise, draws=draws,
+                             seed=seed, symmetries=symmetries)
+    return {**result, "model": str(model), "arch": c["arch"], "runtime": c["runtime"], "data": str(data),
+            "rotation_frame": c["rotation_frame"], "eval_s": time.perf_counter() - t0}
+
+
+def format_all_table(result: dict, title: str = "") -> str:
+    """The ``--all`` result as plain text: per object, refined and input error, drift from the true pose, videos."""
+    head = f"{'object':<22}{'mean':>8}{'median':>8}{'input':>8}{'<5deg':>8}{'drift':>8}{'videos':>8}{'n':>6}"
+    lines = ([title] if title else []) + [head, "-" * len(head)]
+    for name, s in result["objects"].items():
+        lines.append(f"{name:<22}{s['mean_deg']:>8.2f}{s['median_deg']:>8.2f}{s['input_mean_deg']:>8.2f}"
+                     f"{100 * s['under_5_deg']:>7.1f}%{s['drift_mean_deg']:>8.2f}{len(s['videos']):>8}"
+                     f"{s['instances']:>6}")
+    lines += ["-" * len(head),
+              f"{'mean of objects':<22}{result['mean_deg']:>8.2f}{'':>8}{result['input_mean_deg']:>8.2f}{'':>8}"
+              f"{result['drift_mean_deg']:>8.2f}{'':>8}{result['instances']:>6}",
+              f"Per-video mean (each object's videos averaged first): {result['video_mean_deg']:.2f} deg; over "
+              f"instances: {result['pooled_mean_deg']:.2f} deg. drift: error when the input is the true pose."]
+    return "\n".join(lines)
+
+
 @click.command("eval")
 @click.argument("model", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--data", required=True, type=click.Path(exists=True, file_okay=False, path_type=Path), help="Dataset folder (BOP split or YCB-Video root).")
@@ -146,6 +191,12 @@ def run_eval(
 @click.option("--resample", default=1, show_default=True, type=click.IntRange(1), help="Coarse poses per test image (the paper's over-fitting test).")
 @click.option("--iterations", default=1, show_default=True, type=click.IntRange(1), help="Refinement iterations (beyond the paper).")
 @click.option("--seed", default=2024, show_default=True, type=int, help="Seed of the test coarse poses.")
+@click.option("--all", "all_instances", is_flag=True,
+              help="Score every instance of DIR (no split: real frames, or rendered scenes no model trained on): "
+                   "visib_fract >= 0.3, the visible box, --draws coarse inputs each, and the drift from the true pose; "
+                   "symmetric objects to the closest symmetric pose.")
+@click.option("--draws", default=10, show_default=True, type=click.IntRange(1),
+              help="With --all: coarse inputs drawn per instance.")
 @click.option("--base-only", is_flag=True, help="Ignore per-object fine-tuned siblings of MODEL.")
 @click.option("--split-mode", type=click.Choice(["frames", "scenes"]), help="Override the split recorded in the checkpoint.")
 @click.option("--split-seed", type=int, help="Override the split seed.")
@@ -158,9 +209,12 @@ def run_eval(
 @click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed, base_only, split_mode, split_seed,
-             test_per_object, objects, device, threads, cache_root, workers, quiet):
-    """Evaluate MODEL (.pt checkpoint or .onnx) on the test split: per-object mean/std geodesic error (degrees)."""
+def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed, all_instances, draws, base_only,
+             split_mode, split_seed, test_per_object, objects, device, threads, cache_root, workers, quiet):
+    """Evaluate MODEL (.pt checkpoint or .onnx) on the test split: per-object mean/std geodesic error (degrees).
+
+    With --all, on every instance of DIR instead (a folder of real frames: `refiner-rt eval M --data
+    real_ycbv_dev/test --all`)."""
     from models.metrics import format_markdown, format_table
     from models.noise import NoiseSpec
 
@@ -170,6 +224,24 @@ def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed,
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--noise") from None
     obj_list = [o.strip() for o in objects.split(",")] if objects else None
+    if all_instances:
+        clash = [name for name, given in (("--split-mode", split_mode), ("--split-seed", split_seed),
+                                          ("--test-per-object", test_per_object), ("--md", md_path)) if given]
+        if clash or resample != 1 or iterations != 1:
+            raise click.UsageError(f"--all scores every instance with --draws inputs each, one pass; it takes none of "
+                                   f"{', '.join(clash + ['--resample'] * (resample != 1) + ['--iterations'] * (iterations != 1))}")
+        try:
+            result = run_eval_all(model, data, noise=noise, draws=draws, seed=seed, objects=obj_list, threads=threads,
+                                  cache_root=cache_root, progress=not quiet, device=device, base_only=base_only)
+        except (ValueError, FileNotFoundError) as exc:
+            raise click.ClickException(str(exc)) from None
+        result["command"] = "refiner-rt " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        click.echo(format_all_table(result, f"{model.name} ({result['arch']}, {result['runtime']}) on every instance "
+                                            f"of {data}, noise {noise}, {draws} draws; errors in degrees"))
+        if json_path:
+            json_path.write_text(json.dumps(result, indent=2))
+            click.echo(f"Wrote {json_path}")
+        return
     try:
         result = run_eval(model, data, noise=noise, resample=resample, iterations=iterations, seed=seed, base_only=base_only,
                           split_mode=split_mode, split_seed=split_seed, test_per_object=test_per_object, objects=obj_list,

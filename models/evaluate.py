@@ -8,6 +8,8 @@ numbers are directly comparable. Angles in degrees.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +22,7 @@ from models.noise import NoiseSpec, perturb
 from models.symmetry import symmetric_error
 from refiner_rt import quaternion as rq
 
-__all__ = ["EvalErrors", "evaluate_errors", "onnx_predictor", "torch_predictor"]
+__all__ = ["EvalErrors", "evaluate_errors", "evaluate_folder", "folder_cropset", "onnx_predictor", "torch_predictor"]
 
 Predictor = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -125,3 +127,77 @@ def torch_predictor(model, batch_size: int = 256) -> Predictor:
     from models.train import predict
 
     return lambda crops, q_in: predict(model, crops, q_in, batch_size)
+
+
+def folder_cropset(data: str | Path, objects: list[str], size: int, context: float, *, min_visib: float = 0.3,
+                   min_box_size: float = 16.0, cache_root: str | Path | None = None, progress: bool = False):
+    """Every instance of ``objects`` in a BOP or YCB-Video folder (no split: real frames, or rendered scenes no
+    model trained on) with ``visib_fract >= min_visib`` and a visible box of ``min_box_size`` px or more, cropped
+    by the crop rule: ``(CropSet, samples)`` in the same order.
+
+    The crops are cached under ``cache_root`` (default: ``<data>/.crops``, or the user's cache folder when ``data``
+    is read-only).
+
+    Raises:
+        ValueError: no such instance in ``data`` (the message names the folder, the objects and the filter).
+    """
+    from models.data import CropCache
+    from models.pipeline import DataSpec, load_samples, writable_cache_root
+    from refiner_rt.geometry import ray_quaternions
+
+    spec = DataSpec(data=str(data), objects=list(objects), split_mode="scenes", sizes=(0, 0, 0, 0),
+                    min_visib=min_visib, min_box_size=min_box_size)
+    samples = load_samples(spec)
+    key = json.dumps({**spec.as_dict(), "part": "all", "size": size, "context": context}, sort_keys=True)
+    folder = writable_cache_root(Path(data), cache_root) / f"all_{size}_{hashlib.sha1(key.encode()).hexdigest()[:10]}"
+    cache = CropCache.build_or_load(samples, size, folder, context=context, progress=progress)
+    crops = CropSet(crops=cache.crops, q_gt=cache.q_gt, obj_ids=cache.obj_ids,
+                    q_ray=ray_quaternions(cache.K, cache.boxes_xyxy), scene_ids=np.asarray(cache.scene_ids))
+    return crops, samples
+
+
+def evaluate_folder(
+    predictor: Predictor | dict[str, Predictor],
+    crops: CropSet,
+    *,
+    rotation_frame: str,
+    noise: str = "uniform:0:30",
+    draws: int = 10,
+    seed: int = 2024,
+    symmetries: dict | None = None,
+) -> dict:
+    """Score every instance of ``crops`` (see :func:`folder_cropset`): ``draws`` coarse inputs each, and the drift
+    from the ground truth (the true pose given as the input: how far a perfect pose is moved).
+
+    Errors of the objects in ``symmetries`` are to the closest symmetric pose. Returns the JSON-ready result:
+    ``objects`` (per object: mean, median, shares, input mean, ``drift_mean_deg``, ``videos`` and
+    ``video_mean_deg``, the mean of its per-video means), ``mean_deg`` (the mean over objects), ``pooled_mean_deg``
+    (over instances), ``drift_mean_deg`` (mean over objects), ``video_mean_deg`` (mean over objects of their
+    per-video means), and the protocol.
+    """
+    errors = evaluate_errors(predictor, crops, noise, seed=seed, resample=draws, rotation_frame=rotation_frame,
+                             symmetries=symmetries)
+    drift = evaluate_errors(predictor, crops, "uniform:0:0", seed=seed, rotation_frame=rotation_frame,
+                            symmetries=symmetries)
+    summary = errors.summary()
+    scenes = np.concatenate([crops.scene_ids.astype(str)] * draws)
+    objects = {}
+    for obj, stats in summary["objects"].items():
+        keep = errors.obj_ids == obj
+        videos = {v: float(errors.err_out_deg[keep & (scenes == v)].mean()) for v in sorted(set(scenes[keep]))}
+        objects[obj] = {**stats, "instances": int((crops.obj_ids == obj).sum()),
+                        "drift_mean_deg": float(drift.err_out_deg[drift.obj_ids == obj].mean()),
+                        "videos": videos, "video_mean_deg": float(np.mean(list(videos.values())))}
+    mean = lambda key: float(np.mean([o[key] for o in objects.values()]))  # noqa: E731
+    return {
+        "objects": objects,
+        "mean_deg": mean("mean_deg"),
+        "input_mean_deg": mean("input_mean_deg"),
+        "drift_mean_deg": mean("drift_mean_deg"),
+        "video_mean_deg": mean("video_mean_deg"),
+        "pooled_mean_deg": float(errors.err_out_deg.mean()),
+        "instances": int(len(crops)),
+        "protocol": {"noise": str(noise), "draws": draws, "seed": seed, "drift": "input = the true pose",
+                     "symmetries": symmetries or {}, "error": "geodesic, to the closest symmetric pose for "
+                     "the objects in symmetries", "mean_deg": "mean over objects of the per-object mean"},
+    }

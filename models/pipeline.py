@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -194,13 +195,24 @@ def _extra_train_samples(spec: DataSpec, samples: list) -> list:
     return extra
 
 
+def writable_cache_root(data: Path, cache_root: str | Path | None = None) -> Path:
+    """Where the crop caches of ``data`` go: ``cache_root`` if given, else ``<data>/.crops``, or, when ``data`` is
+    read-only (a shared evaluation set), ``~/.cache/refiner-rt/crops/<data's name>-<hash of its path>``."""
+    if cache_root:
+        return Path(cache_root)
+    data = Path(data)
+    if os.access(data, os.W_OK) or (data / ".crops").is_dir() and os.access(data / ".crops", os.W_OK):
+        return data / ".crops"
+    tag = hashlib.sha1(str(data.resolve()).encode()).hexdigest()[:10]
+    return Path.home() / ".cache" / "refiner-rt" / "crops" / f"{data.resolve().name}-{tag}"
+
+
 def _cache_dir(spec: DataSpec, part: str, size: int, context: float, cache_root: Path | None) -> Path:
     if part != "train_base":
         spec = spec.held_out()  # extra training folders change no other part: share its cache
     key = json.dumps({**spec.as_dict(), "part": part, "size": size, "context": context}, sort_keys=True)
     tag = hashlib.sha1(key.encode()).hexdigest()[:10]
-    root = Path(cache_root) if cache_root else Path(spec.data) / ".crops"
-    return root / f"{spec.split_mode}_{part}_{size}_{tag}"
+    return writable_cache_root(Path(spec.data), cache_root) / f"{spec.split_mode}_{part}_{size}_{tag}"
 
 
 def cropset_for(

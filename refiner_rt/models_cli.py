@@ -21,7 +21,8 @@ def models_cmd(as_json):
     """List the pretrained refiners: object, architecture, file size, held-out-scene error, INT8 speed.
 
     Errors are the INT8 model's mean geodesic error (degrees) on rendered scenes held out from its training,
-    from coarse inputs drawn U(0, 30) degrees around the truth; speed is refinements/s at batch 1 on one core
+    from coarse inputs drawn U(0, 30) degrees around the truth, and on real camera frames (with the drift: how
+    far a perfect input pose is moved); speed is refinements/s at batch 1 on one core
     through the full refine() path (see refiner_rt/weights/MODELS.md for the machine and the commands).
     Load one with RefinerSession.pretrained("<object>").
     """
@@ -31,23 +32,29 @@ def models_cmd(as_json):
         raise click.ClickException(f"cannot list the pretrained models: {exc}") from None
     if as_json:
         click.echo(json.dumps([{"object_id": m.object_id, "arch": m.arch, "version": m.version, "files": m.files,
-                                "heldout": m.heldout, "config": m.config, "card": m.card} for m in models], indent=1))
+                                "heldout": m.heldout, "real": m.real, "config": m.config, "card": m.card} for m in models],
+                              indent=1))
         return
     if not models:
         click.echo("No pretrained models ship in this installation.")
         return
-    head = ("object", "arch", "version", "INT8 MB", "fp32 MB", "held-out mean", "median", "input", "INT8 /s")
+    head = ("object", "arch", "version", "INT8 MB", "fp32 MB", "held-out mean", "median", "input", "real frames",
+            "drift", "INT8 /s")
     rows = []
     for m in models:
         sizes = {k: (WEIGHTS_DIR / f).stat().st_size / 1e6 for k, f in m.files.items() if (WEIGHTS_DIR / f).is_file()}
         rows.append((m.object_id, m.arch, m.version, _fmt(sizes.get("int8"), ".1f"), _fmt(sizes.get("fp32"), ".1f"),
                      _fmt(m.heldout.get("mean_deg"), ".2f"), _fmt(m.heldout.get("median_deg"), ".2f"),
-                     _fmt(m.heldout.get("input_mean_deg"), ".2f"), _fmt(m.card.get("int8_refinements_per_s"), ",.0f")))
+                     _fmt(m.heldout.get("input_mean_deg"), ".2f"), _fmt(m.real.get("mean_deg"), ".2f"),
+                     _fmt(m.real.get("drift_mean_deg"), ".2f"), _fmt(m.card.get("int8_refinements_per_s"), ",.0f")))
     widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(len(head))]
     line = lambda r: "  ".join(str(c).ljust(w) if i == 0 else str(c).rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
     click.echo(line(head))
     for r in rows:
         click.echo(line(r))
     split = models[0].heldout.get("split", "held-out scenes")
-    click.echo(f"\nErrors in degrees on rendered {split}, inputs U(0, 30). Load one with "
-               f"RefinerSession.pretrained(\"<object>\") and pass the camera intrinsics K to refine().")
+    real = next((m.real for m in models if m.real), None)
+    click.echo(f"\nErrors in degrees on rendered {split}, inputs U(0, 30)"
+               + (f"; real frames: every instance in the real camera frames of {real.get('data')} (same inputs), "
+                  "drift: how far a perfect input pose is moved there" if real else "")
+               + ". Load one with RefinerSession.pretrained(\"<object>\") and pass the camera intrinsics K to refine().")

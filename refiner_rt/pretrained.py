@@ -47,6 +47,9 @@ class PretrainedModel:
             ``under_5_deg``, ``under_10_deg``, ``input_mean_deg``, ``n``, the split named in ``split``).
         card: everything else the model card shows (fp32 error, inside / cut by the border, speed, recipe command,
             mesh and its sha256, training wall time and machine).
+        real: the INT8 model on real camera frames (degrees; ``mean_deg``, ``median_deg``, ``input_mean_deg``,
+            ``drift_mean_deg``: a perfect input pose moved by, ``instances``, ``videos``, the folder in ``data``),
+            ``{}`` when not measured (``benchmarks/real.py``).
     """
 
     object_id: str
@@ -56,6 +59,7 @@ class PretrainedModel:
     heldout: dict
     config: dict = field(default_factory=dict)
     card: dict = field(default_factory=dict)
+    real: dict = field(default_factory=dict)
 
     def path(self, int8: bool = True) -> Path:
         """The model's ONNX file (INT8 by default).
@@ -89,7 +93,7 @@ def pretrained_models() -> list[PretrainedModel]:
     for obj, m in sorted(_index()["models"].items()):
         out.append(PretrainedModel(object_id=obj, arch=m["arch"], version=str(m["version"]), files=dict(m["files"]),
                                    heldout=dict(m["heldout"]), config=dict(m.get("config", {})),
-                                   card=dict(m.get("card", {}))))
+                                   card=dict(m.get("card", {})), real=dict(m.get("real", {}))))
     return out
 
 
