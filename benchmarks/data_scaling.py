@@ -56,6 +56,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.study_cli import provenance, write_json  # noqa: E402
+from models.augment import PHOTOMETRIC_OPS  # noqa: E402
 from models.recipe import RecipeError, add_recipe_argument, load_recipe, recipe_from_arguments  # noqa: E402
 
 # The study's training options: flag -> (argparse dest, TrainRecipe field, help when the study's meaning needs its
@@ -87,6 +88,7 @@ RECIPE_ARGUMENTS = {
     "--extra-train": ("extra_train", "extra_train", None),
     "--init": ("init", "init", "start each run from this checkpoint's weights (the same --arch, --config, "
                                "--rotation-frame and split of --data) instead of a new network"),
+    **{f"--aug-{op.replace('_', '-')}": (f"aug_{op}", f"aug_{op}", None) for op in PHOTOMETRIC_OPS},
     "--cache": ("cache", "cache_root", "crop cache folder (default: DATA/.crops)"),
     "--threads": ("threads", "threads", None),
 }

@@ -20,6 +20,8 @@ import re
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+from models.augment import PHOTOMETRIC_OPS
+
 __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_recipe", "check_masks",
            "check_inplane_frame", "epoch_plan", "OBJECT_NAME_PATTERN",
            "add_recipe_argument", "recipe_from_arguments"]
@@ -134,6 +136,16 @@ class TrainRecipe:
     inplane: float = _opt(0.0, "augmentation", "Turn every training crop about its centre by up to this many degrees, "
                           "the coarse pose with it (new rotations about the viewing ray); needs --rotation-frame ray. "
                           "0: off.")
+    # Camera-like photometric augmentation (models.augment): the probability per crop of each operation, 0 = off.
+    aug_motion_blur: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['motion_blur']}.")
+    aug_blur: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['blur']}.")
+    aug_sensor_noise: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['sensor_noise']}.")
+    aug_white_balance: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['white_balance']}.")
+    aug_brightness: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['brightness']}.")
+    aug_contrast: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['contrast']}.")
+    aug_colour: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['colour']}.")
+    aug_sharpness: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['sharpness']}.")
+    aug_jpeg: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['jpeg']}.")
     # run (where and how; the weights do not depend on these, except through the device's arithmetic)
     device: str = _opt("auto", "run", "auto (cuda, then mps, then cpu), cpu, cuda, cuda:N or mps.")
     threads: int = _opt(0, "run", "Torch threads (0: all cores, shared between torchrun ranks).")
@@ -163,7 +175,7 @@ class TrainRecipe:
             need(getattr(self, name) is None or (_is_int(getattr(self, name)) and getattr(self, name) >= 0), name,
                  "an integer >= 0 or null (the base stage's)")
         need(_is_int(self.seed) and _is_int(self.split_seed), "seed", "an integer")
-        for name in ("background", "occlude", "relight", "min_visib"):
+        for name in ("background", "occlude", "relight", "min_visib", *(f"aug_{op}" for op in PHOTOMETRIC_OPS)):
             need(_is_number(getattr(self, name)) and 0.0 <= getattr(self, name) <= 1.0, name, "a number in [0, 1]")
         need(_is_number(self.inplane) and 0.0 <= self.inplane <= 180.0, "inplane", "an angle in [0, 180] degrees")
         need(_is_number(self.lr) and self.lr > 0, "lr", "a number > 0")
@@ -227,6 +239,11 @@ class TrainRecipe:
                 self.epochs_geodesic if self.ft_epochs_geodesic is None else self.ft_epochs_geodesic)
 
     @property
+    def photometric(self) -> dict[str, float]:
+        """The photometric augmentations switched on: ``{operation: probability}`` (:mod:`models.augment`)."""
+        return {op: float(getattr(self, f"aug_{op}")) for op in PHOTOMETRIC_OPS if getattr(self, f"aug_{op}") > 0}
+
+    @property
     def fine_tune_lr(self) -> float:
         return self.ft_lr or self.lr / 3
 
@@ -245,7 +262,7 @@ class TrainRecipe:
             epochs_mse=epochs_mse, epochs_geodesic=epochs_geodesic, batch_size=self.batch_size,
             lr=self.lr if stage == "base" else self.fine_tune_lr, lr_schedule=self.lr_schedule, noise=self.noise,
             rotation_frame=self.rotation_frame, augment=self.augment, background=self.background,
-            occlude=self.occlude, relight=self.relight, inplane=self.inplane, seed=self.seed,
+            occlude=self.occlude, relight=self.relight, inplane=self.inplane, photometric=self.photometric, seed=self.seed,
             max_steps_per_epoch=max_steps, bf16=self.bf16, ema=self.ema, weight_decay=self.weight_decay,
             decoupled_weight_decay=True,
         )
@@ -378,6 +395,17 @@ NAMED_RECIPES: dict[str, dict] = {
         "lr": 5e-4, "lr_schedule": "cosine", "augment": True, "background": 0.5, "split_mode": "scenes",
         "split_objects": ["paper"], "per_object": 0, "val_per_object": 300, "test_per_object": 700, "seed": 0,
         "samples": 500_000, "base_per_object": 16000, "bf16": True,
+    },
+    # heldout-scenes-v3 with camera-like photometric augmentation (models.augment: the probability per crop of each
+    # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what model
+    # version 6 trains with, continuing each object's version-5 model (benchmarks/studies/real_levers).
+    "robot-real-v6": {
+        "arch": "fusion", "arch_config": {"conv_channels": [16, 32, 64, 128, 128]}, "rotation_frame": "ray",
+        "lr": 5e-4, "lr_schedule": "cosine", "augment": True, "background": 0.5, "split_mode": "scenes",
+        "split_objects": ["paper"], "per_object": 0, "val_per_object": 300, "test_per_object": 700, "seed": 0,
+        "samples": 500_000, "base_per_object": 16000, "bf16": True,
+        "aug_motion_blur": 0.2, "aug_blur": 0.3, "aug_sensor_noise": 0.3, "aug_white_balance": 0.3,
+        "aug_brightness": 0.4, "aug_contrast": 0.3, "aug_colour": 0.3, "aug_sharpness": 0.3, "aug_jpeg": 0.3,
     },
     # The defaults of benchmarks/data_scaling.py (one object, a sample budget, no fine-tuning): the fusion network
     # in the ray frame with a cosine schedule from 1e-3; the study's runs change the images and augmentations.

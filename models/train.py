@@ -28,6 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from models.augment import photometric, validate_probabilities
 from models.cropset import CropSet
 from models.losses import geodesic_loss
 from models.noise import NoiseSpec, perturb
@@ -77,6 +78,9 @@ class TrainConfig:
             ``rotation_frame="ray"``. 0 = off.
         relight: probability that a training crop gets another scene's light and camera (a smooth shading field,
             light colour, gamma, blur and sensor noise; see ``_relight``), after ``occlude`` and before ``augment``.
+        photometric: camera-like photometric augmentation, ``{operation: probability per crop}``
+            (:mod:`models.augment`: blur, motion blur, sensor noise, white balance, brightness, contrast, colour,
+            sharpness, JPEG), last of the crop changes; ``{}`` = off.
         seed: seed of the noise, shuffling and augmentation.
         val_seed: seed of the fixed validation noise (the same inputs every epoch).
         max_steps_per_epoch: cap on optimisation steps per epoch (0 = one full pass).
@@ -105,6 +109,7 @@ class TrainConfig:
     occlude: float = 0.0
     relight: float = 0.0
     inplane: float = 0.0
+    photometric: dict = field(default_factory=dict)
     seed: int = 0
     val_seed: int = 12345
     max_steps_per_epoch: int = 0
@@ -130,6 +135,7 @@ class TrainConfig:
         if not 0.0 <= self.inplane <= 180.0:
             raise ValueError(f"inplane must be an angle in [0, 180] degrees; got {self.inplane}")
         check_inplane_frame(self.inplane, self.rotation_frame, as_flags=False)
+        validate_probabilities(self.photometric)
         for name in ("bf16", "decoupled_weight_decay"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False; got {getattr(self, name)!r}")
@@ -518,6 +524,8 @@ def train_refiner(
                 images = _relight(images, cfg.relight, gen)
             if cfg.augment:
                 images = _augment(images, cfg, gen)
+            if cfg.photometric:
+                images = photometric(images, cfg.photometric, gen)
             label = label_all[idx]
             if sym_table is not None:  # every symmetric pose's label: (B, K, 4)
                 label = rq.multiply(label[:, None, :], sym_table[sym_index[idx]])

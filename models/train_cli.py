@@ -22,6 +22,7 @@ from pathlib import Path
 
 import click
 
+from models.augment import PHOTOMETRIC_OPS
 from models.recipe import (NAMED_RECIPES, OBJECT_NAME_PATTERN, SECTIONS, RecipeError, TrainRecipe, field_default,
                            load_recipe, parse_json_object)
 from models.training import write_logs  # noqa: F401  (re-exported: the epoch logs of a run)
@@ -86,7 +87,7 @@ CLICK_TYPES: dict[str, dict] = {
     "batch_size": {"type": click.IntRange(1)}, "max_steps_per_epoch": {"type": click.IntRange(0)}, "seed": {"type": int},
     "bf16": {"bool": True}, "ema": {"type": click.FloatRange(0, 1, max_open=True)},
     "weight_decay": {"type": click.FloatRange(0)}, "augment": {"bool": True}, "background": {"type": _PROB},
-    "occlude": {"type": _PROB}, "relight": {"type": _PROB}, "inplane": {"type": click.FloatRange(0, 180)},
+    "occlude": {"type": _PROB}, "relight": {"type": _PROB}, **{f"aug_{op}": {"type": _PROB} for op in PHOTOMETRIC_OPS}, "inplane": {"type": click.FloatRange(0, 180)},
     "device": {"type": str}, "threads": {"type": click.IntRange(0)}, "workers": {"type": click.IntRange(1)},
     "cache_root": {"type": click.Path(file_okay=False)},
 }

@@ -1,0 +1,73 @@
+"""Camera-like photometric augmentation (models.augment): each operation against an independent computation of what
+it should do, determinism, untouched crops, and the recipe's validation of the probabilities."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from models.augment import PHOTOMETRIC_OPS, _apply, _motion_kernel, photometric, validate_probabilities
+from models.recipe import RecipeError, TrainRecipe
+
+
+def _batch(n=6, s=32, seed=0):
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 256, (n, 4, 4, 3), dtype=np.uint8)
+    return torch.from_numpy(np.stack([cv2.resize(c, (s, s), interpolation=cv2.INTER_CUBIC) for c in small]))
+
+
+@pytest.mark.parametrize("op", list(PHOTOMETRIC_OPS))
+def test_each_operation_changes_every_picked_crop_and_keeps_shape_and_dtype(op):
+    x = _batch()
+    y = photometric(x, {op: 1.0}, torch.Generator().manual_seed(1))
+    assert y.shape == x.shape and y.dtype == torch.uint8
+    changed = (y.int() - x.int()).abs().reshape(len(x), -1).amax(dim=1)
+    assert bool((changed > 0).all()), op
+
+
+def test_probability_zero_and_unpicked_crops_are_untouched():
+    x = _batch(n=64)
+    assert photometric(x, {op: 0.0 for op in PHOTOMETRIC_OPS}, torch.Generator()) is x
+    y = photometric(x, {"white_balance": 0.5}, torch.Generator().manual_seed(3))
+    same = (y == x).reshape(len(x), -1).all(dim=1)
+    assert 10 < int(same.sum()) < 54  # about half picked
+
+
+def test_the_same_seed_gives_the_same_crops():
+    probs = {op: 0.5 for op in PHOTOMETRIC_OPS}
+    a = photometric(_batch(), probs, torch.Generator().manual_seed(7))
+    b = photometric(_batch(), probs, torch.Generator().manual_seed(7))
+    c = photometric(_batch(), probs, torch.Generator().manual_seed(8))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_gains_and_saturation_match_their_formulas():
+    crop = _batch(n=1)[0].numpy().astype(np.float32)
+    rng, ref = np.random.default_rng(5), np.random.default_rng(5)
+    np.testing.assert_allclose(_apply("white_balance", crop, rng), crop * ref.uniform(0.75, 1.25, 3), rtol=1e-6)
+    np.testing.assert_allclose(_apply("brightness", crop, rng), crop * ref.uniform(0.5, 1.6), rtol=1e-6)
+    out = _apply("colour", crop, rng)
+    s = ref.uniform(0.3, 2.0)
+    grey = 0.114 * crop[..., 0] + 0.587 * crop[..., 1] + 0.299 * crop[..., 2]
+    np.testing.assert_allclose(out, grey[..., None] + (crop - grey[..., None]) * s, rtol=1e-5, atol=1e-3)
+    contrast = _apply("contrast", crop, rng)
+    assert contrast.mean() == pytest.approx(crop.mean(), rel=1e-4)  # about the crop's mean
+
+
+def test_motion_kernel_is_a_normalised_line_through_the_centre():
+    for seed in range(5):
+        k = _motion_kernel(np.random.default_rng(seed))
+        assert k.sum() == pytest.approx(1.0, abs=1e-6) and k[4, 4] == k.max()
+        np.testing.assert_allclose(k, k[::-1, ::-1], atol=1e-7)  # symmetric about its centre
+
+
+def test_probabilities_are_validated_with_the_operation_named():
+    with pytest.raises(ValueError, match="unknown photometric augmentation 'fog'"):
+        validate_probabilities({"fog": 0.5})
+    with pytest.raises(ValueError, match="aug_jpeg must be a probability"):
+        validate_probabilities({"jpeg": 1.5})
+    with pytest.raises(RecipeError, match="aug_blur"):
+        TrainRecipe(data="x", aug_blur=2.0).validate()
+    r = TrainRecipe(data="x", aug_blur=0.3, aug_jpeg=0.2).validate()
+    assert r.photometric == {"blur": 0.3, "jpeg": 0.2}
+    assert r.stage_config("base", 100).photometric == {"blur": 0.3, "jpeg": 0.2}
