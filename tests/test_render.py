@@ -230,7 +230,7 @@ def test_cli_stops_cleanly_on_sigterm(tmp_path, monkeypatch):
     import os
     import signal
 
-    import models.data.render as render_mod
+    import models.data.render.cli as render_mod
 
     def killed(*args, **kwargs):
         os.kill(os.getpid(), signal.SIGTERM)  # the real signal, delivered to this (main) thread
