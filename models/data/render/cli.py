@@ -16,7 +16,8 @@ from models.data.meshes import list_models
 from models.data.objects import PAPER_OBJECTS
 
 from .builtin import builtin_models_dir
-from .config import COMMON_CAMERAS, LAYOUTS, YCBV_K, RenderConfig
+from .config import COMMON_CAMERAS, ENGINES, LAYOUTS, YCBV_K, RenderConfig
+from .cycles import BlenderError
 from .dataset import render_dataset
 
 
@@ -113,14 +114,28 @@ def _default_objects(models_dir: Path | None) -> tuple[str, ...]:
                    "away and 10-80 deg above the table, common RGB-D intrinsics unless --K is given. tabletop: the "
                    "earlier data sets' layout (ycb9_v2 to ycb9_v5: objects mostly upright, cameras 0.8-1.6 m, "
                    "20-70 deg, YCB-Video's K); use it to resume or grow one of them.")
+@click.option("--engine", type=click.Choice(ENGINES), default="tiny", show_default=True,
+              help="tiny: pybullet's TinyRenderer (fast). cycles: Blender's path tracer, physically based (HDR world "
+                   "light, area lights, glossy materials, soft shadows), about a second or more per frame; needs bpy "
+                   "in its own interpreter (--blender-python).")
+@click.option("--samples", "cycles_samples", type=click.IntRange(1), default=16, show_default=True,
+              help="With --engine cycles: samples per pixel (denoised with OpenImageDenoise).")
+@click.option("--scale", "cycles_scale", type=click.FloatRange(0.1, 1.0), default=0.5, show_default=True,
+              help="With --engine cycles: render at this fraction of the image size, then resize (the crops need no "
+                   "more).")
+@click.option("--blender-python", type=click.Path(dir_okay=False, path_type=Path),
+              help="With --engine cycles: the Python interpreter that has bpy (default: $REFINER_RT_BLENDER_PYTHON, "
+                   "else .venv-blender/bin/python). bpy needs numpy < 2, so it lives apart from refiner-rt: "
+                   "python3.11 -m venv .venv-blender && .venv-blender/bin/pip install bpy.")
 @click.option("--preview", "preview_png", type=click.Path(dir_okay=False, path_type=Path),
               help="Write a contact sheet of crops with ground-truth axes (from --data, or from --out after rendering).")
 @click.option("--data", "preview_data", type=click.Path(exists=True, file_okay=False, path_type=Path),
               help="With --preview and no --out: the dataset to preview.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first_scene, objects, frames_per_scene, width,
-               height, camera, layout, preview_png, preview_data, quiet):
-    """Render BOP-format scenes of YCB objects, or your own, on the CPU (pybullet TinyRenderer).
+               height, camera, layout, engine, cycles_samples, cycles_scale, blender_python, preview_png, preview_data,
+               quiet):
+    """Render BOP-format scenes of YCB objects, or your own, on the CPU (pybullet TinyRenderer, or Blender Cycles).
 
     Each scene is one settled tabletop arrangement seen along a smooth camera path, like a
     YCB-Video sequence. Ground truth: cam_R_m2c (object to camera), cam_t_m2c (mm), boxes and
@@ -158,15 +173,17 @@ def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first
             width, height = width or cam_w or 640, height or cam_h or 480
         cfg = RenderConfig.for_layout(
             layout, width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
-            objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))), **cameras)
+            objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))), engine=engine,
+            **({"cycles_samples": cycles_samples, "cycles_scale": cycles_scale} if engine == "cycles" else {}),
+            **cameras)
         # `kill PID` stops a render as Ctrl-C does: the pool's workers are terminated with it (rather than left
         # writing to a closed pipe), and the finished scenes are kept for a rerun to resume.
         on_main = threading.current_thread() is threading.main_thread()
         previous = signal.signal(signal.SIGTERM, _interrupt) if on_main else None
         try:
             summary = render_dataset(out, frames, models_dir, cfg, seed=seed, workers=workers, progress=not quiet,
-                                     first_scene=first_scene, mesh_unit=mesh_unit)
-        except (FileNotFoundError, ValueError) as exc:
+                                     first_scene=first_scene, mesh_unit=mesh_unit, blender_python=blender_python)
+        except (FileNotFoundError, ValueError, BlenderError) as exc:
             raise click.ClickException(str(exc)) from None
         except KeyboardInterrupt:
             click.echo(f"Render stopped; the finished scenes in {out} are kept: rerun the same command to resume.",

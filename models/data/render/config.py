@@ -10,6 +10,7 @@ from models.data.objects import PAPER_OBJECTS
 
 YCBV_K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])
 LAYOUTS = ("robot", "tabletop")
+ENGINES = ("tiny", "cycles")  # pybullet's TinyRenderer; Blender Cycles (models.data.render.cycles)
 # Where a robot's camera sees a table from: an arm camera close above it, a head camera further away.
 ROBOT_DISTANCE = (0.4, 1.5)  # metres from the arrangement's centre
 ROBOT_ELEVATION_DEG = (10.0, 80.0)  # above the table
@@ -57,6 +58,10 @@ class RenderConfig:
         stack: ``"robot"`` layout: share of objects (after the first) dropped onto an earlier one.
         cameras: ``"robot"`` layout: intrinsics to draw one of per scene (empty: ``K``); see
             :data:`COMMON_CAMERAS`.
+        engine: ``"tiny"`` (pybullet's TinyRenderer, composited backdrop) or ``"cycles"`` (Blender's path tracer,
+            :mod:`models.data.render.cycles`); the same scenes and ground truth either way.
+        cycles_samples: Cycles samples per pixel (then OpenImageDenoise).
+        cycles_scale: Cycles renders at this fraction of ``width`` x ``height``, then resizes.
     """
 
     width: int = 640
@@ -80,10 +85,19 @@ class RenderConfig:
     upright: float = 0.35
     stack: float = 0.2
     cameras: tuple = ()
+    engine: str = "tiny"
+    cycles_samples: int = 16
+    cycles_scale: float = 0.5
 
     def __post_init__(self):
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}; got {self.layout!r}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {', '.join(ENGINES)}; got {self.engine!r}")
+        if not (isinstance(self.cycles_samples, int) and self.cycles_samples >= 1):
+            raise ValueError(f"cycles_samples must be an integer >= 1; got {self.cycles_samples!r}")
+        if not 0.1 <= self.cycles_scale <= 1.0:
+            raise ValueError(f"cycles_scale must be in [0.1, 1]; got {self.cycles_scale!r}")
 
     @classmethod
     def for_layout(cls, layout: str, **kw) -> "RenderConfig":
@@ -102,6 +116,9 @@ class RenderConfig:
         d["K"] = [list(r) for r in self.K]
         d["objects"] = list(self.objects)
         d["cameras"] = [[list(r) for r in K] for K in self.cameras]
+        if self.engine == "tiny":  # as the data sets before the Cycles engine recorded it
+            for key in ("engine", "cycles_samples", "cycles_scale"):
+                d.pop(key)
         if self.layout == "tabletop":  # as the earlier data sets recorded it (they resume with the same record)
             for key in ("layout", "upright", "stack", "cameras"):
                 d.pop(key)

@@ -20,19 +20,25 @@ from .tiny import render_scene
 _WORKER: dict = {}
 
 
-def _worker_init(models: dict[str, Mesh], tmp_root: str):
+def _worker_init(models: dict[str, Mesh], tmp_root: str, blender: str | None = None, threads: int = 0):
     tmp = Path(tmp_root) / f"w{os.getpid()}"
     tmp.mkdir(parents=True, exist_ok=True)
-    _WORKER["world"] = _World(models, tmp)
+    _WORKER.update(world=_World(models, tmp), blender=blender, threads=threads)
 
 
 def _worker_render(args):
     cfg, seed, scene, out_dir = args
+    if cfg.engine == "cycles":
+        from .cycles import render_scene_cycles
+
+        return scene, render_scene_cycles(_WORKER["world"], cfg, seed, scene, Path(out_dir), Path(_WORKER["blender"]),
+                                          threads=_WORKER["threads"])
     return scene, render_scene(_WORKER["world"], cfg, seed, scene, Path(out_dir))
 
 
 def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConfig | None = None, seed: int = 0,
-                   workers: int = 1, progress: bool = True, first_scene: int = 0, mesh_unit: str | None = None) -> dict:
+                   workers: int = 1, progress: bool = True, first_scene: int = 0, mesh_unit: str | None = None,
+                   blender_python: str | os.PathLike | None = None) -> dict:
     """Render ``ceil(frames / frames_per_scene)`` BOP scenes into ``out_dir``; finished scenes are kept (resumable).
 
     The scenes are numbered from ``first_scene``. A set's splits are drawn from its own scenes, so a set
@@ -51,6 +57,8 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
         progress: tqdm progress bar with frames/s.
         first_scene: index of the first scene (folder ``<first_scene:06d>``).
         mesh_unit: the meshes' unit, ``"m"`` or ``"mm"`` (None: millimetres for a BOP folder, else metres).
+        blender_python: with ``cfg.engine == "cycles"``, the interpreter that has ``bpy``
+            (:func:`models.data.render.cycles.find_blender_python`; default: found as it says).
 
     The objects' names, BOP ``obj_id`` numbers, mesh files (name, SHA-256, unit) and symmetries are written to
     ``out_dir/objects.json``, which the loaders read to name your own objects.
@@ -79,6 +87,12 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
     else:
         rec_path.write_text(json.dumps(record, indent=1))
     (out_dir / OBJECTS_FILE).write_text(objects_record)
+    blender, threads = None, 0
+    if cfg.engine == "cycles":
+        from .cycles import find_blender_python
+
+        blender = str(find_blender_python(blender_python))
+        threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     todo = [s for s in range(first_scene, first_scene + n_scenes)
             if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
     t0 = time.perf_counter()
@@ -92,14 +106,14 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
     jobs = [(cfg, seed, s, str(out_dir)) for s in todo]
     try:
         if workers <= 1:
-            _worker_init(meshes, str(tmp_root))
+            _worker_init(meshes, str(tmp_root), blender, threads)
             results = map(_worker_render, jobs)
             for _, r in results:
                 _accumulate(visible, r, bar)
         else:
             import multiprocessing as mp
 
-            with mp.get_context("spawn").Pool(workers, initializer=_worker_init, initargs=(meshes, str(tmp_root))) as pool:
+            with mp.get_context("spawn").Pool(workers, initializer=_worker_init, initargs=(meshes, str(tmp_root), blender, threads)) as pool:
                 for _, r in pool.imap_unordered(_worker_render, jobs):
                     _accumulate(visible, r, bar)
     finally:

@@ -4,9 +4,7 @@ one scene written as a BOP scene folder."""
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import shutil
 import time
 from pathlib import Path
@@ -14,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .bop_writer import _bbox, _bop_json, _may_be_occluded
-from .camera import camera_path, projected_bbox, projection_matrix_gl, silhouette, view_matrix_gl
+from .bop_writer import finish_scene, frame_ground_truth
+from .camera import camera_path, projection_matrix_gl, view_matrix_gl
 from .config import TABLE_HALF, RenderConfig
 from .scene import _scene_rng, _World, build_scene, scene_camera
 
@@ -198,7 +196,6 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     cv2.setRNGSeed(int(rng.integers(1 << 31)))
     noise_std = rng.uniform(*cfg.noise_std)
     blur = rng.uniform(*cfg.blur_sigma)
-    obj_ids = {b: world.meshes[o].number for b, o in bodies.items()}
     poses_w = {b: world.mesh_pose(b) for b in bodies}
     gt, info, cam = {}, {}, {}
     visible = {}
@@ -217,45 +214,15 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
         img += noise
         cv2.imwrite(str(tmp / "rgb" / f"{im:06d}.jpg"), np.clip(img, 0, 255).astype(np.uint8),
                     [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
-        gts, infos = [], []
-        Rt = {}
-        for b in bodies:
-            R_wo, t_wo = poses_w[b]
-            Rt[b] = (R_cw @ R_wo, R_cw @ t_wo + t_cw)
-        for k, b in enumerate(bodies):
-            R, t = Rt[b]
-            vis = seg == b
-            cv2.imwrite(str(tmp / "mask_visib" / f"{im:06d}_{k:06d}.png"), vis.astype(np.uint8) * 255)
-            if _may_be_occluded(vis, seg, b, projected_bbox(world.meshes[bodies[b]], R, t, K), W, H):
-                # BOP's visib_fract: the whole silhouette counts, the part beyond the image border included, so an
-                # object cut in half by the border has about 0.5, as one half hidden by another object has.
-                full = silhouette(world.meshes[bodies[b]], R, t, K, W, H, known=vis, border=True)
-                n_all, n_valid = int(full.sum()), int(full[H:2 * H, W:2 * W].sum())
-                x, y, w, h = _bbox(full)
-                bbox_obj = [x - W, y - H, w, h] if w > 0 else [-1, -1, -1, -1]
-            else:  # nothing can hide it and it is inside the image: visible pixels are the silhouette
-                n_all = n_valid = int(vis.sum())
-                bbox_obj = _bbox(vis)
-            n_vis = int(vis.sum())
-            frac = float(n_vis / n_all) if n_all else 0.0
-            gts.append({"cam_R_m2c": R.flatten().tolist(), "cam_t_m2c": (t * 1000.0).tolist(), "obj_id": obj_ids[b]})
-            infos.append({
-                "bbox_obj": bbox_obj, "bbox_visib": _bbox(vis), "px_count_all": n_all, "px_count_valid": n_valid,
-                "px_count_visib": n_vis, "visib_fract": min(frac, 1.0),
-            })
-            if frac >= 0.3:
-                visible[bodies[b]] = visible.get(bodies[b], 0) + 1
+        gts, infos, seen = frame_ground_truth(world, bodies, poses_w, R_cw, t_cw, seg, K, W, H, tmp / "mask_visib", im)
+        for obj in seen:
+            visible[obj] = visible.get(obj, 0) + 1
         gt[im], info[im] = gts, infos
         cam[im] = {"cam_K": K.flatten().tolist(), "depth_scale": 1.0}
-    _bop_json(tmp / "scene_gt.json", gt)
-    _bop_json(tmp / "scene_gt_info.json", info)
-    _bop_json(tmp / "scene_camera.json", cam)
     meta = {"seed": seed, "scene": scene, "objects": sorted(set(bodies.values())), "light": light, "tone": tone.as_dict(),
             "table_gloss": backdrop.gloss, "shadows": cfg.shadows,
             "noise_std": noise_std, "blur_sigma": blur, "meshes": {o: str(m.obj_path) for o, m in world.meshes.items()
                                                                    if o in bodies.values()}}
-    (tmp / "scene_render.json").write_text(json.dumps(meta, indent=1))
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
+    finish_scene(tmp, final, gt, info, cam, meta)
     return {"frames": len(gt), "instances": sum(len(v) for v in gt.values()), "visible_instances": visible,
             "seconds": time.perf_counter() - t0}
