@@ -73,6 +73,7 @@ def silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, K, width: int, height: 
     v0 = cam[f[:, 0]]
     normals = np.cross(cam[f[:, 1]] - v0, cam[f[:, 2]] - v0)
     front = np.einsum("ij,ij->i", normals, v0) < 0
+    front &= (cam[f, 2] > 0.01).all(axis=1)  # triangles reaching behind a close camera would not project: left out
     z = np.maximum(cam[:, 2], 1e-6)
     K = np.asarray(K)
     uv = np.stack([K[0, 0] * cam[:, 0] / z + K[0, 2], K[1, 1] * cam[:, 1] / z + K[1, 2]], axis=1)
