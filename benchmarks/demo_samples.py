@@ -15,7 +15,7 @@ train on renders of seed 11), so this script writes what it needs into ``refiner
 
 Commands (about half a minute of rendering on one core):
 
-    refiner-rt render --out DATA --frames 40 --frames-per-scene 4 --seed 777 --quiet
+    refiner-rt render --out DATA --frames 40 --frames-per-scene 4 --seed 777 --layout tabletop --quiet
     python benchmarks/demo_samples.py --data DATA --out refiner_rt/samples
 """
 
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
     frames = choose_frames(args.data)
     args.out.mkdir(parents=True, exist_ok=True)
     doc = {"format": SAMPLES_FORMAT, "object_frame": OBJECT_FRAME,
-           "source": {"command": f"refiner-rt render --out DATA --frames 40 --frames-per-scene 4 --seed {SEED}",
+           "source": {"command": f"refiner-rt render --out DATA --frames 40 --frames-per-scene 4 --seed {SEED} --layout tabletop",
                       "seed": SEED, "min_visib_fract": MIN_VISIB,
                       "note": "rendered scenes no shipped model trained on (the shipped models train on seed 11)"},
            "frames": []}

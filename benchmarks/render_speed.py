@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.scenes < 1 or args.frames_per_scene < 1:
         ap.error(f"--scenes and --frames-per-scene must be >= 1; got {args.scenes} and {args.frames_per_scene}")
-    cfg = RenderConfig(frames_per_scene=args.frames_per_scene)
+    cfg = RenderConfig.for_layout("tabletop", frames_per_scene=args.frames_per_scene)  # as its results were
     meshes = find_models(args.models_dir, cfg.objects)
     from tqdm import tqdm
 

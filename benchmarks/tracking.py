@@ -29,7 +29,8 @@ error against the frame index since the track began.
 
 Usage (from the repository root; the data is rendered with a seed no shipped model trained on)::
 
-    refiner-rt render --out data/tracking_s555 --frames 7000 --frames-per-scene 100 --seed 555 --workers 2
+    refiner-rt render --out data/tracking_s555 --frames 7000 --frames-per-scene 100 --seed 555 --workers 2 \\
+        --layout tabletop
     python benchmarks/tracking.py --data data/tracking_s555 --json benchmarks/results/tracking.json \\
         --plot benchmarks/results/tracking.png
 

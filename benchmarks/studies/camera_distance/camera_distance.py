@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     rows = []
     for r in args.ranges.split(","):
         lo, hi = map(float, r.split("-"))
-        cfg = RenderConfig(frames_per_scene=4, distance=(lo, hi))
+        cfg = RenderConfig.for_layout("tabletop", frames_per_scene=4, distance=(lo, hi))
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
             render_dataset(Path(tmp), args.scenes * 4, default_models_dir(), cfg, seed=args.seed, workers=args.workers,

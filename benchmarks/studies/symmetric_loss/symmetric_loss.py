@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     write_object(args.work / "models", args.shape)
     symmetry = SYMMETRIES[args.shape]
     K = ((200.0, 0.0, 79.5), (0.0, 200.0, 59.5), (0.0, 0.0, 1.0))
-    cfg = RenderConfig(width=160, height=120, K=K, frames_per_scene=20, objects=(NAME,), objects_per_scene=(1, 1),
+    cfg = RenderConfig.for_layout("tabletop", width=160, height=120, K=K, frames_per_scene=20, objects=(NAME,), objects_per_scene=(1, 1),
                        distance=(0.45, 0.7))
     data = args.work / "data"
     render_dataset(data, args.frames, args.work / "models", cfg, seed=0, progress=False)
