@@ -30,8 +30,8 @@ import numpy as np
 from .bop_writer import finish_scene, frame_ground_truth
 from .camera import camera_path, projection_matrix_gl, view_matrix_gl
 from .config import TABLE_HALF, RenderConfig
-from .scene import _scene_rng, _World, build_scene, scene_camera
-from .tiny import _random_texture
+from .scene import _World
+from .tiny import _random_texture, start_scene
 
 BLENDER_PYTHON_ENV = "REFINER_RT_BLENDER_PYTHON"
 WORKER = Path(__file__).with_name("cycles_worker.py")
@@ -129,13 +129,7 @@ def render_scene_cycles(world: _World, cfg: RenderConfig, seed: int, scene: int,
     """
     pb, c = world.pb, world.client
     t0 = time.perf_counter()
-    rng = _scene_rng(seed, scene)
-    final, tmp = out_dir / f"{scene:06d}", out_dir / f".{scene:06d}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "rgb").mkdir(parents=True)
-    (tmp / "mask_visib").mkdir()
-    bodies, centre = build_scene(world, cfg, rng)
-    K = scene_camera(cfg, rng)
+    rng, final, tmp, bodies, centre, K = start_scene(world, cfg, seed, scene, out_dir)
     W, H = cfg.width, cfg.height
     poses = camera_path(cfg, rng, centre, cfg.frames_per_scene)
     work = tmp / "cycles"

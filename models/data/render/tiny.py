@@ -156,6 +156,19 @@ class _ToneCurve:
         return {"gain": self.gain, "white_balance_bgr": self.wb.tolist(), "gamma": self.gamma, "shoulder": self.k}
 
 
+def start_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path):
+    """What every engine does first for scene ``scene``: its generator, its final folder and an empty temporary one
+    (``rgb/``, ``mask_visib/``), the settled arrangement and the camera's intrinsics: ``(rng, final, tmp, bodies,
+    centre, K)``."""
+    rng = _scene_rng(seed, scene)
+    final, tmp = out_dir / f"{scene:06d}", out_dir / f".{scene:06d}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "rgb").mkdir(parents=True)
+    (tmp / "mask_visib").mkdir()
+    bodies, centre = build_scene(world, cfg, rng)
+    return rng, final, tmp, bodies, centre, scene_camera(cfg, rng)
+
+
 def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path) -> dict:
     """Render one BOP scene into ``out_dir/<scene:06d>`` (written to a temporary folder, then renamed).
 
@@ -164,14 +177,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     """
     pb, c = world.pb, world.client
     t0 = time.perf_counter()
-    rng = _scene_rng(seed, scene)
-    final = out_dir / f"{scene:06d}"
-    tmp = out_dir / f".{scene:06d}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "rgb").mkdir(parents=True)
-    (tmp / "mask_visib").mkdir()
-    bodies, centre = build_scene(world, cfg, rng)
-    K = scene_camera(cfg, rng)
+    rng, final, tmp, bodies, centre, K = start_scene(world, cfg, seed, scene, out_dir)
     W, H = cfg.width, cfg.height
     proj = projection_matrix_gl(K, W, H)
     tinted = rng.uniform() < cfg.light_tint
