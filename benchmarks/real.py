@@ -17,6 +17,7 @@ Usage (from the repository root)::
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -54,15 +55,33 @@ def run(models: dict[str, Path], data: Path, draws: int = 10, seed: int = 2024, 
                            "eval_s": round(r["eval_s"], 2), "symmetric": bool(r["protocol"]["symmetries"])}
     if not per_object:
         raise SystemExit(f"{data}: no instance of {sorted(models)} with visib_fract >= 0.3")
+    return summarise(per_object, skipped, data, draws, seed)
+
+
+def summarise(per_object: dict, skipped: dict, data: Path, draws: int, seed: int) -> dict:
+    """The record of ``per_object`` (object -> its :func:`models.eval_cli.run_eval_all` entry): the means over
+    objects, over instances and per video."""
     mean = lambda key: sum(o[key] for o in per_object.values()) / len(per_object)  # noqa: E731
     instances = sum(o["instances"] for o in per_object.values())
     return {
-        "data": _data_name(data), "objects": per_object, "skipped": skipped,
+        "data": _data_name(data), "objects": dict(sorted(per_object.items())), "skipped": skipped,
         "mean_deg": mean("mean_deg"), "input_mean_deg": mean("input_mean_deg"), "drift_mean_deg": mean("drift_mean_deg"),
         "video_mean_deg": mean("video_mean_deg"),
         "instance_mean_deg": sum(o["mean_deg"] * o["instances"] for o in per_object.values()) / instances,
         "instances": instances, "draws": draws, "seed": seed, "noise": "uniform:0:30",
     }
+
+
+def update(path: Path, models: dict[str, Path], data: Path, draws: int = 10, seed: int = 2024) -> dict:
+    """Score ``models`` and merge them into the record at ``path`` (its other objects kept); returns the record."""
+    from benchmarks.pretrained import machine
+
+    old = json.loads(path.read_text()) if path.is_file() else {"objects": {}}
+    new = run(models, data, draws=draws, seed=seed)
+    doc = summarise({**old.get("objects", {}), **new["objects"]}, {}, data, draws, seed)
+    doc.update(models="shipped INT8", command="python benchmarks/real.py --data REAL --card", machine=machine())
+    write_json(path, {k: v for k, v in doc.items()})
+    return doc
 
 
 def _data_name(data: Path) -> str:

@@ -398,12 +398,13 @@ NAMED_RECIPES: dict[str, dict] = {
     },
     # heldout-scenes-v3 with camera-like photometric augmentation (models.augment: the probability per crop of each
     # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what model
-    # version 6 trains with, continuing each object's version-5 model (benchmarks/studies/real_levers).
+    # version 6 trains with, continuing each object's version-5 model (benchmarks/studies/real_levers). float32: on a
+    # CPU without AVX-512 BF16 a bf16 step ran at 0.11x the float32 one (benchmarks/train_speed.py, AMD EPYC, AVX2).
     "robot-real-v6": {
         "arch": "fusion", "arch_config": {"conv_channels": [16, 32, 64, 128, 128]}, "rotation_frame": "ray",
         "lr": 5e-4, "lr_schedule": "cosine", "augment": True, "background": 0.5, "split_mode": "scenes",
         "split_objects": ["paper"], "per_object": 0, "val_per_object": 300, "test_per_object": 700, "seed": 0,
-        "samples": 500_000, "base_per_object": 16000, "bf16": True,
+        "samples": 150_000, "base_per_object": 16000, "bf16": False,
         "aug_motion_blur": 0.2, "aug_blur": 0.3, "aug_sensor_noise": 0.3, "aug_white_balance": 0.3,
         "aug_brightness": 0.4, "aug_contrast": 0.3, "aug_colour": 0.3, "aug_sharpness": 0.3, "aug_jpeg": 0.3,
     },

@@ -3,7 +3,8 @@
 A symmetry is given in BOP's ``models_info.json`` form (BOP toolkit, ``bop_toolkit_lib/misc.py``,
 ``get_symmetry_transformations``): ``symmetries_discrete``, a list of 4x4 row-major matrices (16 numbers, the
 translation in mm; only the rotation matters here), and ``symmetries_continuous``, a list of ``{"axis": [x, y, z],
-"offset": [x, y, z]}`` (a rotation about ``axis`` by any angle, sampled every ``360 / CONTINUOUS_STEPS`` degrees).
+"offset": [x, y, z]}`` (a rotation about ``axis`` by any angle: sampled every ``360 / CONTINUOUS_STEPS`` degrees for the
+training label, exact in the error).
 The set is every product of a discrete one (or the identity) with a continuous one (or the identity), as the toolkit
 combines them.
 
@@ -103,13 +104,32 @@ def closest_label(q_out, labels):
 def symmetric_error(q_est: np.ndarray, q_gt: np.ndarray, obj_ids: np.ndarray, symmetries: dict | None) -> np.ndarray:
     """Geodesic error (degrees) of ``q_est`` to the closest symmetric pose ``q_gt * s`` of each sample's object.
 
-    Objects without a symmetry get the plain ``geodesic_angle(q_est, q_gt)``.
+    Objects without a symmetry get the plain ``geodesic_angle(q_est, q_gt)``. A single continuous symmetry is exact:
+    for ``r = (q_gt d)^-1 q_est = (w, v)`` (``d`` each discrete symmetry or the identity), the closest turn about the
+    unit axis ``a`` leaves ``2 atan2(|v - (v . a) a|, sqrt(w^2 + (v . a)^2))``; several continuous axes are sampled (the loss's table).
     """
-    table, index = symmetry_table(obj_ids, symmetries)
-    if table is None:
-        return rq.geodesic_angle(q_est, q_gt)
-    candidates = rq.multiply(q_gt[:, None, :], table[index])  # (N, K, 4)
-    return rq.geodesic_angle(q_est[:, None, :], candidates).min(axis=1)
+    q_est, q_gt = np.asarray(q_est, float), np.asarray(q_gt, float)
+    ids = np.asarray(obj_ids).astype(str)
+    out = rq.geodesic_angle(q_est, q_gt)
+    for obj in set(ids.tolist()):
+        sym = validate_symmetry(symmetries[obj]) if symmetries and symmetries.get(obj) else {}
+        if not sym:
+            continue
+        m = ids == obj
+        continuous = sym.get("symmetries_continuous", [])
+        if len(continuous) == 1:
+            axis = np.asarray(continuous[0]["axis"], float)
+            axis /= np.linalg.norm(axis)
+            discrete = symmetry_quaternions({k: v for k, v in sym.items() if k == "symmetries_discrete"})
+            r = rq.multiply(rq.inverse(rq.multiply(q_gt[m][:, None, :], discrete[None])), q_est[m][:, None, :])
+            along = r[..., 1:] @ axis
+            cos_half = np.sqrt(r[..., 0] ** 2 + along**2)
+            sin_half = np.linalg.norm(r[..., 1:] - along[..., None] * axis, axis=-1)  # atan2: exact near zero
+            out[m] = np.degrees(2.0 * np.arctan2(sin_half, cos_half)).min(axis=1)
+        else:
+            candidates = rq.multiply(q_gt[m][:, None, :], symmetry_quaternions(sym)[None])  # (n, K, 4)
+            out[m] = rq.geodesic_angle(q_est[m][:, None, :], candidates).min(axis=1)
+    return out
 
 
 def describe_symmetry(sym: dict | None) -> str:

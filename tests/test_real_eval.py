@@ -71,7 +71,7 @@ def test_the_master_chef_can_is_scored_up_to_turns_about_its_axis(tmp_path):
     R = Rotation.from_euler("xyz", [20, -30, 50], degrees=True).as_matrix()
     write_bop_scene(tmp_path / "test", 1, {1: [bop_instance(1, R, [0.0, 0.0, 800.0], [280, 200, 80, 100], 1.0)]},
                     K_YCBV)
-    turn = Rotation.from_rotvec([0.0, 0.0, np.radians(40.0)])  # about the can's z axis only
+    turn = Rotation.from_rotvec([0.0, 0.0, np.radians(45.0)])  # about the can's z axis only, between samples
     x, y, z, w = turn.as_quat()
     model = _model(tmp_path, [w, x, y, z], obj="002_master_chef_can")
     from models.eval_cli import run_eval_all

@@ -1,0 +1,180 @@
+"""What each lever gives on real camera frames: the scene layout, camera-like photometric augmentation, and both.
+
+Every row continues one object's version-5 model (its fp32 file in ``--v5``, a copy of what shipped, recovered as
+``benchmarks/pretrained.py build`` does) for ``--samples`` samples with the build's recipe (``robot-real-v6``'s
+network, rates and jitter: box and colour jitter, new backgrounds for half the crops, float32, one thread), with or
+without its photometric augmentation, changing one thing:
+
+=====================  ========================================================================================
+lever                  training data, augmentation
+=====================  ========================================================================================
+``v5``                 no training: the version-5 model
+``tabletop``           scenes of the earlier layout (``render --layout tabletop``), the recipe's augmentation
+``tabletop+photo``     the same scenes, plus the photometric augmentation of ``robot-real-v6`` (models.augment)
+``robot``              scenes of the robot layout (``render``'s default), the recipe's augmentation
+``robot+photo``        the robot scenes plus the photometric augmentation: ``robot-real-v6``
+=====================  ========================================================================================
+
+The ``tabletop`` row is the control: the same amount of further training on the kind of scenes the model already saw.
+Each model (fp32, exported and parity-checked) is then scored on every instance of its object in the real frames
+(``--real``: U(0, 30) inputs x 10 draws, one pass, and the drift from the true pose; ``refiner-rt eval --all``) and in
+rendered scenes no model trained on (``--fresh``: the model card's ``ycb9_fresh_s21``, tabletop layout; ``--fresh-robot``,
+robot layout), one draw each. The real frames only measure; nothing is chosen on them per model.
+
+Usage (from the repository root; resumable: a finished row is kept in the JSON, a trained checkpoint is reused)::
+
+    python benchmarks/studies/real_levers/levers.py --robot data/ycb9_robot --tabletop data/ycb9_tabletop_s32 \\
+        --real ../shared/real_ycbv_dev/test --fresh data/ycb9_fresh_s21 --fresh-robot data/ycb9_robot_fresh_s41 \\
+        --objects 006_mustard_bottle,011_banana --run runs/levers --v5 runs/v5_shipped --samples 60000 \\
+        --json benchmarks/studies/real_levers/levers.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.study_cli import write_json  # noqa: E402
+
+LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo")
+
+
+def photometric() -> dict:
+    """The photometric augmentation of the ``robot-real-v6`` recipe: ``{operation: probability}``."""
+    from models.recipe import NAMED_RECIPES
+
+    return {k[len("aug_"):]: v for k, v in NAMED_RECIPES["robot-real-v6"].items() if k.startswith("aug_")}
+
+
+def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, v5: Path) -> tuple[Path, dict]:
+    """Train ``obj`` for ``lever`` (its checkpoint reused when it exists) and export it: ``(fp32 ONNX, record)``."""
+    from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
+    from export.onnx_export import export_checkpoint
+
+    folder = run / lever.replace("+", "_")
+    folder.mkdir(parents=True, exist_ok=True)
+    cache = run / "cache"
+    (run / data.name).mkdir(exist_ok=True)  # the version-5 checkpoint, its batch-norm statistics from data's crops
+    init, _ = recover_shipped(obj, data, run / data.name, cache, weights=v5)
+    # The split's validation and test parts are small: the rows are scored on the real frames and fresh renders.
+    cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init,
+                        photometric=photometric() if lever.endswith("+photo") else {})
+    t0 = time.perf_counter()
+    ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
+    train_s = time.perf_counter() - t0
+    onnx = folder / f"{obj}.onnx"
+    if not onnx.is_file():
+        export_checkpoint(ckpt, onnx)
+    row = json.loads((folder / f"{obj}.train.json").read_text())["rows"][-1]
+    from benchmarks.pretrained import RECIPE_NAME
+
+    return onnx, {"recipe": RECIPE_NAME, "command": _card_command(cmd), "train_s": round(train_s, 1),
+                  **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "mean_deg", "wall_s")}}
+
+
+def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
+    """Real-frame and fresh-render errors of ``onnx`` for ``obj``."""
+    from models.eval_cli import run_eval_all
+
+    r = run_eval_all(onnx, real, objects=[obj], draws=10, threads=1, progress=False)["objects"][obj]
+    out = {"real": {k: round(r[k], 3) for k in ("mean_deg", "median_deg", "input_mean_deg", "drift_mean_deg",
+                                                "video_mean_deg")} | {"instances": r["instances"]}}
+    for folder in fresh:
+        waited = 0
+        while not folder.is_dir() or (folder / ".work").is_dir():  # still being rendered (`refiner-rt render` works there)
+            if waited > 3 * 3600:
+                raise SystemExit(f"{folder}: not there, or still being rendered after three hours")
+            time.sleep(10)
+            waited += 10
+        f = run_eval_all(onnx, folder, objects=[obj], draws=1, threads=1, progress=False)["objects"][obj]
+        out[folder.name] = {"mean_deg": round(f["mean_deg"], 3), "drift_mean_deg": round(f["drift_mean_deg"], 3),
+                            "instances": f["instances"]}
+    return out
+
+
+def table(docs: list[dict]) -> str:
+    """One Markdown table: a row per lever, per object the real-frame mean and drift, then fresh renders."""
+    rows = [r for d in docs for r in d["rows"]]
+    objects = sorted({r["object"] for r in rows})
+    fresh = [k for k in docs[0].get("fresh", [])]
+    head = "| lever | " + " | ".join(f"{o}: real mean / drift" for o in objects) + " | real, mean of objects | " + \
+        " | ".join(f"{f}, mean of objects" for f in fresh) + " |"
+    lines = [head, "|---|" + "---:|" * (len(objects) + 1 + len(fresh))]
+    for lever in LEVERS:
+        got = {r["object"]: r for r in rows if r["lever"] == lever}
+        if not got:
+            continue
+        cells = [f"{got[o]['real']['mean_deg']:.2f} / {got[o]['real']['drift_mean_deg']:.2f}" if o in got else "-"
+                 for o in objects]
+        full = len(got) == len(objects)
+        real = f"**{sum(r['real']['mean_deg'] for r in got.values()) / len(got):.2f}**" if full else "-"
+        fr = [f"{sum(r[f]['mean_deg'] for r in got.values()) / len(got):.2f}" if full and all(f in r for r in
+              got.values()) else "-" for f in fresh]
+        lines.append(f"| `{lever}` | " + " | ".join(cells) + f" | {real} | " + " | ".join(fr) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--table", type=Path, nargs="+", metavar="JSON", help="print the Markdown table of these results "
+                    "(one or more --json files of this script) and stop")
+    ap.add_argument("--robot", type=Path, help="training scenes, robot layout")
+    ap.add_argument("--tabletop", type=Path, help="training scenes, tabletop layout")
+    ap.add_argument("--real", type=Path, help="real frames (BOP), measured only")
+    ap.add_argument("--fresh", type=Path, help="rendered scenes no model trained on (tabletop)")
+    ap.add_argument("--fresh-robot", type=Path, help="rendered scenes no model trained on (robot layout)")
+    ap.add_argument("--objects", help="comma-separated YCB ids")
+    ap.add_argument("--levers", default=",".join(LEVERS), help=f"comma-separated, of {', '.join(LEVERS)}")
+    ap.add_argument("--run", type=Path, help="scratch folder of checkpoints and crop caches")
+    ap.add_argument("--v5", type=Path, help="folder holding the version-5 fp32 files (a copy of refiner_rt/weights "
+                    "made before version 6 shipped)")
+    ap.add_argument("--samples", type=int, default=60_000)
+    ap.add_argument("--sizes", type=int, default=2_500,
+                    help="training crops per object at most (the same for every lever: the tabletop set is smaller)")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    if args.table:
+        print(table([json.loads(p.read_text()) for p in args.table]))
+        return 0
+    missing = [f"--{k}" for k in ("robot", "tabletop", "real", "fresh", "objects", "run", "json", "v5")
+               if not getattr(args, k)]
+    if missing:
+        ap.error(f"missing {', '.join(missing)}")
+    levers = [x for x in args.levers.split(",") if x]
+    bad = [x for x in levers if x not in LEVERS]
+    if bad:
+        ap.error(f"--levers: unknown {bad}; expected some of {', '.join(LEVERS)}")
+    fresh = [args.fresh] + ([args.fresh_robot] if args.fresh_robot else [])
+    doc = json.loads(args.json.read_text()) if args.json.is_file() else {"rows": []}
+    done = {(r["lever"], r["object"]) for r in doc["rows"]}
+    for obj in args.objects.split(","):
+        for lever in levers:
+            if (lever, obj) in done:
+                continue
+            t0 = time.perf_counter()
+            if lever == "v5":
+                from refiner_rt.pretrained import model_file_name
+
+                onnx, record = args.v5 / model_file_name(obj, int8=False), {}
+            else:
+                data = args.robot if lever.startswith("robot") else args.tabletop
+                onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5)
+            row = {"lever": lever, "object": obj, **record, **score(Path(onnx), obj, args.real, fresh),
+                   "row_s": round(time.perf_counter() - t0, 1)}
+            doc["rows"].append(row)
+            doc.update(samples=args.samples, photometric=photometric(), real=args.real.name,
+                       fresh=[f.name for f in fresh])
+            write_json(args.json, doc)
+            print(f"{obj:<22}{lever:<16} real {row['real']['mean_deg']:6.2f} (drift {row['real']['drift_mean_deg']:5.2f})"
+                  + "".join(f"  {f.name} {row[f.name]['mean_deg']:5.2f}" for f in fresh), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
