@@ -72,6 +72,16 @@ def _camera_option(ctx, param, value):
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), None, None
 
 
+def _scaled(K, width: int, height: int) -> np.ndarray:
+    """A 640x480 camera's ``K`` for a ``width`` x ``height`` image: the focal lengths scaled by the width, the principal
+    point by each side (as the renderer always did for YCB-Video's ``K``)."""
+    K = np.array(K, dtype=np.float64)
+    K[0, 2] *= width / 640
+    K[1, 2] *= height / 480
+    K[:2, :2] *= width / 640
+    return K
+
+
 def _default_objects(models_dir: Path | None) -> tuple[str, ...]:
     """The paper's nine when the folder has them (the YCB folders), else every object the folder offers."""
     if models_dir is None:
@@ -164,10 +174,9 @@ def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first
         cameras = {}
         if camera is None:
             width, height = width or 640, height or 480
-            scale = np.diag([width / 640, height / 480, 1.0])
-            K = scale @ YCBV_K
+            K = _scaled(YCBV_K, width, height)
             if layout == "robot":
-                cameras = {"cameras": tuple(tuple(map(tuple, scale @ np.asarray(c))) for c in COMMON_CAMERAS)}
+                cameras = {"cameras": tuple(tuple(map(tuple, _scaled(c, width, height))) for c in COMMON_CAMERAS)}
         else:
             K, cam_w, cam_h = camera
             width, height = width or cam_w or 640, height or cam_h or 480
@@ -183,7 +192,7 @@ def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first
         try:
             summary = render_dataset(out, frames, models_dir, cfg, seed=seed, workers=workers, progress=not quiet,
                                      first_scene=first_scene, mesh_unit=mesh_unit, blender_python=blender_python)
-        except (FileNotFoundError, ValueError, BlenderError) as exc:
+        except (OSError, ValueError, BlenderError) as exc:
             raise click.ClickException(str(exc)) from None
         except KeyboardInterrupt:
             click.echo(f"Render stopped; the finished scenes in {out} are kept: rerun the same command to resume.",

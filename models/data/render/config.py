@@ -120,6 +120,6 @@ class RenderConfig:
             for key in ("engine", "cycles_samples", "cycles_scale"):
                 d.pop(key)
         if self.layout == "tabletop":  # as the earlier data sets recorded it (they resume with the same record)
-            for key in ("layout", "upright", "stack", "cameras"):
+            for key in ("layout", "upright", "stack") + (() if self.cameras else ("cameras",)):
                 d.pop(key)
         return d

@@ -1,8 +1,9 @@
 """The Blender Cycles engine: physically based images of the same scenes, written as the same BOP scenes.
 
-The scene is sampled as for the TinyRenderer engine (:func:`models.data.render.scene.build_scene`: pybullet settles
-the objects; the same camera path), and the ground truth comes from the same place: pybullet's segmentation of the
-objects at the camera's pose gives the visible masks, boxes and BOP ``visib_fract`` (:func:`frame_ground_truth`).
+The arrangement is the TinyRenderer engine's for the same seed and scene (:func:`models.data.render.tiny.start_scene`:
+pybullet settles the objects), seen along a camera path of the same kind (drawn next, so not the same path), and the
+ground truth comes from the same place: pybullet's segmentation of the objects at the camera's pose gives the visible
+masks, boxes and BOP ``visib_fract`` (:func:`frame_ground_truth`).
 Only the colour image changes: Blender's path tracer (CPU, a few samples, OpenImageDenoise) renders the textured
 meshes with glossy or rough materials on a textured table, lit by one of the HDR environment maps that ``bpy``
 ships (``datafiles/studiolights/world``: light and background) and one or two area lights of random colour and
@@ -63,11 +64,26 @@ def find_blender_python(given: str | os.PathLike | None = None) -> Path:
     path = Path(candidate)
     if not path.is_file():
         raise BlenderError(f"Blender Python {path} not found; {how}")
-    probe = subprocess.run([str(path), "-c", "import bpy; print(bpy.app.version_string)"], capture_output=True,
-                           text=True, timeout=120)
+    try:
+        probe = subprocess.run([str(path), "-c", "import bpy; print(bpy.app.version_string)"], capture_output=True,
+                               text=True, timeout=300)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise BlenderError(f"{path} could not be run to check for bpy ({exc}); {how}") from None
     if probe.returncode != 0:
         raise BlenderError(f"{path} cannot import bpy ({probe.stderr.strip().splitlines()[-1:] or '?'}); {how}")
     return path
+
+
+def _die_with_parent() -> None:
+    """In the Blender child, before it starts (Linux): be sent SIGTERM when the render worker that started it dies,
+    so a stopped render (Ctrl-C, ``kill``) leaves no Blender running. Elsewhere nothing."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def _matrix(R: np.ndarray, t: np.ndarray) -> list[list[float]]:
@@ -87,14 +103,22 @@ def _look_from(position: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 def cycles_job(world: _World, cfg: RenderConfig, bodies: dict[int, str], centre: np.ndarray, K: np.ndarray,
                poses: list, rng: np.random.Generator, work: Path, threads: int) -> dict:
-    """The worker's job for one scene (see ``cycles_worker.py``); the table texture is written into ``work``."""
+    """The worker's job for one scene (see ``cycles_worker.py``); the table texture is written into ``work``.
+
+    Raises:
+        ValueError: ``K``'s pixels are not square (Blender's camera has one focal length).
+    """
+    if abs(K[0, 0] / K[1, 1] - 1.0) > 2e-3:
+        raise ValueError(f"the cycles engine needs square pixels (fx = fy within 0.2%); got fx {K[0, 0]:g}, "
+                         f"fy {K[1, 1]:g}")
     work.mkdir(parents=True, exist_ok=True)
     table = work / "table.png"
     cv2.imwrite(str(table), _random_texture(rng, 512))
     objects = []
     for b, obj in bodies.items():
         R_wo, t_wo = world.mesh_pose(b)
-        objects.append({"obj": str(world.meshes[obj].obj_path), "matrix": _matrix(R_wo, t_wo),
+        objects.append({"obj": str(world.meshes[obj].obj_path), "texture": str(world.meshes[obj].texture_path),
+                        "matrix": _matrix(R_wo, t_wo),
                         "roughness": float(rng.uniform(0.2, 0.8)), "specular": float(rng.uniform(0.2, 0.7))})
     lights = []
     for i in range(int(rng.integers(1, 3))):
@@ -135,7 +159,8 @@ def render_scene_cycles(world: _World, cfg: RenderConfig, seed: int, scene: int,
     work = tmp / "cycles"
     job = cycles_job(world, cfg, bodies, centre, K, poses, rng, work, threads or os.cpu_count() or 1)
     (work / "job.json").write_text(json.dumps(job))
-    run = subprocess.run([str(blender), str(WORKER), str(work / "job.json")], capture_output=True, text=True)
+    run = subprocess.run([str(blender), str(WORKER), str(work / "job.json")], capture_output=True, text=True,
+                         preexec_fn=_die_with_parent)
     if run.returncode != 0:
         tail = "\n".join((run.stdout + run.stderr).strip().splitlines()[-8:])
         raise BlenderError(f"Blender failed on scene {scene} (exit {run.returncode}):\n{tail}")

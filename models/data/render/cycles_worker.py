@@ -4,9 +4,10 @@ Run as a script by :mod:`models.data.render.cycles` (``BLENDER_PYTHON cycles_wor
 the package: ``bpy`` needs ``numpy < 2`` and lives in an interpreter of its own. It uses only ``bpy`` and the standard
 library. The job (all lengths in metres, matrices row-major 4x4, world frame z up):
 
-* ``objects``: ``{"obj": OBJ path, "matrix": mesh-to-world, "roughness", "specular"}`` (the OBJ's material and
-  texture, its coordinates kept as they are: forward ``Y``, up ``Z``);
-* ``table``: ``{"half": half side, "texture": image path, "roughness"}``, a textured square at z = 0;
+* ``objects``: ``{"obj": OBJ path, "texture": image path, "matrix": mesh-to-world, "roughness", "specular"}`` (the
+  OBJ's material, or the texture where it names none; its coordinates kept as they are: forward ``Y``, up ``Z``);
+* ``table``: ``{"half": half side, "texture": image path, "roughness"}``, a textured square at z = 0 (or null);
+* ``transparent``: objects on a transparent film, written RGBA (to check the images against the ground truth);
 * ``world``: ``{"hdr": file name in Blender's studiolights/world, "strength", "rotation"}``: light and background;
 * ``lights``: area lights ``{"matrix", "size", "power" (W), "colour"}``;
 * ``camera``: ``{"K": 3x3, "width", "height", "scale"}`` (the image is rendered at ``scale`` of the size);
@@ -45,11 +46,22 @@ def _import_object(spec):
     new = [o for o in bpy.data.objects if o not in before]
     for ob in new:
         ob.matrix_world = Matrix(spec["matrix"])
+        if not ob.material_slots:
+            ob.data.materials.append(bpy.data.materials.new("surface"))
         for slot in ob.material_slots:
+            if slot.material is None:
+                slot.material = bpy.data.materials.new("surface")
+            slot.material.use_nodes = True
             bsdf = _principled(slot.material)
-            if bsdf is not None:
-                _set_input(bsdf, ("Roughness",), spec["roughness"])
-                _set_input(bsdf, ("Specular IOR Level", "Specular"), spec["specular"])
+            if bsdf is None:
+                continue
+            tree = slot.material.node_tree
+            if spec.get("texture") and not any(n.type == "TEX_IMAGE" for n in tree.nodes):
+                tex = tree.nodes.new("ShaderNodeTexImage")  # no texture from the OBJ's material: the mesh's own
+                tex.image = bpy.data.images.load(spec["texture"])
+                tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+            _set_input(bsdf, ("Roughness",), spec["roughness"])
+            _set_input(bsdf, ("Specular IOR Level", "Specular"), spec["specular"])
 
 
 def _table(spec):
@@ -109,7 +121,7 @@ def _camera(spec):
     scene.camera = ob
     scene.render.resolution_x, scene.render.resolution_y = w, h
     scene.render.resolution_percentage = max(1, int(round(100 * spec["scale"])))
-    scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = 1.0, K[0][0] / K[1][1]
+    scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0  # square pixels (the engine checks fx = fy)
     return ob
 
 
@@ -129,12 +141,14 @@ def main(path):
     scene.render.threads_mode = "FIXED"
     scene.render.threads = max(1, job["threads"])
     scene.render.image_settings.file_format = "PNG"
-    scene.render.image_settings.color_mode = "RGB"
+    transparent = bool(job.get("transparent"))  # objects only, on a transparent film (alignment checks)
+    scene.render.image_settings.color_mode = "RGBA" if transparent else "RGB"
     scene.view_settings.view_transform = "Standard"
-    scene.render.film_transparent = False
+    scene.render.film_transparent = transparent
     for spec in job["objects"]:
         _import_object(spec)
-    _table(job["table"])
+    if job.get("table"):
+        _table(job["table"])
     _world(job["world"])
     for i, spec in enumerate(job["lights"]):
         _light(spec, i)

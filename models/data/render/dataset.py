@@ -72,6 +72,12 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
         raise ValueError(f"frames must be >= 1; got {frames}")
     if isinstance(first_scene, bool) or not isinstance(first_scene, int) or first_scene < 0:
         raise ValueError(f"first_scene must be an int >= 0; got {first_scene!r}")
+    blender, threads = None, 0
+    if cfg.engine == "cycles":
+        from .cycles import find_blender_python
+
+        blender = str(find_blender_python(blender_python))
+        threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     meshes = find_models(models_dir, cfg.objects, unit=mesh_unit, cache_dir=out_dir / ".meshes")
@@ -87,12 +93,6 @@ def render_dataset(out_dir: Path, frames: int, models_dir: Path, cfg: RenderConf
     else:
         rec_path.write_text(json.dumps(record, indent=1))
     (out_dir / OBJECTS_FILE).write_text(objects_record)
-    blender, threads = None, 0
-    if cfg.engine == "cycles":
-        from .cycles import find_blender_python
-
-        blender = str(find_blender_python(blender_python))
-        threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     todo = [s for s in range(first_scene, first_scene + n_scenes)
             if not (out_dir / f"{s:06d}" / "scene_gt_info.json").is_file()]
     t0 = time.perf_counter()
