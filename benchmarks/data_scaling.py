@@ -130,6 +130,7 @@ def _parse_probabilities(text: str) -> list[float]:
 def _augment_label(row: dict) -> str:
     extra = [f"{name} {row[key]:g}" for key, name in
              (("background", "background"), ("occlude", "occluders"), ("relight", "relight")) if row.get(key)]
+    extra += ["photometric"] if row.get("photometric") else []  # models.augment, the --aug-* probabilities
     if not extra:
         return "yes" if row["augment"] else "no"
     return " + ".join((["jitter"] if row["augment"] else []) + extra)
@@ -306,7 +307,8 @@ def run(args) -> dict:
             row = {"mode": mode, "train_crops": n, **({"train_scenes": r.train_scenes} if r.train_scenes else {}),
                    **({"init": str(args.init)} if args.init else {}),
                    "augment": r.augment, "background": r.background, "occlude": r.occlude,
-                   **({"relight": r.relight} if r.relight else {}), "epochs": epochs,
+                   **({"relight": r.relight} if r.relight else {}),
+                   **({"photometric": cfg.photometric} if cfg.photometric else {}), "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
                    "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
                    "scenes": scenes, "wall_s": wall}
@@ -333,7 +335,8 @@ def run(args) -> dict:
             rows.append(row)
             scenes_note = f" scenes={r.train_scenes}" if r.train_scenes else ""
             print(f"{mode:6s} n={n:6d}{scenes_note} augment={r.augment!s:5s} background={r.background:.2f} "
-                  f"occlude={r.occlude:.2f}{f' relight={r.relight:.2f}' if r.relight else ''}: "
+                  f"occlude={r.occlude:.2f}{f' relight={r.relight:.2f}' if r.relight else ''}"
+                  f"{' photometric' if cfg.photometric else ''}: "
                   f"test {row['mean_deg']:.2f} deg "
                   f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
                   f"{row['wall_s']:.0f} s", file=sys.stderr)

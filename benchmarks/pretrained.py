@@ -947,6 +947,13 @@ def main(argv=None) -> int:
         return 0
     if (args.heldout is None) != (args.calibration is None):
         ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
+    if args.real is not None:
+        from models.pipeline import detect_format
+
+        try:  # checked before hours of training, not after
+            detect_format(args.real)
+        except (FileNotFoundError, ValueError) as exc:
+            ap.error(f"--real: {exc}")
     for folder in args.extra_train:
         if not folder.is_dir():
             ap.error(f"--extra-train: expected a rendered dataset folder; {folder} is not a folder")

@@ -11,7 +11,7 @@ Real frames are for measuring only: never train, calibrate or choose a checkpoin
 
 Usage (from the repository root)::
 
-    python benchmarks/real.py --data ../shared/real_ycbv_dev/test [--json benchmarks/results/real/real_ycbv_dev.json]
+    python benchmarks/real.py --data REAL [--json PATH | --card]   # REAL: a BOP folder of real frames (real_ycbv_dev/test)
 """
 
 from __future__ import annotations
@@ -48,7 +48,9 @@ def run(models: dict[str, Path], data: Path, draws: int = 10, seed: int = 2024, 
     for obj, path in models.items():
         try:
             r = run_eval_all(path, data, draws=draws, seed=seed, objects=[obj], threads=threads, progress=progress)
-        except ValueError as exc:  # no instance of obj with visib_fract >= 0.3 in data
+        except ValueError as exc:
+            if "no samples of" not in str(exc):  # anything but "no instance of obj with visib_fract >= 0.3 here"
+                raise SystemExit(f"[{obj}] {path.name} on {data}: {exc}") from None
             skipped[obj] = str(exc)
             continue
         per_object[obj] = {**r["objects"][obj], "model": path.name, "sha256": file_sha256(path),
@@ -90,6 +92,13 @@ def _data_name(data: Path) -> str:
     return f"{data.parent.name}/{data.name}" if data.name in ("test", "val", "train") else data.name
 
 
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {text}")
+    return value
+
+
 def table(result: dict) -> str:
     head = f"{'object':<22}{'n':>5}{'videos':>8}{'input':>8}{'refined':>9}{'median':>8}{'<5deg':>7}{'drift':>8}"
     lines = [head, "-" * len(head)]
@@ -109,7 +118,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fp32", action="store_true", help="the shipped fp32 files instead of the INT8 ones")
     ap.add_argument("--model", action="append", default=[], metavar="OBJ=PATH",
                     help="score this ONNX file for OBJ instead of the shipped one (repeat); only these objects")
-    ap.add_argument("--draws", type=int, default=10, help="coarse inputs per instance (default 10)")
+    ap.add_argument("--draws", type=_positive_int, default=10, help="coarse inputs per instance (default 10)")
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, help=f"write the result (the shipped models' record: {DEFAULT_JSON.name})")

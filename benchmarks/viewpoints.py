@@ -8,7 +8,7 @@ the real frames hold objects in all of these. Instances with ``visib_fract >= --
 
 Usage (from the repository root)::
 
-    python benchmarks/viewpoints.py --data robot=data/ycb9_robot --data real=../shared/real_ycbv_dev/test \\
+    python benchmarks/viewpoints.py --data robot=data/ycb9_robot --data real=REAL \\
         [--png benchmarks/viewpoints.png] [--json benchmarks/results/viewpoints.json]
 """
 

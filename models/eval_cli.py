@@ -206,7 +206,7 @@ def format_all_table(result: dict, title: str = "") -> str:
               help="Where a .pt checkpoint runs: auto (cuda, then mps, then cpu), cpu, cuda, cuda:N or mps. ONNX models "
                    "run on onnxruntime's CPU provider.")
 @click.option("--threads", default=0, show_default=True, type=click.IntRange(0), help="Threads (0: all cores).")
-@click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops).")
+@click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops, or the user's cache folder when DATA is read-only).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed, all_instances, draws, base_only,

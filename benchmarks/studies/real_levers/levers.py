@@ -24,7 +24,7 @@ robot layout), one draw each. The real frames only measure; nothing is chosen on
 Usage (from the repository root; resumable: a finished row is kept in the JSON, a trained checkpoint is reused)::
 
     python benchmarks/studies/real_levers/levers.py --robot data/ycb9_robot --tabletop data/ycb9_tabletop_s32 \\
-        --real ../shared/real_ycbv_dev/test --fresh data/ycb9_fresh_s21 --fresh-robot data/ycb9_robot_fresh_s41 \\
+        --real REAL --fresh data/ycb9_fresh_s21 --fresh-robot data/ycb9_robot_fresh_s41 \\
         --objects 006_mustard_bottle,011_banana --run runs/levers --v5 runs/v5_shipped --samples 60000 \\
         --json benchmarks/studies/real_levers/levers.json
 """
