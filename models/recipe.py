@@ -397,9 +397,10 @@ NAMED_RECIPES: dict[str, dict] = {
         "samples": 500_000, "base_per_object": 16000, "bf16": True,
     },
     # heldout-scenes-v3 with camera-like photometric augmentation (models.augment: the probability per crop of each
-    # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what model
-    # version 6 trains with, continuing each object's version-5 model (benchmarks/studies/real_levers). float32: on a
-    # CPU without AVX-512 BF16 a bf16 step ran at 0.11x the float32 one (benchmarks/train_speed.py, AMD EPYC, AVX2).
+    # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what
+    # `benchmarks/pretrained.py build` would train model version 6 with, continuing each version-5 model. Not yet
+    # shown to pay: 60,000 samples of it made the real dev frames worse (benchmarks/studies/real_levers). float32: on
+    # a CPU without AVX-512 BF16 a bf16 step ran at 0.11x the float32 one (benchmarks/train_speed.py, AMD EPYC, AVX2).
     "robot-real-v6": {
         "arch": "fusion", "arch_config": {"conv_channels": [16, 32, 64, 128, 128]}, "rotation_frame": "ray",
         "lr": 5e-4, "lr_schedule": "cosine", "augment": True, "background": 0.5, "split_mode": "scenes",

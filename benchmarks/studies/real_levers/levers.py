@@ -13,6 +13,9 @@ lever                  training data, augmentation
 ``tabletop+photo``     the same scenes, plus the photometric augmentation of ``robot-real-v6`` (models.augment)
 ``robot``              scenes of the robot layout (``render``'s default), the recipe's augmentation
 ``robot+photo``        the robot scenes plus the photometric augmentation: ``robot-real-v6``
+``robot-long``         ``robot`` on every training crop of the set (about 5,000) for ``--long-samples`` samples
+``mix-long``           ``robot-long`` with every crop of ``--mix`` (tabletop scenes of ids that the robot set
+                       does not use) joining the training part
 =====================  ========================================================================================
 
 The ``tabletop`` row is the control: the same amount of further training on the kind of scenes the model already saw.
@@ -42,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.study_cli import write_json  # noqa: E402
 
-LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo")
+LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long")
 
 
 def photometric() -> dict:
@@ -52,7 +55,8 @@ def photometric() -> dict:
     return {k[len("aug_"):]: v for k, v in NAMED_RECIPES["robot-real-v6"].items() if k.startswith("aug_")}
 
 
-def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, v5: Path) -> tuple[Path, dict]:
+def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, v5: Path,
+              extra_train: tuple = ()) -> tuple[Path, dict]:
     """Train ``obj`` for ``lever`` (its checkpoint reused when it exists) and export it: ``(fp32 ONNX, record)``."""
     from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
     from export.onnx_export import export_checkpoint
@@ -63,7 +67,7 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     (run / data.name).mkdir(exist_ok=True)  # the version-5 checkpoint, its batch-norm statistics from data's crops
     init, _ = recover_shipped(obj, data, run / data.name, cache, weights=v5)
     # The split's validation and test parts are small: the rows are scored on the real frames and fresh renders.
-    cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init,
+    cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init, extra_train=extra_train,
                         photometric=photometric() if lever.endswith("+photo") else {})
     t0 = time.perf_counter()
     ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
@@ -99,24 +103,31 @@ def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
 
 
 def table(docs: list[dict]) -> str:
-    """One Markdown table: a row per lever, per object the real-frame mean and drift, then fresh renders."""
+    """Markdown: a row per object and lever (real frames: mean and drift; fresh renders: mean), then per lever the
+    change against ``v5`` averaged over the objects that lever ran on."""
     rows = [r for d in docs for r in d["rows"]]
+    fresh = list(docs[0].get("fresh", []))
+    lines = ["| object | lever | real: mean | real: drift | " + " | ".join(fresh) + " |",
+             "|---|---|---:|---:|" + "---:|" * len(fresh)]
+    by = {(r["object"], r["lever"]): r for r in rows}
     objects = sorted({r["object"] for r in rows})
-    fresh = [k for k in docs[0].get("fresh", [])]
-    head = "| lever | " + " | ".join(f"{o}: real mean / drift" for o in objects) + " | real, mean of objects | " + \
-        " | ".join(f"{f}, mean of objects" for f in fresh) + " |"
-    lines = [head, "|---|" + "---:|" * (len(objects) + 1 + len(fresh))]
-    for lever in LEVERS:
-        got = {r["object"]: r for r in rows if r["lever"] == lever}
+    for obj in objects:
+        for lever in LEVERS:
+            r = by.get((obj, lever))
+            if r:
+                lines.append(f"| {obj} | `{lever}` | {r['real']['mean_deg']:.2f} | {r['real']['drift_mean_deg']:.2f} | "
+                             + " | ".join(f"{r[f]['mean_deg']:.2f}" if f in r else "-" for f in fresh) + " |")
+    lines += ["", "| lever | objects | real: mean change against `v5` | real: drift change | "
+              + " | ".join(f"{f}: change" for f in fresh) + " |", "|---|---|---:|---:|" + "---:|" * len(fresh)]
+    for lever in LEVERS[1:]:
+        got = [o for o in objects if (o, lever) in by and (o, "v5") in by]
         if not got:
             continue
-        cells = [f"{got[o]['real']['mean_deg']:.2f} / {got[o]['real']['drift_mean_deg']:.2f}" if o in got else "-"
-                 for o in objects]
-        full = len(got) == len(objects)
-        real = f"**{sum(r['real']['mean_deg'] for r in got.values()) / len(got):.2f}**" if full else "-"
-        fr = [f"{sum(r[f]['mean_deg'] for r in got.values()) / len(got):.2f}" if full and all(f in r for r in
-              got.values()) else "-" for f in fresh]
-        lines.append(f"| `{lever}` | " + " | ".join(cells) + f" | {real} | " + " | ".join(fr) + " |")
+        def change(key):
+            return sum(key(by[(o, lever)]) - key(by[(o, "v5")]) for o in got) / len(got)
+        cells = [f"{change(lambda r: r['real']['mean_deg']):+.2f}", f"{change(lambda r: r['real']['drift_mean_deg']):+.2f}"]
+        cells += [f"{change(lambda r, f=f: r[f]['mean_deg']):+.2f}" for f in fresh]
+        lines.append(f"| `{lever}` | {len(got)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -135,6 +146,9 @@ def main(argv=None) -> int:
     ap.add_argument("--v5", type=Path, help="folder holding the version-5 fp32 files (a copy of refiner_rt/weights "
                     "made before version 6 shipped)")
     ap.add_argument("--samples", type=int, default=60_000)
+    ap.add_argument("--long-samples", type=int, default=150_000, help="samples of the robot-long and mix-long rows")
+    ap.add_argument("--mix", type=Path, help="mix-long: tabletop scenes whose ids the robot set does not use "
+                    "(render --first-scene N, N >= its scene count)")
     ap.add_argument("--sizes", type=int, default=2_500,
                     help="training crops per object at most (the same for every lever: the tabletop set is smaller)")
     ap.add_argument("--json", type=Path)
@@ -162,6 +176,11 @@ def main(argv=None) -> int:
                 from refiner_rt.pretrained import model_file_name
 
                 onnx, record = args.v5 / model_file_name(obj, int8=False), {}
+            elif lever == "mix-long":
+                onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5,
+                                         extra_train=(args.mix,))
+            elif lever == "robot-long":
+                onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5)
             else:
                 data = args.robot if lever.startswith("robot") else args.tabletop
                 onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5)
