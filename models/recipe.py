@@ -399,7 +399,9 @@ NAMED_RECIPES: dict[str, dict] = {
     # heldout-scenes-v3 with camera-like photometric augmentation (models.augment: the probability per crop of each
     # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what
     # `benchmarks/pretrained.py build` would train model version 6 with, continuing each version-5 model. Not yet
-    # shown to pay: 60,000 samples of it made the real dev frames worse (benchmarks/studies/real_levers). float32: on
+    # shown to pay (benchmarks/studies/real_levers): 60,000 samples of it moved the real dev frames by -0.54 deg over
+    # four objects but cost 1.2 on the tabletop renders, and its photometric part made the real frames worse than
+    # the same run without it for three of the four. float32: on
     # a CPU without AVX-512 BF16 a bf16 step ran at 0.11x the float32 one (benchmarks/train_speed.py, AMD EPYC, AVX2).
     "robot-real-v6": {
         "arch": "fusion", "arch_config": {"conv_channels": [16, 32, 64, 128, 128]}, "rotation_frame": "ray",
