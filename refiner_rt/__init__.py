@@ -9,9 +9,9 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from refiner_rt.errors import ModelError
+from refiner_rt.errors import ModelError, ModelNotFoundError
 
-__all__ = ["ModelError", "RefinerSession", "RefineResult", "RefinerTracker", "quaternion", "pretrained_models",
+__all__ = ["ModelError", "ModelNotFoundError", "RefinerSession", "RefineResult", "RefinerTracker", "quaternion", "pretrained_models",
            "__version__"]
 
 

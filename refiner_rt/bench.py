@@ -42,9 +42,11 @@ the table), and ``roofline_note`` says why.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
+import os
 import platform
 import statistics
 import sys
@@ -793,7 +795,11 @@ def bench_command(build_models=None) -> click.Command:
                 f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell"
                 + (" (and per roofline limit, measured in every cell)" if probe is not None else "")
             )
-            with click.progressbar(length=len(threads) * len(batches), label="cells", file=sys.stderr) as bar:
+            # A bar on a terminal only: elsewhere click prints its bare label, a stray "cells" line in the output.
+            stream = contextlib.nullcontext(sys.stderr) if sys.stderr.isatty() else open(os.devnull, "w")  # noqa: SIM115
+            with stream as bar_stream, click.progressbar(length=len(threads) * len(batches),
+                                                         label="timing cells (threads x batches)",
+                                                         file=bar_stream) as bar:
                 try:
                     rows = run_bench(
                         bench_models, batches, threads, seconds, with_torch, probe, costs, progress=lambda: bar.update(1)

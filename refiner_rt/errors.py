@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["ModelError"]
+__all__ = ["ModelError", "ModelNotFoundError"]
 
 
 class ModelError(ValueError):
@@ -14,3 +14,8 @@ class ModelError(ValueError):
     code that catches ``ValueError`` for bad input keeps working; onnxruntime's own exception types never escape
     :class:`refiner_rt.RefinerSession` (the original is kept as ``__cause__`` for debugging).
     """
+
+
+class ModelNotFoundError(ModelError, FileNotFoundError):
+    """The model path names no file: a :class:`ModelError` (so a ``ValueError``, as the README promises for bad
+    input) and a ``FileNotFoundError`` (what code written for a missing file catches)."""

@@ -41,7 +41,7 @@ import numpy as np
 import onnxruntime as ort
 
 from refiner_rt import quaternion as rq
-from refiner_rt.errors import ModelError
+from refiner_rt.errors import ModelError, ModelNotFoundError
 from refiner_rt.metadata import (
     INPUT_IMAGE,
     INPUT_QUATERNION,
@@ -288,7 +288,8 @@ class RefinerSession:
     halves the speed of the static INT8 conv models and changes nothing else.
 
     Raises:
-        FileNotFoundError: ``model`` is a path that does not exist.
+        ModelNotFoundError: ``model`` is a path that does not exist (a :class:`ModelError`, so a ``ValueError``,
+            and a ``FileNotFoundError``).
         ModelError: (a ``ValueError``) the file is unreadable, empty, truncated or not ONNX; the model lacks the
             refiner-rt metadata contract, declares one this runtime does not understand or with values out of
             range, breaks the graph contract, or fails its trial run. The message names the file and the cause.
@@ -311,7 +312,7 @@ class RefinerSession:
         elif isinstance(model, (str, os.PathLike)):
             path = Path(model)
             if not path.is_file():
-                raise FileNotFoundError(f"model file not found: {path}")
+                raise ModelNotFoundError(f"model file not found: {path}")
             source, self.model_path = str(path), path
             self._label = str(path)
             try:

@@ -206,6 +206,8 @@ def test_model_without_contract_is_refused(tmp_path):
         RefinerSession(fx.constant_model([1, 0, 0, 0], size=8, props=fx.contract(input_size=16)))
     with pytest.raises(FileNotFoundError):
         RefinerSession(tmp_path / "missing.onnx")
+    with pytest.raises(ModelError, match="model file not found: .*missing.onnx"):  # the README's promise
+        RefinerSession(tmp_path / "missing.onnx")
     with pytest.raises(ValueError, match="provider 'NoSuchProvider'"):
         RefinerSession(fx.constant_model([1, 0, 0, 0]), providers=["NoSuchProvider"])
     with pytest.raises(ValueError, match="threads"):
