@@ -229,6 +229,9 @@ def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, lost_
     """
     from refiner_rt.tracker import RefinerTracker
 
+    if out_path.suffix.lower() != ".json":
+        raise click.BadParameter(f"expected a .json file for the rotations (a video or image strip goes to --video); "
+                                 f"got {out_path.name!r}", param_hint="'-o' / '--out'")
     if lost_deg is not None and detector_weight is not None:
         raise click.UsageError("--lost-deg and --detector-weight are two uses of the detections' \"q\" (restart a "
                                "lost track, or fuse every pose); give one")

@@ -466,6 +466,7 @@ def test_track_command_with_shipped_names_and_a_reset(tmp_path, weights):  # noq
     ({"frames": {"000000.png": {"005_tomato_soup_can": {"box": BOX_A, "q": [1, 0, 0, 0]}}}}, [],
      "no pretrained model for object '005_tomato_soup_can'"),  # a YCB object that no model ships for
     ({}, ["--video", "x.gif"], "expected a .mp4 or .avi video or a .png or .jpg image strip"),
+    ({}, ["-o", "out.mp4"], r"expected a .json file for the rotations \(a video or image strip goes to --video\)"),
 ])
 def test_track_command_refuses_bad_input_without_a_traceback(tmp_path, change, args, match):
     import json
