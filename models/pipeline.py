@@ -246,7 +246,16 @@ def cropset_for(
         raise ValueError(f"part must be one of {PARTS}; got {part!r}")
     samples = getattr(splits, part)
     if not samples:
-        raise ValueError(f"split part {part!r} is empty (mode {spec.split_mode!r}, sizes {spec.sizes})")
+        parts = {p: getattr(splits, p) for p in PARTS}
+        scenes = {p: len({(str(x.dataset), x.scene_id) for x in v}) for p, v in parts.items()}
+        have = ", ".join(f"{p} {len(v)} samples from {scenes[p]} scenes" for p, v in parts.items())
+        raise ValueError(
+            f"split part {part!r} is empty ({spec.split_mode} split of {spec.data}, per-object sizes train_base, "
+            f"train_finetune, val, test = {tuple(spec.sizes)}; got {have}). The {spec.split_mode} split gives each "
+            "part its share of the data" + (" in whole scenes, so every part needs at least one scene of each object"
+                                             if spec.split_mode == "scenes" else "")
+            + ": render more scenes (refiner-rt render --frames), or ask for fewer crops per part (refiner-rt train "
+            "--base-per-object, --per-object, --val-per-object, --test-per-object)")
     cache = CropCache.build_or_load(
         samples, size, _cache_dir(spec, part, size, context, cache_root), context=context, workers=workers, progress=progress
     )

@@ -7,6 +7,7 @@ split whose validation or test crops the base network was trained on is refused.
 """
 
 import json
+import re
 
 import pytest
 from click.testing import CliRunner
@@ -111,3 +112,19 @@ def test_fine_tuning_one_object_of_a_scenes_base_keeps_its_split(mixed, tmp_path
     assert res.exit_code == 1, res.output
     assert "come from scenes the base network" in res.output
     assert "validation/test 10/10" in res.output and "validation/test 10/20" in res.output
+
+
+def test_an_empty_split_part_says_how_many_scenes_each_part_got_and_which_flags_set_the_sizes(tmp_path):
+    from models.pipeline import DataSpec, cropset_for, load_splits
+
+    data = tmp_path / "small"
+    make_cube_dataset(data, obj_ids=(2,), scenes=2, frames=4)
+    spec = DataSpec(data=str(data), objects=[C], split_mode="scenes", sizes=(8, 0, 4, 4))
+    splits = load_splits(spec)
+    empty = next(p for p in ("val", "test", "train_base") if not getattr(splits, p))
+    with pytest.raises(ValueError) as info:
+        cropset_for(splits, empty, spec, 32, 1.2, cache_root=tmp_path / "c", progress=False)
+    msg = str(info.value)
+    assert f"split part {empty!r} is empty" in msg
+    assert re.search(r"train_base \d+ samples from \d+ scenes, .*val \d+ samples from \d+ scenes", msg), msg
+    assert "--val-per-object" in msg and "refiner-rt render --frames" in msg
