@@ -44,7 +44,7 @@ MIN_BOX_SIDE = 32.0  # pixels: smaller instances make unreadable tiles
 FRAMES = 5  # the cover first (three frames of this render), then the frames that best even out the objects' counts
 OUTLINE_POINTS = 400
 OBJECT_FRAME = ("YCB google_16k scan frame (models/data/ycb_models/<id>/textured.obj, origin near the base); "
-                "not the YCB-Video or BOP model frame")
+                "axes as the YCB-Video model frame's, origin offset per object (refiner_rt.frames)")
 
 
 def _instances(scene: Path) -> dict[int, list[dict]]:

@@ -60,7 +60,7 @@ from refiner_rt.pretrained import INDEX_FILE, INDEX_FORMAT, WEIGHTS_DIR, model_f
 RESULTS_DIR = ROOT / "benchmarks" / "results" / "pretrained"
 MESHES_DIR = ROOT / "models" / "data" / "ycb_models"
 OBJECT_FRAME = ("YCB google_16k scan frame (models/data/ycb_models/<id>/textured.obj, metres, origin near the base); "
-                "not the YCB-Video or BOP model frame")
+                "axes as the YCB-Video model frame's, origin offset per object (refiner_rt.frames)")
 SCHEMA = "refiner-rt/pretrained-eval/1"
 
 # The held-out-scenes recipe of the shipped models, as this build names its options: a view of the one definition,
@@ -752,7 +752,9 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
         "Instances with BOP `visib_fract >= 0.3` (the silhouette beyond the image border counted), coarse "
         "inputs drawn U(0, 30) degrees around the truth, one network pass, errors in degrees (geodesic). "
         "Rotations are relative to the YCB google_16k scan frame of `models/data/ycb_models/<id>/textured.obj` "
-        "(origin near the object's base), **not** the YCB-Video or BOP model frame.",
+        "(origin near the object's base). Its axes coincide with the YCB-Video model frame's, so YCB-Video rotations "
+        "apply as they are; only the origin differs, by a per-object offset (`refiner_rt.frames` converts a "
+        "translation).",
         "",
         "| object | INT8 mean | median | under 5 | under 10 | input mean | inside the image: mean (n) | cut by the border: "
         "mean (n) | INT8 - fp32 | INT8 refinements/s | test crops |" + (" fp32, training set's test scenes |" if fresh else "")
