@@ -212,8 +212,42 @@ class RefineResult:
     def __len__(self) -> int:
         return len(self.q_refined)
 
+    @property
+    def R(self) -> np.ndarray:
+        """``(N, 3, 3)`` float64: the refined rotations as matrices, object to camera (``x_cam = R @ x_obj + t``)."""
+        return rq.to_matrix(self.q_refined)
+
 
 _K_FORM = "[[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels"
+Q_ORDERS = ("wxyz", "xyzw")
+
+
+def _as_wxyz(q, q_order: str):
+    """``q`` (quaternions in ``q_order``, or ``(N, 3, 3)`` rotation matrices) as ``wxyz`` quaternions for
+    :meth:`RefinerSession._q_in`; ``wxyz`` quaternions pass through untouched (the fast path)."""
+    if q_order not in Q_ORDERS:
+        raise ValueError(f"q_order must be one of {', '.join(map(repr, Q_ORDERS))}; got {q_order!r}")
+    shape = np.shape(q) if isinstance(q, np.ndarray) else None
+    if shape is None:
+        try:
+            shape = np.shape(q)
+        except (ValueError, TypeError):  # ragged: _q_in names it
+            return q
+    if len(shape) == 3 and shape[1:] == (3, 3):
+        R = np.asarray(q, dtype=np.float64)
+        if not np.all(np.isfinite(R)):
+            raise ValueError("q_in_wxyz as rotation matrices (N, 3, 3) must be finite")
+        err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2)) if len(R) else np.zeros(0)
+        bad = np.flatnonzero((err > 1e-3) | (np.linalg.det(R) < 0)) if len(R) else []
+        if len(bad):
+            raise ValueError(f"q_in_wxyz[{bad[0]}] is not a rotation matrix (orthonormal within 1e-3, determinant "
+                             f"+1): R R^T differs from I by {err[bad[0]]:.3g}, det {np.linalg.det(R[bad[0]]):.3g}")
+        return rq.from_matrix(rq.orthonormalize(R, method="svd"))
+    if q_order == "xyzw":
+        if len(shape) < 1 or shape[-1] != 4:
+            raise ValueError(f"q_in_wxyz with q_order='xyzw' must have shape (N, 4); got shape {tuple(shape)}")
+        return rq.from_xyzw(np.asarray(q, dtype=np.float64))
+    return q
 
 
 def _validate_K(K) -> np.ndarray:
@@ -410,7 +444,8 @@ class RefinerSession:
         return self._session.get_outputs()
 
     # ------------------------------------------------------------------ public API
-    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, iterations: int = 1, K=None, views: int = 1) -> RefineResult:
+    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, iterations: int = 1, K=None, views: int = 1, *,
+               q_order: str = "wxyz") -> RefineResult:
         """Refine the rotations of ``N`` objects seen in one image.
 
         Safe to call from several threads at once on one session (see the class docstring).
@@ -420,9 +455,10 @@ class RefinerSession:
             boxes_xyxy: ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels (float, continuous
                 coordinates); each must be non-empty, overlap the image and have coordinates within
                 ``+-MAX_BOX_COORDINATE`` (1e6) pixels. ``N * views`` at most :data:`MAX_BATCH` (1024).
-            q_in_wxyz: ``(N, 4)`` coarse object-to-camera rotations, ``wxyz``. Finite and
+            q_in_wxyz: ``(N, 4)`` coarse object-to-camera rotations, ``wxyz`` (or in ``q_order``). Finite and
                 non-zero; non-unit quaternions are normalised (their norm carries no rotation; huge
-                components are scaled down first, so any finite non-zero quaternion works).
+                components are scaled down first, so any finite non-zero quaternion works). Or ``(N, 3, 3)``
+                rotation matrices (object to camera, ``x_cam = R @ x_obj + t``; orthonormal within 1e-3, det +1).
             iterations: feed the refined rotation back this many times (``1`` to :data:`MAX_ITERATIONS`;
                 the paper does 1).
             K: ``(3, 3)`` camera intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels, finite,
@@ -434,6 +470,8 @@ class RefinerSession:
                 centre shifted and side scaled by up to 5%, as the training's ``--augment`` box jitter), in one
                 batch of ``N * views`` crops. Costs ``views`` network passes per object; it suits models trained
                 with ``--augment`` (``benchmarks/averaging.py`` measures it). ``1`` to :data:`MAX_VIEWS`.
+            q_order: ``"wxyz"`` (the default) or ``"xyzw"`` (ROS ``geometry_msgs/Quaternion``, SciPy): the order of
+                ``q_in_wxyz``'s quaternions. Results are ``wxyz`` always (``res.R`` gives matrices).
 
         Returns:
             :class:`RefineResult` with ``q_refined`` ``(N, 4)`` float64 ``wxyz``, ``w >= 0``, finite and unit.
@@ -456,7 +494,7 @@ class RefinerSession:
         n = len(boxes)
         if small is None or views > 1:
             self._check_batch(n, views, "boxes_xyxy")
-        q_in, q_rows = self._q_in(q_in_wxyz, n, "boxes_xyxy")
+        q_in, q_rows = self._q_in(_as_wxyz(q_in_wxyz, q_order), n, "boxes_xyxy")
         if views > 1:
             q_rows, small = None, None  # the averaged path runs on numpy arrays
         q_frame = None
@@ -478,7 +516,7 @@ class RefinerSession:
             crop_to_square(image, box, size, context, out=crops[i])
         return self._run(crops, q_net, q_in, q_rows, iterations, q_frame, views)
 
-    def refine_crops(self, crops_bgr, q_in_wxyz, iterations: int = 1) -> RefineResult:
+    def refine_crops(self, crops_bgr, q_in_wxyz, iterations: int = 1, *, q_order: str = "wxyz") -> RefineResult:
         """Refine rotations from crops that are already cut out (the crop window, any size).
 
         Each crop is resampled to ``S x S`` with the crop rule's warp (``context = 1``: the crop is
@@ -488,10 +526,11 @@ class RefinerSession:
         Args:
             crops_bgr: a sequence of ``h x w x 3`` ``uint8`` BGR crops, or an ``(N, h, w, 3)`` array;
                 ``N`` at most :data:`MAX_BATCH`.
-            q_in_wxyz: ``(N, 4)`` coarse rotations, ``wxyz``, in the model's rotation frame (for a
-                ``"ray"`` model: relative to each crop's viewing ray; use :meth:`refine` with ``K``
-                to have that done for you).
+            q_in_wxyz: ``(N, 4)`` coarse rotations, ``wxyz`` (or in ``q_order``), or ``(N, 3, 3)`` rotation
+                matrices, in the model's rotation frame (for a ``"ray"`` model: relative to each crop's viewing
+                ray; use :meth:`refine` with ``K`` to have that done for you).
             iterations: refinement iterations (``1`` to :data:`MAX_ITERATIONS`).
+            q_order: ``"wxyz"`` (the default) or ``"xyzw"``, as in :meth:`refine`.
 
         Returns:
             :class:`RefineResult`.
@@ -513,7 +552,7 @@ class RefinerSession:
         self._check_batch(len(crops_list), 1, "crops_bgr")
         for i, c in enumerate(crops_list):
             validate_image(c, f"crops_bgr[{i}]")
-        q_in, q_rows = self._q_in(q_in_wxyz, len(crops_list), "crops_bgr")
+        q_in, q_rows = self._q_in(_as_wxyz(q_in_wxyz, q_order), len(crops_list), "crops_bgr")
         iterations = self._validate_iterations(iterations)
         crops, q_net = self._buffers(len(crops_list))
         for i, c in enumerate(crops_list):

@@ -844,3 +844,29 @@ def test_default_session_options_are_the_sessions_own_plus_entries():
     assert o.intra_op_num_threads == 2 and o.inter_op_num_threads == 1
     assert o.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     assert o.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+
+
+def test_rotations_in_the_forms_robot_code_has_matrices_and_ros_order_against_scipy():
+    """(N, 3, 3) matrices and xyzw quaternions (SciPy's and ROS's order) give what the same rotations in wxyz give;
+    res.R is the refined rotation as SciPy's matrix. An identity correction makes the refined rotation the input."""
+    from scipy.spatial.transform import Rotation
+
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    rot = Rotation.random(3, random_state=7)
+    image = np.full((120, 160, 3), 90, np.uint8)
+    boxes = np.array([[10.0, 10.0, 60.0, 70.0], [50.0, 20.0, 120.0, 90.0], [30.0, 40.0, 80.0, 110.0]])
+    wxyz = rq.from_xyzw(rot.as_quat())
+    ref = sess.refine(image, boxes, wxyz)
+    by_matrix = sess.refine(image, boxes, rot.as_matrix())
+    by_xyzw = sess.refine(image, boxes, rot.as_quat(), q_order="xyzw")
+    for res in (ref, by_matrix, by_xyzw):
+        np.testing.assert_allclose(res.R, rot.as_matrix(), atol=1e-9)
+        assert rq.geodesic_angle(res.q_refined, wxyz).max() < 1e-6
+    crops = sess.refine_crops([image[10:70, 10:60]] * 3, rot.as_matrix())
+    np.testing.assert_allclose(crops.R, rot.as_matrix(), atol=1e-9)
+    with pytest.raises(ValueError, match="q_order must be one of 'wxyz', 'xyzw'"):
+        sess.refine(image, boxes, wxyz, q_order="XYZW")
+    with pytest.raises(ValueError, match=r"q_in_wxyz\[1\] is not a rotation matrix"):
+        sess.refine(image, boxes, np.stack([np.eye(3), 2 * np.eye(3), np.eye(3)]))
+    with pytest.raises(ValueError, match="q_order='xyzw' must have shape"):
+        sess.refine(image, boxes, np.zeros((3, 3)), q_order="xyzw")
