@@ -222,9 +222,10 @@ _K_FORM = "[[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels"
 Q_ORDERS = ("wxyz", "xyzw")
 
 
-def _as_wxyz(q, q_order: str):
+def _as_wxyz(q, q_order: str, name: str = "q_in_wxyz"):
     """``q`` (quaternions in ``q_order``, or ``(N, 3, 3)`` rotation matrices) as ``wxyz`` quaternions for
-    :meth:`RefinerSession._q_in`; ``wxyz`` quaternions pass through untouched (the fast path)."""
+    :meth:`RefinerSession._q_in` (and the tracker); ``wxyz`` quaternions pass through untouched (the fast path).
+    Errors name the argument ``name``."""
     if q_order not in Q_ORDERS:
         raise ValueError(f"q_order must be one of {', '.join(map(repr, Q_ORDERS))}; got {q_order!r}")
     shape = np.shape(q) if isinstance(q, np.ndarray) else None
@@ -236,16 +237,16 @@ def _as_wxyz(q, q_order: str):
     if len(shape) == 3 and shape[1:] == (3, 3):
         R = np.asarray(q, dtype=np.float64)
         if not np.all(np.isfinite(R)):
-            raise ValueError("q_in_wxyz as rotation matrices (N, 3, 3) must be finite")
+            raise ValueError(f"{name} as rotation matrices (N, 3, 3) must be finite")
         err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2)) if len(R) else np.zeros(0)
         bad = np.flatnonzero((err > 1e-3) | (np.linalg.det(R) < 0)) if len(R) else []
         if len(bad):
-            raise ValueError(f"q_in_wxyz[{bad[0]}] is not a rotation matrix (orthonormal within 1e-3, determinant "
+            raise ValueError(f"{name}[{bad[0]}] is not a rotation matrix (orthonormal within 1e-3, determinant "
                              f"+1): R R^T differs from I by {err[bad[0]]:.3g}, det {np.linalg.det(R[bad[0]]):.3g}")
         return rq.from_matrix(rq.orthonormalize(R, method="svd"))
     if q_order == "xyzw":
         if len(shape) < 1 or shape[-1] != 4:
-            raise ValueError(f"q_in_wxyz with q_order='xyzw' must have shape (N, 4); got shape {tuple(shape)}")
+            raise ValueError(f"{name} with q_order='xyzw' must have shape (N, 4); got shape {tuple(shape)}")
         return rq.from_xyzw(np.asarray(q, dtype=np.float64))
     return q
 

@@ -48,6 +48,7 @@ from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import validate_boxes, validate_image
 from refiner_rt.session import (
     RefinerSession,
+    _as_wxyz,
     _conjugate_rows,
     _multiply_rows,
     _small_boxes,
@@ -106,6 +107,9 @@ class RefinerTracker:
         detector_weight: fuse the detector's poses given to :meth:`update` (module docstring): the weight ``w`` in
             ``(0, 1]`` of the refined detection against the refined track, or ``None`` (default): the detector is
             used only by the loss-of-track check. Fusing costs a second network pass per object with a detection.
+        q_order: ``"wxyz"`` (default) or ``"xyzw"`` (ROS, SciPy): the order of every quaternion given to the
+            tracker (``q0``, :meth:`add`, :meth:`reset`, detector poses); a ``(3, 3)`` rotation matrix is taken
+            anywhere a rotation is. Rotations returned are ``wxyz``.
 
     Raises:
         ValueError / TypeError: a bad argument, named, with what was expected and what was given.
@@ -119,8 +123,10 @@ class RefinerTracker:
     """
 
     def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1,
-                 lost_deg: float | None = None, detector_weight: float | None = None):
+                 lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz"):
         self.K = _validate_K(K).copy()
+        _as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
+        self.q_order = q_order
         if not isinstance(predict, bool):
             raise TypeError(f"predict must be True or False; got {predict!r}")
         self.predict = predict
@@ -387,11 +393,20 @@ class RefinerTracker:
             raise TypeError(f"{name}: object ids must be non-empty strings such as '003_cracker_box'; "
                             f"got {object_id!r}")
 
-    @staticmethod
-    def _check_q(q, name: str) -> list:
+    def _check_q(self, q, name: str) -> list:
+        """One rotation: a ``(3, 3)`` matrix or a ``(4,)`` quaternion in ``q_order``, as a unit ``wxyz`` list."""
+        try:
+            shape = np.shape(q)
+        except (ValueError, TypeError):
+            shape = None
+        if shape == (3, 3):
+            return rq.normalize(_as_wxyz(np.asarray(q, dtype=np.float64)[None], "wxyz", name)[0]).tolist()
         arr = rq.as_quaternion(q, name)
         if arr.shape != (4,):
-            raise ValueError(f"{name} must be one rotation of shape (4,), wxyz; got shape {arr.shape}")
+            raise ValueError(f"{name} must be one rotation: a (4,) quaternion ({self.q_order}) or a (3, 3) matrix; "
+                             f"got shape {arr.shape}")
+        if self.q_order == "xyzw":
+            arr = rq.from_xyzw(arr)
         return rq.normalize(arr).tolist()
 
     def __repr__(self) -> str:

@@ -151,7 +151,7 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(q0=[1, 0, 0, 0]), TypeError, r"q0 must be a mapping \{object id: \(4,\) wxyz rotation\}"),
     (dict(q0={"003_cracker_box": [0, 0, 0, 0]}), ValueError, r"q0\['003_cracker_box'\] must be non-zero"),
     (dict(q0={"003_cracker_box": [1, 0, 0]}), ValueError, r"q0\['003_cracker_box'\] must have shape \(\.\.\., 4\)"),
-    (dict(q0={"003_cracker_box": [[1, 0, 0, 0]]}), ValueError, r"q0\['003_cracker_box'\] must be one rotation of shape \(4,\)"),
+    (dict(q0={"003_cracker_box": [[1, 0, 0, 0]]}), ValueError, r"q0\['003_cracker_box'\] must be one rotation: a \(4,\) quaternion \(wxyz\) or a \(3, 3\) matrix"),
     (dict(q0={"003_cracker_box": [1, np.nan, 0, 0]}), ValueError, r"q0\['003_cracker_box'\] must be finite"),
     (dict(q0={"011_banana": [1, 0, 0, 0]}), ValueError,
      r"object_id '011_banana' is not an object its session's model was trained for \(metadata objects: \['003_cracker_box'\]\)"),
@@ -585,3 +585,31 @@ def test_every_shipped_model_tracks_by_name():
     assert sorted(out) == sorted(names)
     for q in out.values():
         assert q.shape == (4,) and np.isfinite(q).all() and abs(np.linalg.norm(q) - 1) < 1e-9 and q[0] >= 0
+
+
+def test_tracker_takes_matrices_and_ros_ordered_quaternions_as_scipy_gives_them(tmp_path):
+    """q0, add, reset and detector poses as (3, 3) matrices or xyzw quaternions track as the same rotations in wxyz."""
+    from scipy.spatial.transform import Rotation
+
+    from refiner_rt import RefinerSession
+    from refiner_rt import quaternion as rq
+    from onnx_fixtures import constant_model
+
+    sess = RefinerSession(constant_model([1, 0, 0, 0]))
+    K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
+    image = np.full((120, 160, 3), 90, np.uint8)
+    rot = Rotation.random(2, random_state=3)
+    wxyz = rq.from_xyzw(rot.as_quat())
+    by_matrix = RefinerTracker(sess, K, {"003_cracker_box": rot[0].as_matrix()})
+    by_xyzw = RefinerTracker(sess, K, {"003_cracker_box": rot[0].as_quat()}, q_order="xyzw")
+    for t in (by_matrix, by_xyzw):
+        q = t.update(image, {"003_cracker_box": [20, 20, 80, 90]})["003_cracker_box"]
+        assert rq.geodesic_angle(q, wxyz[0]) < 1e-6
+    by_xyzw.reset("003_cracker_box", rot[1].as_quat())
+    by_matrix.add("003_cracker_box#2", rot[1].as_matrix())
+    assert rq.geodesic_angle(by_xyzw.rotations["003_cracker_box"], wxyz[1]) < 1e-6
+    assert rq.geodesic_angle(by_matrix.rotations["003_cracker_box#2"], wxyz[1]) < 1e-6
+    with pytest.raises(ValueError, match="q_order must be one of"):
+        RefinerTracker(sess, K, {}, q_order="zyxw")
+    with pytest.raises(ValueError, match=r"is not a rotation matrix"):
+        by_matrix.reset("003_cracker_box", 2 * np.eye(3))
