@@ -82,7 +82,7 @@ def update(path: Path, models: dict[str, Path], data: Path, draws: int = 10, see
     new = run(models, data, draws=draws, seed=seed)
     doc = summarise({**old.get("objects", {}), **new["objects"]}, {}, data, draws, seed)
     doc.update(models="shipped INT8", command="python benchmarks/real.py --data REAL --card", machine=machine())
-    write_json(path, {k: v for k, v in doc.items()})
+    write_json(path, doc)
     return doc
 
 

@@ -43,6 +43,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
 LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long")
@@ -187,7 +188,7 @@ def main(argv=None) -> int:
             row = {"lever": lever, "object": obj, **record, **score(Path(onnx), obj, args.real, fresh),
                    "row_s": round(time.perf_counter() - t0, 1)}
             doc["rows"].append(row)
-            doc.update(samples=args.samples, photometric=photometric(), real=args.real.name,
+            doc.update(samples=args.samples, photometric=photometric(), real=_data_name(args.real),
                        fresh=[f.name for f in fresh])
             write_json(args.json, doc)
             print(f"{obj:<22}{lever:<16} real {row['real']['mean_deg']:6.2f} (drift {row['real']['drift_mean_deg']:5.2f})"
