@@ -60,6 +60,7 @@ from refiner_rt.geometry import (  # noqa: F401  (re-exported under their old na
     view_offsets,
 )
 from refiner_rt.preprocess import MAX_BOX_COORDINATE, crop_to_square, resize_crop, validate_boxes, validate_image
+from refiner_rt.distortion import crop_undistorted, undistort_boxes, validate_D
 
 __all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "default_session_options", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS",
            "K_MAX_ABS", "K_MIN_FOCAL", "available_cores", "ray_quaternions", "view_boxes", "view_offsets"]
@@ -401,12 +402,16 @@ class RefinerSession:
                                  f"(metadata objects: {list(self.contract.objects)}); use that object's model")
 
     @classmethod
-    def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, **kwargs) -> "RefinerSession":
+    def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, stage: str = "coarse",
+                   **kwargs) -> "RefinerSession":
         """A session on the refiner shipped for ``object_id`` (package data; nothing is downloaded).
 
         Args:
             object_id: YCB id, e.g. ``"003_cracker_box"`` (``refiner_rt.pretrained_models()`` lists them).
             int8: the INT8 model (default, fastest) or the fp32 one.
+            stage: ``"coarse"`` (default: inputs up to 30 degrees off) or ``"fine"``: the object's fine refiner, for
+                inputs a few degrees off (the coarse refiner's output, the previous video frame's); a
+                :class:`refiner_rt.RefinerCascade` runs the two in turn.
             threads: as for the constructor.
             **kwargs: ``providers`` / ``session_options``, as for the constructor.
 
@@ -418,7 +423,8 @@ class RefinerSession:
         """
         from refiner_rt.pretrained import pretrained_model
 
-        return cls(pretrained_model(object_id).path(int8=int8), threads=threads, object_id=object_id, **kwargs)
+        path = pretrained_model(object_id).path(int8=int8, stage=stage)
+        return cls(path, threads=threads, object_id=object_id, **kwargs)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -446,7 +452,7 @@ class RefinerSession:
 
     # ------------------------------------------------------------------ public API
     def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, iterations: int = 1, K=None, views: int = 1, *,
-               q_order: str = "wxyz") -> RefineResult:
+               q_order: str = "wxyz", D=None) -> RefineResult:
         """Refine the rotations of ``N`` objects seen in one image.
 
         Safe to call from several threads at once on one session (see the class docstring).
@@ -473,6 +479,11 @@ class RefinerSession:
                 with ``--augment`` (``benchmarks/averaging.py`` measures it). ``1`` to :data:`MAX_VIEWS`.
             q_order: ``"wxyz"`` (the default) or ``"xyzw"`` (ROS ``geometry_msgs/Quaternion``, SciPy): the order of
                 ``q_in_wxyz``'s quaternions. Results are ``wxyz`` always (``res.R`` gives matrices).
+            D: the camera's lens distortion coefficients, OpenCV's model (``k1, k2, p1, p2[, k3[, k4, k5, k6]]``,
+                ``sensor_msgs/CameraInfo``'s ``d`` for ``plumb_bob`` and ``rational_polynomial``), with ``K`` its
+                intrinsics; ``image_bgr`` and the boxes are then the raw (distorted) image's. Each crop is sampled
+                through the distortion as the pinhole camera of ``K`` would see it, the view the network trained
+                on (:mod:`refiner_rt.distortion`). None or all zeros: a pinhole camera.
 
         Returns:
             :class:`RefineResult` with ``q_refined`` ``(N, 4)`` float64 ``wxyz``, ``w >= 0``, finite and unit.
@@ -482,7 +493,8 @@ class RefinerSession:
             ModelError: the network failed or returned a non-finite or zero ``q_out``.
         """
         image = validate_image(image_bgr, "image_bgr")
-        small = _small_boxes(boxes_xyxy, image.shape)
+        D = validate_D(D)
+        small = _small_boxes(boxes_xyxy, image.shape) if D is None else None
         if small is None:
             boxes = validate_boxes(boxes_xyxy, image.shape, "boxes_xyxy")
             rows = boxes
@@ -499,6 +511,12 @@ class RefinerSession:
         if views > 1:
             q_rows, small = None, None  # the averaged path runs on numpy arrays
         q_frame = None
+        if D is not None:
+            if K is None:
+                raise ValueError("K is required with D: the distortion coefficients are in the pixels of the "
+                                 "(3, 3) camera intrinsics K")
+            K = _validate_K(K)
+            boxes = rows = undistort_boxes(boxes, K, D)  # the boxes in the pinhole image of K
         if self._ray:
             if K is None:
                 raise ValueError(
@@ -514,7 +532,10 @@ class RefinerSession:
             rows = view_boxes(boxes, views, context)
         crops, q_net = self._buffers(len(rows))
         for i, box in enumerate(rows):
-            crop_to_square(image, box, size, context, out=crops[i])
+            if D is None:
+                crop_to_square(image, box, size, context, out=crops[i])
+            else:
+                crop_undistorted(image, box, size, context, K, D, out=crops[i])
         return self._run(crops, q_net, q_in, q_rows, iterations, q_frame, views)
 
     def refine_crops(self, crops_bgr, q_in_wxyz, iterations: int = 1, *, q_order: str = "wxyz") -> RefineResult:

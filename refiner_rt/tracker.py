@@ -45,6 +45,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from refiner_rt import quaternion as rq
+from refiner_rt.distortion import validate_D
 from refiner_rt.preprocess import validate_boxes, validate_image
 from refiner_rt.session import (
     RefinerSession,
@@ -110,6 +111,8 @@ class RefinerTracker:
         q_order: ``"wxyz"`` (default) or ``"xyzw"`` (ROS, SciPy): the order of every quaternion given to the
             tracker (``q0``, :meth:`add`, :meth:`reset`, detector poses); a ``(3, 3)`` rotation matrix is taken
             anywhere a rotation is. Rotations returned are ``wxyz``.
+        D: the camera's lens distortion coefficients (OpenCV's model, ``CameraInfo.d``), as
+            :meth:`RefinerSession.refine`: frames and boxes are then the raw camera's. None: a pinhole camera.
 
     Raises:
         ValueError / TypeError: a bad argument, named, with what was expected and what was given.
@@ -123,8 +126,10 @@ class RefinerTracker:
     """
 
     def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1,
-                 lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz"):
+                 lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz",
+                 D=None):
         self.K = _validate_K(K).copy()
+        self.D = validate_D(D)
         _as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
         self.q_order = q_order
         if not isinstance(predict, bool):
@@ -339,7 +344,7 @@ class RefinerTracker:
 
     def _refine(self, sess: RefinerSession, image, rows: list, q_in) -> np.ndarray:
         return sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K,
-                           views=self.views).q_refined
+                           views=self.views, D=self.D).q_refined
 
     def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list) -> list[int]:
         """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a
@@ -350,7 +355,7 @@ class RefinerTracker:
         if not checked:
             return []
         again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
-                            K=self.K, views=self.views).q_refined
+                            K=self.K, views=self.views, D=self.D).q_refined
         moved = rq.geodesic_angle(np.array([refined[i] for i in checked]), again)
         return [i for i, m in zip(checked, moved) if m > self.lost_deg]
 
