@@ -1,7 +1,8 @@
 """Random-weight refiners exported to ONNX (and INT8) for ``refiner-rt bench`` when no ``--model`` is given.
 
 The runtime's benchmark (:mod:`refiner_rt.bench`) never imports training code; this module, on the training side,
-builds the networks and hands the files to it (:data:`bench_cmd` is the command with this builder).
+builds the networks and hands the files to it (``refiner-rt bench`` imports :func:`build_default_models` from here
+when it needs it: a source checkout's training package).
 """
 
 from __future__ import annotations
@@ -12,9 +13,10 @@ from pathlib import Path
 
 import click
 
-from refiner_rt.bench import BenchModel, bench_command
+from refiner_rt.bench import BenchModel
+from refiner_rt.errors import TRAINING_INSTALL
 
-__all__ = ["build_default_models", "bench_cmd"]
+__all__ = ["build_default_models"]
 
 
 def _disk_needed(model, int8: bool) -> int:
@@ -80,7 +82,7 @@ def build_default_models(specs, workdir: Path, int8: bool = True, echo=None) -> 
         from export.quantize import DEFAULT_SCHEME, quantize_model
     except ModuleNotFoundError as exc:
         raise click.ClickException(
-            f"building the default benchmark models needs {exc.name!r} (pip install 'refiner-rt[train]'); "
+            f"building the default benchmark models needs {exc.name!r} ({TRAINING_INSTALL}); "
             "or pass exported models with --model"
         ) from exc
     fp32, quantized = [], []
@@ -110,5 +112,3 @@ def build_default_models(specs, workdir: Path, int8: bool = True, echo=None) -> 
             echo(line)
     return fp32 + quantized
 
-
-bench_cmd = bench_command(build_default_models)

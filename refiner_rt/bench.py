@@ -59,7 +59,7 @@ import click
 import numpy as np
 
 from refiner_rt import quaternion as rq
-from refiner_rt.errors import ModelError
+from refiner_rt.errors import TRAINING_INSTALL, ModelError
 from refiner_rt.preprocess import crop_batch, validate_boxes
 from refiner_rt.session import MAX_BATCH, available_cores
 
@@ -830,7 +830,20 @@ def bench_command(build_models=None) -> click.Command:
     return bench_cmd
 
 
-bench_cmd = bench_command()  # the runtime's own: times the shipped models and --model files
+bench_cmd = bench_command()  # `refiner-rt bench`; the random-weight networks come from the training package
+
+
+def _training_builder():
+    """``export.bench_models.build_default_models``: the training package's builder of the random-weight networks
+    (a source checkout's; the runtime wheel does not carry it)."""
+    try:  # by name: the runtime never imports the training package statically
+        build_default_models = importlib.import_module("export.bench_models").build_default_models
+    except ModuleNotFoundError as exc:
+        raise click.ClickException(
+            f"building the random-weight models needs the training package ({exc.name!r} is missing): "
+            f"{TRAINING_INSTALL}; or time the shipped models alone (--archs '') or your own files (--model)"
+        ) from None
+    return build_default_models
 
 
 def _prepare_models(model_paths, shipped, archs: str, variants, with_int8: bool, workdir: Path, echo,
@@ -860,16 +873,15 @@ def _prepare_models(model_paths, shipped, archs: str, variants, with_int8: bool,
     if specs and importlib.util.find_spec("torch") is None:
         if not shipped_models:
             raise click.ClickException(
-                "building the random-weight models needs torch (pip install 'refiner-rt[train]'), and no shipped "
-                "model is selected to time instead; pass exported models with --model"
+                "building the random-weight models needs torch and the training package (" + TRAINING_INSTALL
+                + "), and no shipped model is selected to time instead; pass exported models with --model"
             )
         echo(f"torch is not installed, so the random-weight models {labels} cannot be built: timing only the "
              f"shipped models (--model FILE times others; the training extra builds the paper's networks).")
         notes.append(f"{', '.join(labels)} not timed (needs torch)")
     elif specs:
         if build_models is None:
-            raise click.ClickException("building random-weight models needs the training package (pip install "
-                                       "'refiner-rt[train]'); or pass exported models with --model")
+            build_models = _training_builder()
         echo(f"Building random-weight models {labels} (speed does not depend on weight values)...")
         built = build_models(specs, workdir, int8=with_int8, echo=echo)
         notes.append(f"{', '.join(labels)}: random weights (speed does not depend on weight values)")

@@ -12,7 +12,7 @@ import importlib
 import click
 
 from refiner_rt import __version__
-from refiner_rt.errors import ModelError
+from refiner_rt.errors import TRAINING_INSTALL, ModelError
 
 # name -> ("module:attribute", one-line help shown by `refiner-rt --help` without importing the module)
 LAZY_COMMANDS = {
@@ -21,11 +21,25 @@ LAZY_COMMANDS = {
     "models": ("refiner_rt.models_cli:models_cmd", "List the pretrained refiners that ship in the package."),
     "demo": ("refiner_rt.demo_cli:demo_cmd", "Refine sample frames (or your image) with the shipped models; draw it."),
     "track": ("refiner_rt.track_cli:track_cmd", "Track object rotations through a folder of frames with boxes."),
-    "bench": ("export.bench_models:bench_cmd", "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8."),
+    "bench": ("refiner_rt.bench:bench_cmd", "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8."),
     "render": ("models.data.render:render_cmd", "Render BOP-format training scenes of YCB objects on the CPU."),
     "train": ("models.train_cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning)."),
     "eval": ("models.eval_cli:eval_cmd", "Evaluate a checkpoint or ONNX model on a dataset's test split."),
 }
+
+
+# The training package's top-level modules: present in a source checkout (pip install -e), never in the wheel.
+TRAINING_PACKAGES = ("models", "export", "benchmarks")
+
+
+def missing_message(command: str, module: str | None) -> str:
+    """One line for a command that stopped at a missing module: the training package itself (a runtime-only
+    install: the wheel carries ``refiner_rt`` alone) or one of its dependencies (torch, onnx, pybullet...)."""
+    top = (module or "").split(".")[0]
+    if top in TRAINING_PACKAGES:
+        return f"'refiner-rt {command}' is part of the training package, which is not installed: {TRAINING_INSTALL}"
+    return (f"'refiner-rt {command}' needs {module or 'a module'!r}, which is not installed; install the training "
+            f"extra in the source checkout: pip install torch==2.13.0 && pip install -e '.[train]'")
 
 
 class LazyGroup(click.Group):
@@ -45,11 +59,7 @@ class LazyGroup(click.Group):
             try:
                 module = importlib.import_module(module_name)
             except ModuleNotFoundError as exc:
-                missing = exc.name or "a dependency"
-                raise click.ClickException(
-                    f"'refiner-rt {cmd_name}' needs {missing!r}, which is not installed; "
-                    f"install the training extra: pip install 'refiner-rt[train]'"
-                ) from exc
+                raise click.ClickException(missing_message(cmd_name, exc.name)) from exc
             return getattr(module, attr)
         return super().get_command(ctx, cmd_name)
 
@@ -63,10 +73,7 @@ class LazyGroup(click.Group):
             raise click.ClickException(str(exc)) from None
         except ModuleNotFoundError as exc:
             name = ctx.invoked_subcommand or "this command"  # set by the group's invoke once the command is found
-            raise click.ClickException(
-                f"'refiner-rt {name}' needs {exc.name or 'a module'!r}, which is not installed; "
-                f"install the training extra: pip install 'refiner-rt[train]'"
-            ) from None
+            raise click.ClickException(missing_message(name, exc.name)) from None
 
     def format_commands(self, ctx, formatter):
         rows = [(name, self.lazy_commands[name][1]) for name in sorted(self.lazy_commands)]

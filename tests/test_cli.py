@@ -38,7 +38,30 @@ def test_a_missing_training_dependency_is_named_not_a_traceback(tmp_path):
             f"from refiner_rt.cli import main; main(['export', {str(ckpt)!r}])")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 1 and "Traceback" not in done.stderr
-    assert "'refiner-rt export' needs" in done.stderr and "pip install 'refiner-rt[train]'" in done.stderr
+    assert "'refiner-rt export' needs" in done.stderr and "pip install -e '.[train]'" in done.stderr
+
+
+@pytest.mark.parametrize("name", ["train", "render", "export", "eval"])
+def test_a_training_command_in_a_runtime_only_install_says_what_to_install(name):
+    """The wheel carries refiner_rt alone (here: the training package made unimportable): one line, no
+    traceback, naming the source checkout's install."""
+    code = ("import sys; [sys.modules.__setitem__(m, None) for m in ('models', 'export', 'benchmarks')]; "
+            f"from refiner_rt.cli import main; main([{name!r}, '--help'])")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.count("\n") == 1, done.stderr
+    assert f"'refiner-rt {name}' is part of the training package" in done.stderr
+    assert "source checkout" in done.stderr and "pip install -e '.[train]'" in done.stderr
+
+
+def test_bench_in_a_runtime_only_install_times_the_shipped_models_or_says_why_not():
+    """Without the training package, `bench` still runs (it lives in refiner_rt) and says what the paper's
+    networks need."""
+    code = ("import sys; [sys.modules.__setitem__(m, None) for m in ('models', 'export', 'benchmarks')]; "
+            "from refiner_rt.cli import main; main(['bench', '--cpu', '--archs', 'shallow', '--shipped', 'none'])")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert "training package" in done.stderr and "--model" in done.stderr
 
 
 @pytest.mark.parametrize("name", sorted(LAZY_COMMANDS))
