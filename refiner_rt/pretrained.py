@@ -22,16 +22,25 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["WEIGHTS_DIR", "PretrainedModel", "pretrained_models", "pretrained_model", "model_file_name"]
+__all__ = ["WEIGHTS_DIR", "STAGES", "PretrainedModel", "pretrained_models", "pretrained_model", "model_file_name"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 INDEX_FILE = "models.json"
 INDEX_FORMAT = "refiner-rt/pretrained/1"
 
 
-def model_file_name(object_id: str, int8: bool) -> str:
-    """The file name of a shipped model: ``<ycb id>.int8.onnx`` or ``<ycb id>.onnx`` (the one naming rule)."""
-    return f"{object_id}.int8.onnx" if int8 else f"{object_id}.onnx"
+# A shipped object has a coarse refiner (U(0, 30) degree inputs) and may have a fine one (small inputs: the
+# coarse refiner's output, or the previous video frame's; benchmarks/fine.py), run in turn by refiner_rt.cascade.
+STAGES = ("coarse", "fine")
+
+
+def model_file_name(object_id: str, int8: bool, stage: str = "coarse") -> str:
+    """The file name of a shipped model (the one naming rule): ``<ycb id>.int8.onnx`` or ``<ycb id>.onnx`` for the
+    coarse refiner, ``<ycb id>.fine.int8.onnx`` or ``<ycb id>.fine.onnx`` for the fine one."""
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {', '.join(STAGES)}; got {stage!r}")
+    stem = object_id if stage == "coarse" else f"{object_id}.{stage}"
+    return f"{stem}.int8.onnx" if int8 else f"{stem}.onnx"
 
 
 @dataclass(frozen=True)
@@ -50,6 +59,9 @@ class PretrainedModel:
         real: the INT8 model on real camera frames (degrees; ``mean_deg``, ``median_deg``, ``input_mean_deg``,
             ``drift_mean_deg``: a perfect input pose moved by, ``instances``, ``videos``, the folder in ``data``),
             ``{}`` when not measured (``benchmarks/real.py``).
+        fine: the object's fine refiner, ``{}`` when none ships: ``files`` (``{"int8": ..., "fp32": ...}``),
+            ``version``, and its card (``cascade``: the coarse refiner alone and the cascade on the same fresh
+            renders; ``benchmarks/fine.py``).
     """
 
     object_id: str
@@ -60,17 +72,31 @@ class PretrainedModel:
     config: dict = field(default_factory=dict)
     card: dict = field(default_factory=dict)
     real: dict = field(default_factory=dict)
+    fine: dict = field(default_factory=dict)
 
-    def path(self, int8: bool = True) -> Path:
-        """The model's ONNX file (INT8 by default).
+    @property
+    def stages(self) -> list[str]:
+        """The refiners that ship for this object: ``["coarse"]`` or ``["coarse", "fine"]``."""
+        return ["coarse", "fine"] if self.fine.get("files") else ["coarse"]
+
+    def path(self, int8: bool = True, stage: str = "coarse") -> Path:
+        """The model's ONNX file (INT8 by default): the coarse refiner's, or the fine one's (``stage="fine"``).
 
         Raises:
-            ValueError: the fp32 file was asked for but is not shipped for this object.
+            ValueError: an unknown stage, no fine refiner for this object, or the fp32 file was asked for but is not
+                shipped.
         """
+        if stage not in STAGES:
+            raise ValueError(f"stage must be one of {', '.join(STAGES)}; got {stage!r}")
+        files = self.files if stage == "coarse" else self.fine.get("files", {})
+        if not files:
+            raise ValueError(f"{self.object_id}: no fine refiner ships (refiner_rt.pretrained_models() lists each "
+                             "object's stages)")
         key = "int8" if int8 else "fp32"
-        name = self.files.get(key)
+        name = files.get(key)
         if not name:
-            raise ValueError(f"{self.object_id}: no {key} model ships (files: {sorted(self.files)}); use int8=True")
+            what = key if stage == "coarse" else f"{key} {stage}"
+            raise ValueError(f"{self.object_id}: no {what} model ships (files: {sorted(files)}); use int8=True")
         return WEIGHTS_DIR / name
 
 
@@ -93,7 +119,8 @@ def pretrained_models() -> list[PretrainedModel]:
     for obj, m in sorted(_index()["models"].items()):
         out.append(PretrainedModel(object_id=obj, arch=m["arch"], version=str(m["version"]), files=dict(m["files"]),
                                    heldout=dict(m["heldout"]), config=dict(m.get("config", {})),
-                                   card=dict(m.get("card", {})), real=dict(m.get("real", {}))))
+                                   card=dict(m.get("card", {})), real=dict(m.get("real", {})),
+                                   fine=dict(m.get("fine", {}))))
     return out
 
 
