@@ -45,6 +45,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from refiner_rt import quaternion as rq
+from refiner_rt.cascade import RefinerCascade
 from refiner_rt.distortion import validate_D
 from refiner_rt.preprocess import validate_boxes, validate_image
 from refiner_rt.session import (
@@ -303,8 +304,10 @@ class RefinerTracker:
                     q_det = self._ask(detector, object_id)
                     if q_det is not None:
                         fused.append((i, q_det))
+            # a cascade sends coarse poses (a start, a reset, a detector's) through its coarse refiner
+            coarse = [not self._tracks[i].refined for i in ids] + [True] * len(fused)
             both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
-                                np.array(q_in + [q for _, q in fused])).tolist()
+                                np.array(q_in + [q for _, q in fused]), coarse).tolist()
             tracked = both[: len(ids)]  # the refined tracks: what the refiner saw move (the velocity's source)
             refined = list(tracked)
             for (i, _), q_det in zip(fused, both[len(ids):]):
@@ -321,7 +324,8 @@ class RefinerTracker:
                     found.append(i)
                     poses.append(q)
             if found:
-                again = self._refine(sess, image, [rows[i] for i in found], np.array(poses)).tolist()
+                again = self._refine(sess, image, [rows[i] for i in found], np.array(poses),
+                                     [True] * len(found)).tolist()
                 redetected.update({ids[i]: q for i, q in zip(found, again)})
         out = {}
         for sess, ids, rows, refined, tracked, flagged in results:
@@ -342,7 +346,9 @@ class RefinerTracker:
         self.redetections += len(redetected)
         return out
 
-    def _refine(self, sess: RefinerSession, image, rows: list, q_in) -> np.ndarray:
+    def _refine(self, sess, image, rows: list, q_in, coarse: list) -> np.ndarray:
+        if isinstance(sess, RefinerCascade):
+            return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse)).q_refined
         return sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K,
                            views=self.views, D=self.D).q_refined
 
@@ -354,8 +360,12 @@ class RefinerTracker:
         checked = [i for i, object_id in enumerate(ids) if self._tracks[object_id].refined]
         if not checked:
             return []
-        again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
-                            K=self.K, views=self.views, D=self.D).q_refined
+        if isinstance(sess, RefinerCascade):  # the coarse refiner's verdict: it sees drift the fine one follows
+            again = self._refine(sess, image, [rows[i] for i in checked], np.array([refined[i] for i in checked]),
+                                 [True] * len(checked))
+        else:
+            again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
+                                K=self.K, views=self.views, D=self.D).q_refined
         moved = rq.geodesic_angle(np.array([refined[i] for i in checked]), again)
         return [i for i, m in zip(checked, moved) if m > self.lost_deg]
 
@@ -374,15 +384,16 @@ class RefinerTracker:
         step = track.velocity if track.missed == 0 else _fraction(track.velocity, track.missed + 1.0)
         return _unit_rows(_multiply_rows([step], [track.q]))[0]
 
-    def _session_of(self, value, name: str) -> RefinerSession:
-        if isinstance(value, RefinerSession):
+    def _session_of(self, value, name: str):
+        if isinstance(value, (RefinerSession, RefinerCascade)):
             return value
         if isinstance(value, str):
             if value not in self._loaded:
                 log.debug("loading the pretrained refiner %r", value)
                 self._loaded[value] = RefinerSession.pretrained(value, int8=True, threads=1)
             return self._loaded[value]
-        raise TypeError(f"{name} must be a RefinerSession or a pretrained model name such as '003_cracker_box'; "
+        raise TypeError(f"{name} must be a RefinerSession, a RefinerCascade or a pretrained model name such as "
+                        "'003_cracker_box'; "
                         f"got {type(value).__name__}")
 
     def _track(self, object_id, name: str = "object_id") -> _Track:

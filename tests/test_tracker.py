@@ -156,7 +156,7 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(q0={"011_banana": [1, 0, 0, 0]}), ValueError,
      r"object_id '011_banana' is not an object its session's model was trained for \(metadata objects: \['003_cracker_box'\]\)"),
     (dict(q0={3: [1, 0, 0, 0]}), TypeError, "object ids must be non-empty strings"),
-    (dict(session=3), TypeError, "session must be a RefinerSession or a pretrained model name"),
+    (dict(session=3), TypeError, "session must be a RefinerSession, a RefinerCascade or a pretrained model name"),
     (dict(predict="yes"), TypeError, "predict must be True or False"),
     (dict(iterations=0), ValueError, "iterations must be an integer from 1 to"),
     (dict(views=99), ValueError, "views must be an integer from 1 to"),

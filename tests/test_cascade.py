@@ -1,0 +1,121 @@
+"""RefinerCascade: the fine refiner first, the coarse one (then the fine one) where the fine correction is large;
+checked with constant-output models against SciPy's composition, then with the shipped refiners."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import onnx_fixtures as fx
+from refiner_rt import RefinerCascade, RefinerSession, RefinerTracker, pretrained_models
+from refiner_rt import quaternion as rq
+
+IMAGE = np.full((48, 64, 3), 120, np.uint8)
+BOXES = np.array([[10.0, 10.0, 30.0, 40.0], [20.0, 5.0, 50.0, 30.0]])
+
+
+def _rot(axis, deg):
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis))
+
+
+def _wxyz(r: Rotation) -> np.ndarray:
+    x, y, z, w = r.as_quat()
+    return np.array([w, x, y, z])
+
+
+def _session(r: Rotation, **props) -> RefinerSession:
+    return RefinerSession(fx.constant_model(_wxyz(r), props=fx.contract(**props) if props else None))
+
+
+COARSE = _rot([1, 0, 0], 10.0)
+SMALL, LARGE = _rot([0, 1, 1], 1.0), _rot([0, 0, 1], 5.0)
+Q_IN = Rotation.from_rotvec([[0.1, 0.2, 0.3], [-0.4, 0.1, 0.0]])
+
+
+def _angle(q_wxyz, r: Rotation) -> np.ndarray:
+    return rq.geodesic_angle(q_wxyz, np.array([_wxyz(x) for x in r]))
+
+
+def test_a_small_fine_correction_is_the_result():
+    cascade = RefinerCascade(_session(COARSE), _session(SMALL), gate_deg=3.0, fine_views=4)
+    res = cascade.refine(IMAGE, BOXES, np.array([_wxyz(r) for r in Q_IN]))
+    assert not res.coarse_used.any()
+    assert _angle(res.q_refined, Q_IN * SMALL).max() < 1e-6
+    assert _angle(rq.multiply(res.q_in, res.q_out), Q_IN * SMALL).max() < 1e-6
+
+
+def test_a_large_fine_correction_sends_the_input_through_coarse_then_fine():
+    cascade = RefinerCascade(_session(COARSE), _session(LARGE), gate_deg=3.0)
+    res = cascade.refine(IMAGE, BOXES, np.array([_wxyz(r) for r in Q_IN]))
+    assert res.coarse_used.all()
+    assert _angle(res.q_refined, Q_IN * COARSE * LARGE).max() < 1e-6
+
+
+def test_forced_rows_and_no_gate():
+    q = np.array([_wxyz(r) for r in Q_IN])
+    gated = RefinerCascade(_session(COARSE), _session(SMALL))
+    res = gated.refine(IMAGE, BOXES, q, coarse=np.array([True, False]))
+    assert res.coarse_used.tolist() == [True, False]
+    assert _angle(res.q_refined[:1], Q_IN[:1] * COARSE * SMALL)[0] < 1e-6
+    assert _angle(res.q_refined[1:], Q_IN[1:] * SMALL)[0] < 1e-6
+    always = RefinerCascade(_session(COARSE), _session(SMALL), gate_deg=None)
+    res = always.refine(IMAGE, BOXES, rq.to_xyzw(q), q_order="xyzw")
+    assert res.coarse_used.all() and _angle(res.q_refined, Q_IN * COARSE * SMALL).max() < 1e-6
+
+
+def test_bad_construction_and_arguments_are_named():
+    coarse, fine = _session(COARSE), _session(SMALL)
+    with pytest.raises(TypeError, match="fine must be a RefinerSession"):
+        RefinerCascade(coarse, "003_cracker_box")
+    with pytest.raises(ValueError, match="same crops"):
+        RefinerCascade(coarse, _session(SMALL, crop_context=1.5))
+    with pytest.raises(ValueError, match="gate_deg must be"):
+        RefinerCascade(coarse, fine, gate_deg=0)
+    with pytest.raises(ValueError, match="fine_views must be"):
+        RefinerCascade(coarse, fine, fine_views=0)
+    with pytest.raises(ValueError, match=r"coarse must be None or \(2,\) bools"):
+        RefinerCascade(coarse, fine).refine(IMAGE, BOXES, np.array([_wxyz(r) for r in Q_IN]), coarse=[1, 0])
+
+
+def test_the_tracker_starts_with_coarse_then_follows_with_fine():
+    cascade = RefinerCascade(_session(COARSE), _session(SMALL))
+    q0 = _wxyz(Q_IN[0])
+    K = np.array([[500.0, 0, 32], [0, 500, 24], [0, 0, 1]])
+    tracker = RefinerTracker(cascade, K,
+                             {"003_cracker_box": q0})
+    first = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]
+    assert _angle(first[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL]))[0] < 1e-6  # a coarse start
+    second = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]
+    assert _angle(second[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL * SMALL]))[0] < 1e-6  # fine only
+    tracker.reset("003_cracker_box", q0)  # a detector's pose: coarse again
+    third = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]
+    assert _angle(third[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL]))[0] < 1e-6
+
+
+def test_the_shipped_cascade_where_a_fine_refiner_ships():
+    with_fine = [m for m in pretrained_models() if "fine" in m.stages]
+    if not with_fine:
+        pytest.skip("no fine refiner ships in this checkout")
+    import json
+    from pathlib import Path
+
+    import cv2
+
+    samples = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples"
+    doc = json.loads((samples / "samples.json").read_text())
+    names = {m.object_id for m in with_fine}
+    checked = 0
+    for f in doc["frames"]:
+        image, K = cv2.imread(str(samples / f["file"])), np.array(f["K"])
+        for o in f["objects"]:
+            if o["object_id"] not in names:
+                continue
+            cascade = RefinerCascade.pretrained(o["object_id"])
+            q_gt = np.array(o["q_gt_wxyz"])
+            near = cascade.refine(image, [o["box_xyxy"]], q_gt[None], K=K)
+            far = cascade.refine(image, [o["box_xyxy"]], rq.multiply(q_gt, rq.from_axis_angle([1, 1, 0], 25.0))[None],
+                                 K=K)
+            assert not near.coarse_used[0] and far.coarse_used[0]
+            assert rq.geodesic_angle(near.q_refined, q_gt[None])[0] < 5.0
+            assert rq.geodesic_angle(far.q_refined, q_gt[None])[0] < 10.0
+            checked += 1
+    assert checked
