@@ -23,6 +23,7 @@ y2)`` in pixels, continuous coordinates; ``K`` in pixels (OpenCV convention).
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -189,10 +190,29 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
 
 
 @click.command("track")
-@click.argument("frames", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.argument("detections", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("-o", "--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="Rotations file to write (JSON, wxyz object-to-camera per frame and object).")
+@click.argument("frames", type=click.Path(exists=True, file_okay=False, path_type=Path), required=False)
+@click.argument("detections", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=False)
+@click.option("-o", "--out", "out_path", type=click.Path(path_type=Path), required=True,
+              help="Rotations file to write (JSON, wxyz object-to-camera per frame and object); with --bag, the "
+                   "output bag (a new folder, MCAP).")
+@click.option("--bag", "bag", type=click.Path(exists=True, path_type=Path),
+              help="A ROS 2 bag (rosbag2 folder, .mcap or .db3) with images, CameraInfo and vision_msgs "
+                   "Detection2DArray, instead of FRAMES and DETECTIONS: the refined poses go to the -o bag "
+                   "(refiner_rt.rosbag). Needs pip install 'refiner-rt[ros]'.")
+@click.option("--mode", type=click.Choice(["track", "refine"]), default="track", show_default=True,
+              help="With --bag: track (a detection's pose starts an object, later frames refine from the previous "
+                   "result) or refine (every detection with a pose refined from it).")
+@click.option("--cascade", is_flag=True, help="With --bag: each object's coarse and fine refiners in turn "
+              "(RefinerCascade) where a fine refiner ships.")
+@click.option("--rectified", is_flag=True, help="With --bag: the image topic is rectified: K from CameraInfo.p, "
+              "no distortion.")
+@click.option("--image-topic", help="With --bag: the image topic (default: the bag's one Image or CompressedImage "
+              "topic).")
+@click.option("--info-topic", help="With --bag: the CameraInfo topic (default: the bag's one).")
+@click.option("--detections-topic", help="With --bag: the Detection2DArray topic (default: the bag's one).")
+@click.option("--class-map", "class_map", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="With --bag: a JSON object mapping the detector's class ids to YCB ids (default: the class id "
+                   "is the YCB id).")
 @click.option("--model", "models", multiple=True,
               help="A refiner for some objects: an ONNX file (serves the objects in its metadata) or a shipped "
                    "model's name. Repeatable. Default: each object's shipped model.")
@@ -218,8 +238,9 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
 @click.option("--strip", "strip_frames", type=click.IntRange(1, 64), default=8, show_default=True,
               help="Frames in a --video image strip, evenly spaced.")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
-def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, lost_deg, detector_weight, iterations,
-              threads, video_path, strip_frames, fps):
+def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
+              class_map, models, fp32, K_text, predict, lost_deg, detector_weight, iterations, threads, video_path,
+              strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
     DETECTIONS is JSON: {"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "frames": {"<image file>": {"<object id>": [x1,y1,x2,y2]
@@ -229,6 +250,24 @@ def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, lost_
     """
     from refiner_rt.tracker import RefinerTracker
 
+    bag_only = {"--mode": mode != "track", "--cascade": cascade, "--rectified": rectified,
+                "--image-topic": image_topic, "--info-topic": info_topic, "--detections-topic": detections_topic,
+                "--class-map": class_map}
+    if bag is not None:
+        if frames is not None or detections is not None:
+            raise click.UsageError("give either --bag BAG or FRAMES DETECTIONS, not both")
+        unused = [flag for flag, value in {"--K": K_text, "--detector-weight": detector_weight, "--video": video_path,
+                                           "--model": models, "--iterations": iterations != 1}.items() if value]
+        if unused:
+            raise click.UsageError(f"{', '.join(unused)} apply to FRAMES DETECTIONS, not to --bag (a bag's "
+                                   "CameraInfo gives the camera)")
+        return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
+                          class_map, fp32, predict, lost_deg, threads)
+    if frames is None or detections is None:
+        raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
+    used = [flag for flag, value in bag_only.items() if value]
+    if used:
+        raise click.UsageError(f"{', '.join(used)} apply to --bag only")
     if out_path.suffix.lower() != ".json":
         raise click.BadParameter(f"expected a .json file for the rotations (a video or image strip goes to --video); "
                                  f"got {out_path.name!r}", param_hint="'-o' / '--out'")
@@ -308,3 +347,66 @@ def track_cmd(frames, detections, out_path, models, fp32, K_text, predict, lost_
     per_frame = 1e3 * seconds / len(files)
     click.echo(f"{len(files)} frames, {len(object_ids)} objects, {refined} refinements: {per_frame:.2f} ms per frame "
                f"(tracker only, image reading excluded) -> {out_path}" + (f", {video_path}" if video_path else ""))
+
+
+def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic, class_map, fp32,
+               predict, lost_deg, threads):
+    """``track --bag``: :func:`refiner_rt.rosbag.refine_bag` with a progress bar and one-line errors."""
+    from refiner_rt.ros import RosRefiner
+
+    try:
+        from refiner_rt.rosbag import refine_bag
+        mapping = None
+        if class_map is not None:
+            try:
+                mapping = json.loads(class_map.read_text())
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise ValueError(f"{class_map}: not a readable JSON object ({exc})") from None
+            if not isinstance(mapping, dict) or not all(isinstance(v, str) for v in mapping.values()):
+                raise ValueError(f"{class_map}: expected a JSON object {{detector class id: YCB id}}")
+        extra = {k: v for k, v in {"predict": predict, "lost_deg": lost_deg}.items() if v}
+        if extra and mode != "track":
+            raise click.UsageError(f"{', '.join('--' + k.replace('_', '-') for k in extra)} apply to --mode track")
+        refiner = RosRefiner(mode, cascade=cascade, rectified=rectified, class_map=mapping, int8=not fp32,
+                             threads=threads, **extra)
+        t0 = time.perf_counter()
+        with _LazyBar("frames") as bar:
+            summary = refine_bag(bag, out_path, refiner, image_topic=image_topic, info_topic=info_topic,
+                                 detections_topic=detections_topic, total=bar.start, progress=bar.update)
+    except ModuleNotFoundError as exc:
+        raise click.ClickException(str(exc) if exc.name == "rosbags" else f"needs {exc.name!r}") from None
+    except (ValueError, TypeError, FileExistsError) as exc:
+        raise click.ClickException(str(exc)) from None
+    except Exception as exc:  # rosbags' own errors (a damaged bag, an unknown message type): named, one line
+        if type(exc).__module__.startswith("rosbags"):
+            raise click.ClickException(f"{bag}: {type(exc).__name__}: {exc}") from None
+        raise
+    skipped = f"; skipped detections: {summary.skipped}" if summary.skipped else ""
+    click.echo(f"{summary.images} images ({summary.image_topic}), {summary.frames_with_detections} with detections "
+               f"({summary.detections_topic}), {summary.poses} poses of {len(summary.objects)} objects in "
+               f"{time.perf_counter() - t0:.1f} s -> {out_path} (topics: {', '.join(summary.output_topics)}){skipped}")
+
+
+class _LazyBar:
+    """A click progress bar on stderr whose length is known only once work starts (``start(n)``); on a terminal
+    only (elsewhere click would print its bare label)."""
+
+    def __init__(self, label: str):
+        self.label, self.bar = label, None
+
+    def start(self, n: int) -> None:
+        if sys.stderr.isatty():
+            self.bar = click.progressbar(length=n, label=self.label, file=sys.stderr)
+            self.bar.__enter__()
+
+    def update(self, k: int) -> None:
+        if self.bar is not None:
+            self.bar.update(k)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+        return False

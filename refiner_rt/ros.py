@@ -1,0 +1,273 @@
+"""ROS 2 messages in, refined poses out, without a ROS install: the one path that bags and live nodes share.
+
+:class:`RosRefiner` takes one frame's messages, ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage``,
+``sensor_msgs/CameraInfo`` and ``vision_msgs/Detection2DArray`` (ROS 2 Humble's vision_msgs 4: each detection's box,
+its ``results[0].hypothesis.class_id`` naming the object and ``results[0].pose.pose`` its coarse pose), and returns
+the refined pose of every detected object it has a refiner for. It reads messages by their field names only, so
+the same call serves the messages of ``rclpy`` (a live node: ``examples/ros2_node.py``) and those ``rosbags``
+deserialises from a bag (``refiner-rt track --bag``, :mod:`refiner_rt.rosbag`).
+
+Conventions: ROS quaternions are ``xyzw`` (``geometry_msgs/Quaternion``); :class:`RefinedPose` gives both orders.
+A pose is object to camera in the image's ``header.frame_id`` (the camera's optical frame). The refiners correct the
+rotation only: the position is the detection's, passed through (``None`` when the detection has none).
+Camera: ``k`` and ``d`` of ``CameraInfo`` (``plumb_bob`` or ``rational_polynomial``; an empty model is a pinhole
+camera); ``rectified=True`` for a rectified image topic (``image_rect``): ``p``'s left 3x3 and no distortion.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from refiner_rt import quaternion as rq
+
+__all__ = ["RosRefiner", "RefinedPose", "Detection", "image_from_msg", "camera_from_info", "detections_from_msg",
+           "stamp_ns", "VISION_MSGS", "DISTORTION_MODELS"]
+
+log = logging.getLogger(__name__)
+
+# CameraInfo distortion models this runtime undistorts through (OpenCV's model); "" is a pinhole camera.
+DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "")
+
+# vision_msgs (ROS 2 Humble, version 4) definitions, for reading and writing bags without a ROS install
+# (rosbags' typestores carry the core packages but not vision_msgs).
+VISION_MSGS = {
+    "vision_msgs/msg/Point2D": "float64 x\nfloat64 y\n",
+    "vision_msgs/msg/Pose2D": "vision_msgs/Point2D position\nfloat64 theta\n",
+    "vision_msgs/msg/BoundingBox2D": "vision_msgs/Pose2D center\nfloat64 size_x\nfloat64 size_y\n",
+    "vision_msgs/msg/ObjectHypothesis": "string class_id\nfloat64 score\n",
+    "vision_msgs/msg/ObjectHypothesisWithPose": ("vision_msgs/ObjectHypothesis hypothesis\n"
+                                                 "geometry_msgs/PoseWithCovariance pose\n"),
+    "vision_msgs/msg/Detection2D": ("std_msgs/Header header\nvision_msgs/ObjectHypothesisWithPose[] results\n"
+                                    "vision_msgs/BoundingBox2D bbox\nstring id\n"),
+    "vision_msgs/msg/Detection2DArray": "std_msgs/Header header\nvision_msgs/Detection2D[] detections\n",
+}
+
+_CONVERSIONS = {"bgr8": None, "rgb8": cv2.COLOR_RGB2BGR, "bgra8": cv2.COLOR_BGRA2BGR, "rgba8": cv2.COLOR_RGBA2BGR,
+                "mono8": cv2.COLOR_GRAY2BGR, "8UC3": None, "8UC1": cv2.COLOR_GRAY2BGR}
+_CHANNELS = {"bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4, "mono8": 1, "8UC3": 3, "8UC1": 1}
+
+
+def stamp_ns(header) -> int:
+    """A ``std_msgs/Header``'s stamp in nanoseconds (``builtin_interfaces/Time``: ``sec``, ``nanosec``)."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def image_from_msg(msg) -> np.ndarray:
+    """A ``sensor_msgs/Image`` (8-bit: ``bgr8``, ``rgb8``, ``bgra8``, ``rgba8``, ``mono8``) or
+    ``sensor_msgs/CompressedImage`` (JPEG, PNG) as an ``H x W x 3`` ``uint8`` BGR array.
+
+    Raises:
+        ValueError: an encoding this runtime does not read, a data size that does not match the header, or
+            compressed bytes OpenCV cannot decode.
+    """
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    if hasattr(msg, "format"):  # CompressedImage
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+        if image is None:
+            raise ValueError(f"a CompressedImage of format {msg.format!r} that OpenCV cannot decode ({data.size} "
+                             "bytes); expected JPEG or PNG")
+        return image
+    encoding = str(msg.encoding)
+    if encoding not in _CONVERSIONS:
+        raise ValueError(f"an Image of encoding {encoding!r}: expected one of {', '.join(_CONVERSIONS)} (8-bit "
+                         "colour or grey)")
+    h, w, step, c = int(msg.height), int(msg.width), int(msg.step), _CHANNELS[encoding]
+    if h <= 0 or w <= 0 or step < w * c or data.size < h * step:
+        raise ValueError(f"an Image of {w}x{h} {encoding} with step {step} holds {data.size} bytes; expected "
+                         f"height x step = {h * step} with step >= {w * c}")
+    image = data[: h * step].reshape(h, step)[:, : w * c].reshape(h, w, c)
+    code = _CONVERSIONS[encoding]
+    return np.ascontiguousarray(image) if code is None else cv2.cvtColor(image, code)
+
+
+def camera_from_info(msg, rectified: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(K, D)`` of a ``sensor_msgs/CameraInfo``: ``k`` as ``(3, 3)``, ``d`` when the distortion model is
+    ``plumb_bob`` or ``rational_polynomial`` (``None`` when it is empty or all zeros). ``rectified``: the
+    projection ``p``'s left 3x3 and no distortion (for ``image_rect`` topics).
+
+    Raises:
+        ValueError: another distortion model (e.g. ``equidistant``: a fisheye lens; rectify it first) or a ``k``
+            that is not nine numbers.
+    """
+    if rectified:
+        P = np.asarray(msg.p, dtype=np.float64)
+        if P.size != 12:
+            raise ValueError(f"CameraInfo.p must hold 12 numbers; got {P.size}")
+        return P.reshape(3, 4)[:, :3].copy(), None
+    K = np.asarray(msg.k, dtype=np.float64)
+    if K.size != 9:
+        raise ValueError(f"CameraInfo.k must hold 9 numbers; got {K.size}")
+    model = str(msg.distortion_model)
+    D = np.asarray(msg.d, dtype=np.float64)
+    if model not in DISTORTION_MODELS:
+        raise ValueError(f"CameraInfo.distortion_model {model!r} is not one this runtime undistorts through "
+                         f"(plumb_bob, rational_polynomial); rectify the images first (image_proc) and pass "
+                         "rectified=True (--rectified)")
+    return K.reshape(3, 3), (D if D.size and D.any() else None)
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One object of a ``vision_msgs/Detection2DArray``: ``object_id`` (its ``class_id``, mapped), ``box``
+    ``(x1, y1, x2, y2)`` pixels, the coarse rotation ``q_wxyz`` (``None`` when the pose is all zeros: no pose),
+    ``position`` (metres, or ``None``), ``score`` and the tracking ``id`` (``Detection2D.id``, may be empty)."""
+
+    object_id: str
+    box: np.ndarray
+    q_wxyz: np.ndarray | None
+    position: np.ndarray | None
+    score: float
+    id: str
+
+
+def detections_from_msg(msg, class_map: Mapping | None = None) -> list[Detection]:
+    """The detections of a ``vision_msgs/Detection2DArray`` (ROS 2 Humble field names; the first hypothesis of
+    each). ``class_map``: detector class id -> object id (default: the class id is the object id)."""
+    out = []
+    for d in msg.detections:
+        if not len(d.results):
+            continue
+        hyp = d.results[0]
+        class_id = str(hyp.hypothesis.class_id)
+        object_id = str(class_map.get(class_id, class_id)) if class_map else class_id
+        cx, cy = float(d.bbox.center.position.x), float(d.bbox.center.position.y)
+        hw, hh = 0.5 * float(d.bbox.size_x), 0.5 * float(d.bbox.size_y)
+        pose = hyp.pose.pose
+        o = pose.orientation
+        xyzw = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+        p = np.array([pose.position.x, pose.position.y, pose.position.z], dtype=np.float64)
+        out.append(Detection(object_id=object_id, box=np.array([cx - hw, cy - hh, cx + hw, cy + hh]),
+                             q_wxyz=rq.from_xyzw(xyzw) if np.isfinite(xyzw).all() and xyzw.any() else None,
+                             position=p if np.isfinite(p).all() and p.any() else None,
+                             score=float(hyp.hypothesis.score), id=str(d.id)))
+    return out
+
+
+@dataclass(frozen=True)
+class RefinedPose:
+    """One refined object of a frame: ``object_id`` (with ``#<Detection2D.id>`` when tracking instances),
+    ``q_wxyz`` (object to camera) and ``q_xyzw`` (the same, ROS order), ``position`` (the detection's, or ``None``),
+    ``box`` and ``score`` (the detection's)."""
+
+    object_id: str
+    q_wxyz: np.ndarray
+    position: np.ndarray | None
+    box: np.ndarray
+    score: float
+
+    @property
+    def q_xyzw(self) -> np.ndarray:
+        return rq.to_xyzw(self.q_wxyz)
+
+
+class RosRefiner:
+    """Refine (or track) the detected objects of each frame's ROS 2 messages (module docstring).
+
+    Args:
+        mode: ``"refine"``: every detection with a coarse pose is refined from it (the paper's per-frame use);
+            ``"track"``: a :class:`refiner_rt.RefinerTracker` per camera: a detection's pose starts an object (or
+            restarts it), later frames refine from the previous result, so the detector's pose is needed once.
+            Instances of one class are told apart by ``Detection2D.id`` when it is set.
+        models: ``{object id: RefinerSession or RefinerCascade}`` (default: each detected object's shipped model,
+            loaded on first sight; objects without one are skipped and counted in :attr:`skipped`).
+        cascade: with the shipped models, use each object's :class:`refiner_rt.RefinerCascade` (coarse and fine)
+            where a fine refiner ships.
+        rectified, class_map: as :func:`camera_from_info` and :func:`detections_from_msg`.
+        int8, threads: for the shipped models.
+        tracker_kwargs: passed to :class:`refiner_rt.RefinerTracker` (``predict``, ``lost_deg``...).
+
+    Not thread-safe in ``"track"`` mode (one tracker per camera stream).
+    """
+
+    def __init__(self, mode: str = "track", models: Mapping | None = None, *, cascade: bool = False,
+                 rectified: bool = False, class_map: Mapping | None = None, int8: bool = True, threads: int = 1,
+                 **tracker_kwargs):
+        if mode not in ("refine", "track"):
+            raise ValueError(f"mode must be 'refine' or 'track'; got {mode!r}")
+        if tracker_kwargs and mode != "track":
+            raise ValueError(f"{sorted(tracker_kwargs)} apply to mode='track' only")
+        self.mode, self.cascade, self.rectified = mode, bool(cascade), bool(rectified)
+        self.class_map = dict(class_map or {})
+        self.int8, self.threads, self.tracker_kwargs = int8, threads, tracker_kwargs
+        self._models = dict(models or {})
+        self._given = models is not None
+        self._tracker = None
+        self.skipped: dict[str, int] = {}  # class id -> detections skipped (no refiner for it, or no pose to start)
+
+    def _model(self, object_id: str):
+        if object_id in self._models:
+            return self._models[object_id]
+        if self._given:
+            return None
+        from refiner_rt.pretrained import pretrained_models
+
+        shipped = {m.object_id: m for m in pretrained_models()}
+        m = shipped.get(object_id)
+        if m is None:
+            model = None
+        elif self.cascade and "fine" in m.stages:
+            from refiner_rt.cascade import RefinerCascade
+
+            model = RefinerCascade.pretrained(object_id, int8=self.int8, threads=self.threads)
+        else:
+            from refiner_rt.session import RefinerSession
+
+            model = RefinerSession.pretrained(object_id, int8=self.int8, threads=self.threads)
+        self._models[object_id] = model
+        return model
+
+    def _skip(self, object_id: str) -> None:
+        self.skipped[object_id] = self.skipped.get(object_id, 0) + 1
+
+    def process(self, image_msg, info_msg, detections_msg) -> list[RefinedPose]:
+        """The refined poses of one frame (its image, its camera's ``CameraInfo`` and its detections)."""
+        image = image_from_msg(image_msg)
+        K, D = camera_from_info(info_msg, self.rectified)
+        dets = [d for d in detections_from_msg(detections_msg, self.class_map)
+                if self._model(d.object_id) is not None or self._skip(d.object_id)]
+        if self.mode == "refine":
+            return self._refine(image, K, D, dets)
+        return self._track(image, K, D, dets)
+
+    def _refine(self, image, K, D, dets: list[Detection]) -> list[RefinedPose]:
+        out = []
+        by_object: dict[str, list[Detection]] = {}
+        for d in dets:
+            if d.q_wxyz is None:
+                self._skip(d.object_id)
+                continue
+            by_object.setdefault(d.object_id, []).append(d)
+        for object_id, group in by_object.items():
+            res = self._model(object_id).refine(image, np.array([d.box for d in group]),
+                                                np.array([d.q_wxyz for d in group]), K=K, D=D)
+            out += [RefinedPose(object_id, q, d.position, d.box, d.score) for d, q in zip(group, res.q_refined)]
+        return out
+
+    def _track(self, image, K, D, dets: list[Detection]) -> list[RefinedPose]:
+        from refiner_rt.tracker import RefinerTracker
+
+        if self._tracker is None:
+            self._tracker = RefinerTracker({}, K, {}, D=D, **self.tracker_kwargs)
+        tracker = self._tracker
+        boxes, seen = {}, {}
+        for d in dets:
+            key = f"{d.object_id}#{d.id}" if d.id else d.object_id
+            if key in boxes:  # a second instance without an id to tell it apart: not trackable
+                self._skip(d.object_id)
+                continue
+            if d.q_wxyz is not None:
+                if key in tracker:
+                    tracker.reset(key, d.q_wxyz)
+                else:
+                    tracker.add(key, d.q_wxyz, session=self._model(d.object_id))
+            elif key not in tracker:
+                self._skip(d.object_id)  # a box but no pose to start from yet
+                continue
+            boxes[key], seen[key] = d.box, d
+        refined = tracker.update(image, boxes) if boxes else {}
+        return [RefinedPose(key, q, seen[key].position, seen[key].box, seen[key].score) for key, q in refined.items()]
