@@ -36,8 +36,10 @@ OUTLINES_FORMAT = "refiner-rt/outlines/1"
 NOISE_DEG = (0.0, 30.0)  # the range the shipped models were trained and evaluated on
 TIMED_CALLS = 20  # refine() calls timed per instance (after one warm-up call per model); the median is reported
 
-# BGR colours of the picture: the truth, the coarse input and the refined rotation.
-COLOURS = {"truth": (255, 255, 255), "coarse": (40, 60, 235), "refined": (60, 215, 60)}
+# BGR colours of the picture: the truth, the coarse input and the refined rotation. Cyan and green, not red: many
+# YCB objects are red or yellow. Every line has a dark halo (refiner_rt.draw.HALO), and each pose's axes are drawn in
+# its own colour with x, y, z at their tips, so no axis colour is confused with an outline.
+COLOURS = {"truth": (255, 255, 255), "coarse": (255, 215, 0), "refined": (60, 225, 60)}
 PANEL = 192  # side of one view of an object in the picture (pixels); a tile shows two, coarse and refined
 TILE_CONTEXT = 1.7  # the views' window around the box: wider than the crop rule's 1.2, so a coarse outline fits
 
@@ -180,8 +182,9 @@ def _pose_drawing(view, to_view, K, obj: SampleObject, outline: Outline | None, 
     """Draw the truth (white outline, thin axes) and rotation ``q`` (outline in ``colour``, thick axes) on ``view``."""
     R_gt = rq.to_matrix(obj.q_gt)
     if outline is None:  # no outline points for this object: axes only, about the view's centre
-        draw.draw_axes(view, (view.shape[1] / 2, view.shape[0] / 2), R_gt, view.shape[0] / 4, 1)
-        draw.draw_axes(view, (view.shape[1] / 2, view.shape[0] / 2), rq.to_matrix(q), view.shape[0] / 4, 2)
+        draw.draw_axes(view, (view.shape[1] / 2, view.shape[0] / 2), R_gt, view.shape[0] / 4, 1, COLOURS["truth"])
+        draw.draw_axes(view, (view.shape[1] / 2, view.shape[0] / 2), rq.to_matrix(q), view.shape[0] / 4, 2, colour,
+                       labels=True)
         return
     c = outline.centroid_m
     centre_z = float((R_gt @ c + obj.t_m)[2])
@@ -191,10 +194,10 @@ def _pose_drawing(view, to_view, K, obj: SampleObject, outline: Outline | None, 
         t = draw.centroid_translation(c, R_gt, obj.t_m, R)
         uv, z = draw.project(outline.points_m, R, t, K)
         draw.draw_outline(view, to_view(uv), z, radius, line_colour, width)
-    for R, width in ((R_gt, 1), (rq.to_matrix(q), 2)):
+    for R, width, axis_colour in ((R_gt, 1, COLOURS["truth"]), (rq.to_matrix(q), 2, colour)):
         t = draw.centroid_translation(c, R_gt, obj.t_m, R)
         uv, _ = draw.project(np.vstack([c, c + length * np.eye(3)]), R, t, K)
-        draw.draw_axes_projected(view, to_view(uv[:1])[0], to_view(uv[1:]), width)
+        draw.draw_axes_projected(view, to_view(uv[:1])[0], to_view(uv[1:]), width, axis_colour, labels=width == 2)
 
 
 def _tile(image: np.ndarray, K: np.ndarray, obj: SampleObject, r: Refinement, outline: Outline | None) -> np.ndarray:
@@ -241,20 +244,31 @@ def demo_picture(frames: list[SampleFrame], refinements: list[Refinement], outli
     blank = np.full_like(tiles[0], 24)
     padded = tiles + [blank] * (rows * columns - len(tiles))
     grid = [np.hstack([x for t in padded[k * columns:(k + 1) * columns] for x in (t, gap)][:-1]) for k in range(rows)]
-    header = np.full((34, grid[0].shape[1], 3), 24, np.uint8)
-    x = 8
-    for name, text in (("truth", "ground truth (thin axes)"), ("coarse", "coarse input, U(0, 30) deg around the truth"),
-                       ("refined", "refined by the shipped model")):
-        cv2.line(header, (x, 17), (x + 22, 17), COLOURS[name], 2, cv2.LINE_AA)
-        cv2.putText(header, text, (x + 28, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.48, (230, 230, 230), 1, cv2.LINE_AA)
-        x += 40 + int(cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.48, 1)[0][0])
+    header = legend(grid[0].shape[1], {"truth": "ground truth (thin)",
+                                         "coarse": "coarse input, U(0, 30) deg around the truth",
+                                         "refined": "refined by the shipped model"})
     return np.vstack([header, *grid])
+
+
+def legend(width: int, items: dict) -> np.ndarray:
+    """A dark band ``width`` pixels wide naming each pose's colour (``{"truth" | "coarse" | "refined": text}``) and
+    saying how the axes are drawn."""
+    band = np.full((34, width, 3), 24, np.uint8)
+    x = 8
+    for name, text in [*items.items(), (None, "axes: outline colour, x, y, z at the tips")]:
+        if name is not None:
+            cv2.line(band, (x, 17), (x + 22, 17), COLOURS[name], 2, cv2.LINE_AA)
+        else:
+            x -= 28
+        cv2.putText(band, text, (x + 28, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.48, (230, 230, 230), 1, cv2.LINE_AA)
+        x += 40 + int(cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.48, 1)[0][0])
+    return band
 
 
 def image_picture(image: np.ndarray, K: np.ndarray, box_xyxy, q_in: np.ndarray, q_refined: np.ndarray,
                   outline: Outline | None) -> np.ndarray:
-    """A user's image (BGR) with the box, and the coarse and refined rotations drawn as outlines with axes (coarse:
-    thin axes), placed by :func:`refiner_rt.draw.translation_from_box` (the refiner estimates rotation only), or as
+    """A user's image (BGR) with the box, and the coarse and refined rotations drawn as outlines with axes, under a
+    legend band, placed by :func:`refiner_rt.draw.translation_from_box` (the refiner estimates rotation only), or as
     axes alone without an outline for the object."""
     canvas = image.copy()
     x1, y1, x2, y2 = (float(v) for v in box_xyxy)
@@ -271,8 +285,11 @@ def image_picture(image: np.ndarray, K: np.ndarray, box_xyxy, q_in: np.ndarray, 
             c = outline.centroid_m
             length = 0.4 * float(np.max(outline.points_m.max(axis=0) - outline.points_m.min(axis=0)))
             uv, _ = draw.project(np.vstack([c, c + length * np.eye(3)]), R, t, K)
-            draw.draw_axes_projected(canvas, uv[0], uv[1:], 1 if name == "coarse" else 2)
+            draw.draw_axes_projected(canvas, uv[0], uv[1:], 2, COLOURS[name], labels=True)
         else:
-            draw.draw_axes(canvas, (0.5 * (x1 + x2) - 0.5, 0.5 * (y1 + y2) - 0.5), R, 0.4 * side,
-                           1 if name == "coarse" else 2)
-    return canvas
+            draw.draw_axes(canvas, (0.5 * (x1 + x2) - 0.5, 0.5 * (y1 + y2) - 0.5), R, 0.4 * side, 2, COLOURS[name],
+                           labels=True)
+    band = legend(max(canvas.shape[1], 560), {"coarse": "coarse input", "refined": "refined by the shipped model"})
+    if band.shape[1] > canvas.shape[1]:  # a narrow image: the legend keeps its width, the image is padded
+        canvas = cv2.copyMakeBorder(canvas, 0, 0, 0, band.shape[1] - canvas.shape[1], cv2.BORDER_CONSTANT, value=(24, 24, 24))
+    return np.vstack([band, canvas])

@@ -53,7 +53,7 @@ def demo_cmd(out, seed, threads, image_path, box, q, K, object_id):
     ground truth). Each object's coarse rotation is drawn U(0, 30) degrees around the truth, refined by the
     object's shipped INT8 model with the camera intrinsics, and compared with the truth. Prints a table of input
     and refined error (degrees) and time per refinement; the picture shows, per object, the truth (white), the
-    coarse input (red) and the refined rotation (green) as outlines.
+    coarse input (cyan) and the refined rotation (green) as outlines.
 
     With --image FILE --box X1,Y1,X2,Y2 --q W,X,Y,Z --K FX,FY,CX,CY --object ID: refines your image (BGR as read by
     OpenCV) and draws the coarse and refined outlines, placed from the box (the refiner estimates rotation only).
@@ -118,7 +118,7 @@ def _samples(out: Path, seed: int, threads: int) -> None:
     click.echo("\nErrors: mean geodesic angle to the ground truth. Time: median of one refine() call (crop, network,\n"
                "composition) at batch 1.")
     _write(out, demo.demo_picture(frames, refinements, demo.load_outlines()))
-    click.echo(f"Wrote {out}: per object, ground truth (white), coarse input (red), refined (green).")
+    click.echo(f"Wrote {out}: per object, ground truth (white), coarse input (cyan), refined (green).")
 
 
 def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: str) -> None:
@@ -163,5 +163,5 @@ def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: 
                f"{float(rq.geodesic_angle(q_in, q_ref)):.1f} deg from the coarse one, {ms:.2f} ms")
     outline = demo.load_outlines().get(object_id)
     _write(out, demo.image_picture(image, K3, box, q_in, q_ref, outline))
-    click.echo(f"Wrote {out}: coarse (red) and refined (green) outlines, placed from the box (the refiner estimates "
+    click.echo(f"Wrote {out}: coarse (cyan) and refined (green) outlines, placed from the box (the refiner estimates "
                "rotation only).")

@@ -68,30 +68,50 @@ def outline_mask(uv: np.ndarray, z: np.ndarray, radius_px: float, shape: tuple[i
     return cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r + 1 | 1, r + 1 | 1)))
 
 
+HALO = (20, 20, 20)  # BGR of the dark edge under every drawn line: it stays visible on any object's colour
+
+
 def draw_outline(canvas: np.ndarray, uv: np.ndarray, z: np.ndarray, radius_px: float, colour, thickness: int = 2):
-    """Draw the outer contour of the points' silhouette on ``canvas`` (in place) and return it."""
+    """Draw the outer contour of the points' silhouette on ``canvas`` (in place, over a dark halo) and return it."""
     mask = outline_mask(uv, z, radius_px, canvas.shape[:2])
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(canvas, contours, -1, HALO, thickness + 2, cv2.LINE_AA)
     cv2.drawContours(canvas, contours, -1, colour, thickness, cv2.LINE_AA)
     return canvas
 
 
-def draw_axes_projected(canvas: np.ndarray, uv_origin, uv_tips, thickness: int = 2):
-    """Draw axes x, y, z (red, green, blue) from the projected origin ``uv_origin`` to the projected tips ``(3, 2)``."""
+def _axis(canvas, o, tip, colour, thickness: int, label: str | None, arrow: bool) -> None:
+    line = cv2.arrowedLine if arrow else cv2.line
+    kw = {"tipLength": 0.15} if arrow else {}
+    for c, t in ((HALO, thickness + 2), (colour, thickness)):
+        line(canvas, o, tip, c, t, cv2.LINE_AA, **kw)
+    if label:
+        d = np.subtract(tip, o)
+        at = tuple(int(round(v)) for v in np.add(tip, 7 * d / max(np.hypot(*d), 1e-6) - (4, -4)))
+        cv2.putText(canvas, label, at, cv2.FONT_HERSHEY_SIMPLEX, 0.4, HALO, 3, cv2.LINE_AA)
+        cv2.putText(canvas, label, at, cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
+
+
+def draw_axes_projected(canvas: np.ndarray, uv_origin, uv_tips, thickness: int = 2, colour=None, labels: bool = False):
+    """Draw axes x, y, z from the projected origin ``uv_origin`` to the projected tips ``(3, 2)``: red, green, blue,
+    or all in ``colour`` (the colour of the pose they belong to) with ``labels`` x, y, z at their tips."""
     o = tuple(int(round(v)) for v in uv_origin)
-    for tip, colour in zip(uv_tips, AXIS_COLOURS):
-        cv2.line(canvas, o, tuple(int(round(v)) for v in tip), colour, thickness, cv2.LINE_AA)
+    for k, tip in enumerate(uv_tips):
+        _axis(canvas, o, tuple(int(round(v)) for v in tip), AXIS_COLOURS[k] if colour is None else colour, thickness,
+              "xyz"[k] if labels else None, arrow=False)
     return canvas
 
 
-def draw_axes(canvas: np.ndarray, origin_uv, R: np.ndarray, length_px: float, thickness: int = 2):
-    """Draw the object's x, y, z axes (red, green, blue) from ``origin_uv``, in orthographic projection (a rotation
-    alone, when no translation is known): the first two rows of ``R`` scaled to ``length_px``."""
+def draw_axes(canvas: np.ndarray, origin_uv, R: np.ndarray, length_px: float, thickness: int = 2, colour=None,
+              labels: bool = False):
+    """Draw the object's x, y, z axes from ``origin_uv``, in orthographic projection (a rotation alone, when no
+    translation is known): the first two rows of ``R`` scaled to ``length_px``; red, green, blue, or all in
+    ``colour`` with ``labels`` x, y, z at their tips."""
     o = np.asarray(origin_uv, dtype=np.float64)
-    for k, colour in enumerate(AXIS_COLOURS):
+    for k in range(3):
         tip = o + length_px * np.asarray(R)[:2, k]
-        cv2.arrowedLine(canvas, tuple(int(round(v)) for v in o), tuple(int(round(v)) for v in tip), colour,
-                        thickness, cv2.LINE_AA, tipLength=0.15)
+        _axis(canvas, tuple(int(round(v)) for v in o), tuple(int(round(v)) for v in tip),
+              AXIS_COLOURS[k] if colour is None else colour, thickness, "xyz"[k] if labels else None, arrow=True)
     return canvas
 
 

@@ -31,6 +31,7 @@ import click
 import cv2
 import numpy as np
 
+from refiner_rt import draw
 from refiner_rt import quaternion as rq
 from refiner_rt.session import MAX_ITERATIONS
 
@@ -41,7 +42,6 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}
 STRIP_SUFFIXES = (".png", ".jpg")
 STRIP_WIDTH = 320  # pixels per frame in an image strip
-AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 0, 0))  # BGR: x red, y green, z blue
 
 
 def frame_files(folder: Path) -> list[Path]:
@@ -113,7 +113,7 @@ def annotate(image: np.ndarray, boxes: dict, rotations: dict) -> np.ndarray:
         for axis in np.argsort(R[2])[::-1]:  # the axis pointing farthest away first, so nearer ones stay on top
             tip = centre + length * R[:2, axis]
             cv2.line(out, tuple(np.round(centre).astype(int)), tuple(np.round(tip).astype(int)),
-                     AXIS_COLOURS[axis], 2, cv2.LINE_AA)
+                     draw.AXIS_COLOURS[axis], 2, cv2.LINE_AA)
         cv2.putText(out, object_id, (int(x1), max(int(y1) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
                     (255, 255, 255), 1, cv2.LINE_AA)
     return out

@@ -105,7 +105,13 @@ def test_demo_on_your_own_image(weights, tmp_path):  # noqa: F811
     assert res.exit_code == 0, res.output
     assert "refined q (wxyz)" in res.output and "0.0 deg from the coarse one" in res.output
     picture = cv2.imread(str(out))
-    assert picture.shape == frame.image().shape and not np.array_equal(picture, frame.image())
+    image = frame.image()
+    h, w = image.shape[:2]
+    # the image under a legend band naming the colours
+    assert picture.shape == (h + 34, max(w, 560), 3) and not np.array_equal(picture[34:, :w], image)
+    band = picture[:34]
+    assert (np.abs(band.astype(int) - demo.COLOURS["coarse"]).sum(axis=2) < 40).any()
+    assert (np.abs(band.astype(int) - demo.COLOURS["refined"]).sum(axis=2) < 40).any()
 
 
 @pytest.mark.parametrize("args, message", [
