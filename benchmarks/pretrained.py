@@ -218,10 +218,11 @@ def _stats(err_out: np.ndarray, err_in: np.ndarray) -> dict:
             "under_10_deg": float((err_out < 10).mean()), "input_mean_deg": float(err_in.mean())}
 
 
-def _score(onnx_paths: dict[str, Path], test, samples, rotation_frame: str) -> dict:
+def _score(onnx_paths: dict[str, Path], test, samples, rotation_frame: str, noise: str = "uniform:0:30") -> dict:
     """Errors of each ONNX model on the crops ``test`` (``samples`` in the same order), through
-    ``RefinerSession.refine_crops``: overall, inside the image and cut by its border; the same coarse inputs for all.
-    Objects with a :data:`SYMMETRIES` entry are also scored to the closest symmetric pose (``symmetric``)."""
+    ``RefinerSession.refine_crops``: overall, inside the image and cut by its border; the same coarse inputs for all
+    (``noise`` about the truth). Objects with a :data:`SYMMETRIES` entry are also scored to the closest symmetric
+    pose (``symmetric``)."""
     from models.evaluate import evaluate_errors, onnx_predictor
     from models.symmetry import symmetric_error
 
@@ -231,7 +232,7 @@ def _score(onnx_paths: dict[str, Path], test, samples, rotation_frame: str) -> d
     cut = _cut_by_border(samples)
     out = {}
     for name, path in onnx_paths.items():
-        errors = evaluate_errors(onnx_predictor(path, threads=1), test, "uniform:0:30", seed=2024,
+        errors = evaluate_errors(onnx_predictor(path, threads=1), test, noise, seed=2024,
                                  rotation_frame=rotation_frame)
         out[name] = {"all": _stats(errors.err_out_deg, errors.err_in_deg),
                      "inside_image": _stats(errors.err_out_deg[~cut], errors.err_in_deg[~cut]),
@@ -275,7 +276,7 @@ def whole_folder_spec(data: Path, obj: str, part: str):
 
 
 def evaluate_fresh(onnx_paths: dict[str, Path], obj: str, data: Path, cache: Path, rotation_frame: str,
-                   input_size: int, crop_context: float) -> dict:
+                   input_size: int, crop_context: float, noise: str = "uniform:0:30") -> dict:
     """Errors of each ONNX model on every instance of ``obj`` in ``data``, a folder of rendered scenes that no
     shipped model trained on (``refiner-rt render`` with a seed other than the training set's) (:func:`_score`)."""
     from models.pipeline import cropset_for, load_splits
@@ -286,7 +287,7 @@ def evaluate_fresh(onnx_paths: dict[str, Path], obj: str, data: Path, cache: Pat
     folder_scenes = sum(1 for p in Path(data).iterdir() if (p / "scene_gt.json").is_file())  # BOP scenes
     return {"test_scenes": _scenes(test), "folder_scenes": folder_scenes,
             "split": {**spec.as_dict(), "data": data.resolve().name},
-            **_score(onnx_paths, test, list(splits.test), rotation_frame)}
+            **_score(onnx_paths, test, list(splits.test), rotation_frame, noise)}
 
 
 def _metadata(path: Path) -> dict:
@@ -469,7 +470,8 @@ def _checkpoint_quantization(fp32: Path, ckpt: Path, data: Path, cache: Path) ->
             lambda: dataset_calibration(data, contract, cache_root=cache))
 
 
-def _fresh_quantization(fp32: Path, obj: str, heldout: Path, calibration: Path, cache: Path) -> tuple:
+def _fresh_quantization(fp32: Path, obj: str, heldout: Path, calibration: Path, cache: Path,
+                        noise: str = "uniform:0:30") -> tuple:
     """``(score, calibrate)`` for :func:`quantize_for_shipping` without a checkpoint: every instance of ``obj`` in
     ``heldout`` (scenes no model trained on), and calibration on every instance in ``calibration`` (other such
     scenes)."""
@@ -477,7 +479,8 @@ def _fresh_quantization(fp32: Path, obj: str, heldout: Path, calibration: Path, 
     from refiner_rt.metadata import parse_metadata
 
     c = parse_metadata(_metadata(fp32))
-    return (lambda paths: evaluate_fresh(paths, obj, heldout, cache, c.rotation_frame, c.input_size, c.crop_context),
+    return (lambda paths: evaluate_fresh(paths, obj, heldout, cache, c.rotation_frame, c.input_size, c.crop_context,
+                                         noise),
             lambda: dataset_calibration(calibration, c, cache_root=cache,
                                         spec=whole_folder_spec(calibration, obj, "train_base")))
 
@@ -648,10 +651,38 @@ def _real() -> dict:
     return out
 
 
+FINE_DIR = ROOT / "benchmarks" / "results" / "fine"
+
+
+def _fine() -> dict:
+    """Per object, the fine refiner that ships (``benchmarks/fine.py``): its files, version and card, for records
+    whose files are in the package and whose cascade was measured with the coarse INT8 file that ships now."""
+    out = {}
+    for path in sorted(FINE_DIR.glob("*.json")) if FINE_DIR.is_dir() else []:
+        d = json.loads(path.read_text())
+        obj = d.get("object_id")
+        if d.get("schema") != "refiner-rt/fine-eval/1" or not all((WEIGHTS_DIR / f).is_file()
+                                                                  for f in d["files"].values()):
+            continue
+        coarse = WEIGHTS_DIR / model_file_name(obj, int8=True)
+        c = d["cascade"]
+        if not coarse.is_file() or c.get("coarse_sha256") != file_sha256(coarse):
+            continue
+        out[obj] = {"files": d["files"], "version": d["fine_version"],
+                    "card": {"fine_int8_mean_deg": round(d["eval"]["int8"]["all"]["mean_deg"], 3),
+                             "fine_noise": d["noise"], "int8_scheme": d["export"]["int8_scheme"],
+                             "data": c["data"], "n": c["n"],
+                             "cascade": {k: {m: (round(v, 3) if isinstance(v, float) else v)
+                                             for m, v in c[k].items() if m != "floor_curve"}
+                                         for k in ("coarse", "fine", "cascade")},
+                             "train_command": d["train_command"], "train_wall_s": d["train"]["wall_s"]}}
+    return out
+
+
 def write_card() -> None:
     """``weights/models.json`` (what the runtime lists) and ``weights/MODELS.md`` from the evaluation JSON (and the
-    real-frame record of ``benchmarks/real.py``, :data:`REAL_JSON`)."""
-    docs, speed, real = _load_results(), _speed(), _real()
+    real-frame record of ``benchmarks/real.py``, :data:`REAL_JSON`; the fine refiners of ``benchmarks/fine.py``)."""
+    docs, speed, real, fine = _load_results(), _speed(), _real(), _fine()
     models = {}
     for d in docs:
         obj = d["object_id"]
@@ -659,6 +690,7 @@ def write_card() -> None:
         models[obj] = {
             "arch": d["recipe"]["arch"], "config": d["recipe"]["config"], "version": d["model_version"],
             "files": d["files"], "heldout": d["heldout"], **({"real": real[obj]} if obj in real else {}),
+            **({"fine": fine[obj]} if obj in fine else {}),
             "card": {"fp32_heldout_mean_deg": d["eval"]["fp32"]["all"]["mean_deg"],
                      "heldout_data": d["eval"]["split"].get("data"),
                      "fp32_training_split_mean_deg": d.get("eval_training_split", {}).get("fp32", {}).get(
@@ -673,7 +705,38 @@ def write_card() -> None:
         }
     WEIGHTS_DIR.mkdir(exist_ok=True)
     (WEIGHTS_DIR / INDEX_FILE).write_text(json.dumps({"format": INDEX_FORMAT, "models": models}, indent=1) + "\n")
-    (WEIGHTS_DIR / "MODELS.md").write_text(card_markdown(docs, speed, real))
+    (WEIGHTS_DIR / "MODELS.md").write_text(card_markdown(docs, speed, real) + fine_markdown(fine))
+
+
+def fine_markdown(fine: dict) -> str:
+    """The card's section on the fine refiners and the cascade (empty when none ships)."""
+    if not fine:
+        return ""
+    f0 = next(iter(fine.values()))["card"]
+    lines = ["", "## Fine refiners and the cascade", "",
+             "A fine refiner ships beside the coarse one for these objects (`<id>.fine.int8.onnx`, "
+             "`RefinerSession.pretrained(obj, stage=\"fine\")`; `RefinerCascade.pretrained(obj)` runs both). Each "
+             f"continued the object's coarse model on inputs `{f0['fine_noise']}` degrees off "
+             "(`benchmarks/fine.py`). Measured through the runtime on the full frames of every instance in "
+             f"`{f0['data']}` (fresh renders no model trained on; one U(0, 30) input per instance, and the true pose "
+             "for the drift), INT8, the cascade with its defaults (the fine refiner first, four views, the coarse "
+             "refiner when the fine correction exceeds 3 degrees):", "",
+             "| object | coarse: U(0, 30) | cascade: U(0, 30) | coarse: inputs 0-3 | cascade: inputs 0-3 | "
+             "coarse: drift | cascade: drift | fine alone: drift | through the coarse refiner | instances |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    cols = []
+    for obj, m in sorted(fine.items()):
+        c = m["card"]["cascade"]
+        row = [c["coarse"]["mean_deg"], c["cascade"]["mean_deg"], c["coarse"]["input_0_3_mean_deg"],
+               c["cascade"]["input_0_3_mean_deg"], c["coarse"]["drift_mean_deg"], c["cascade"]["drift_mean_deg"],
+               c["fine"]["drift_mean_deg"]]
+        cols.append(row)
+        lines.append(f"| {obj} | " + " | ".join("-" if v is None else f"{v:.2f}" for v in row)
+                     + f" | {100 * c['cascade']['coarse_used']:.0f}% | {m['card']['n']} |")
+    if len(cols) > 1:
+        mean = [np.mean([r[i] for r in cols if r[i] is not None]) for i in range(7)]
+        lines.append(f"| **mean of {len(cols)}** | " + " | ".join(f"**{v:.2f}**" for v in mean) + " | | |")
+    return "\n".join(lines) + "\n"
 
 
 def _pct(x) -> str:
@@ -917,11 +980,22 @@ def main(argv=None) -> int:
     r.add_argument("--schemes", default=",".join(INT8_SCHEMES_FASTEST_FIRST),
                    help="candidate INT8 schemes, fastest first (default: %(default)s)")
     r.add_argument("--commit", action="store_true", help="git-commit the INT8 files, their JSON and the card")
+    sub.add_parser("restamp", help="write the descriptive card keys (object_frame) into every shipped file and its "
+                   "JSON again, as this build states them now (the weights are not touched)")
     s = sub.add_parser("speed", help="measure every shipped model's speed (run on a quiet machine)")
     s.add_argument("--rounds", type=int, default=7)
     s.add_argument("--commit", action="store_true")
     args = ap.parse_args(argv)
     if args.cmd == "card":
+        write_card()
+        return 0
+    if args.cmd == "restamp":
+        for d in _load_results():
+            d["metadata"]["object_frame"] = OBJECT_FRAME
+            for name in d["files"].values():
+                stamp(WEIGHTS_DIR / name, {"object_frame": OBJECT_FRAME})
+            d["sizes_bytes"] = {k: (WEIGHTS_DIR / d["files"][k]).stat().st_size for k in d["files"]}
+            (RESULTS_DIR / f"{d['object_id']}.json").write_text(json.dumps(d, indent=1) + "\n")
         write_card()
         return 0
     if args.cmd == "requantize":

@@ -7,8 +7,9 @@ speed, recipe, mesh, training time); it is generated from the evaluation JSON by
 never written by hand.
 
 Frames: the shipped models were trained on renders of the YCB google_16k meshes in their **original YCB scan frame**
-(origin near the object's base), which is not the YCB-Video / BOP model frame. A rotation refined by a shipped model
-maps that frame to the camera (``x_cam = R @ x_obj + t``); ``q_in`` must be given in the same frame.
+(origin near the object's base). Its axes are the YCB-Video / BOP ycbv model frame's, so their rotations are used as
+they are; only the origin differs, by a per-object offset (:mod:`refiner_rt.frames` converts a translation). A
+rotation refined by a shipped model maps that frame to the camera (``x_cam = R @ x_obj + t``).
 
 Example:
     >>> from refiner_rt import RefinerSession, pretrained_models
