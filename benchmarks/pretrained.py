@@ -720,7 +720,7 @@ def fine_markdown(fine: dict) -> str:
              "(`benchmarks/fine.py`). Measured through the runtime on the full frames of every instance in "
              f"`{f0['data']}` (fresh renders no model trained on; one U(0, 30) input per instance, and the true pose "
              "for the drift), INT8, the cascade with its defaults (the fine refiner first, four views, the coarse "
-             "refiner when the fine correction exceeds 3 degrees):", "",
+             "refiner then the fine one when the fine correction exceeds 2 degrees):", "",
              "| object | coarse: U(0, 30) | cascade: U(0, 30) | coarse: inputs 0-3 | cascade: inputs 0-3 | "
              "coarse: drift | cascade: drift | fine alone: drift | through the coarse refiner | instances |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]

@@ -20,6 +20,10 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
   (``RefinerTracker(detector_weight=--detector-weight)``): the same detector input as ``per_frame`` at twice its
   network passes.
 
+* ``per_frame_cascade`` and ``track_cascade`` (``--methods``; they need every object's fine refiner): ``per_frame``
+  and ``track`` with :class:`refiner_rt.RefinerCascade` in place of the coarse refiner: the tracker refines from
+  frame to frame with the fine refiner and goes to the coarse one to start and where the fine correction is large.
+
 Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
 of a scene are tracked by one tracker, each with its own shipped model, one ``update()`` per frame. Reported per method
@@ -61,13 +65,17 @@ from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
 from refiner_rt.tracker import RefinerTracker  # noqa: E402
 
-METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect", "track_lost", "track_fuse")
-TRACKERS = ("track", "track_predict", "track_redetect", "track_lost", "track_fuse")
+METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect", "track_lost", "track_fuse",
+           "per_frame_cascade", "track_cascade")
+TRACKERS = ("track", "track_predict", "track_redetect", "track_lost", "track_fuse", "track_cascade")
+CASCADE_METHODS = ("per_frame_cascade", "track_cascade")  # need every object's fine refiner
 LABELS = {"hold": "(a) hold the initial coarse pose", "per_frame": "(b) refine each frame from U(0, 30)",
           "track": "(c) track from an initial U(0, 30)", "track_predict": "(c) + constant-velocity prediction",
           "track_redetect": "(c) + a detector's U(0, 30) pose every N frames",
           "track_lost": "(c) + loss-of-track check, detector only when lost",
-          "track_fuse": "(c) + a detector's pose fused every N frames"}
+          "track_fuse": "(c) + a detector's pose fused every N frames",
+          "per_frame_cascade": "(b) with the cascade (coarse and fine refiners)",
+          "track_cascade": "(c) with the cascade: fine from frame to frame, coarse to start and recover"}
 DIVERGED_DEG = 30.0
 
 
@@ -109,7 +117,8 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
               n_frames: int, timing: dict, methods=METHODS, redetect: int = 10, lost_deg: float = 1.5,
-              detections: dict | None = None, detector_weight: float = 0.5, fuse_every: int = 1) -> dict:
+              detections: dict | None = None, detector_weight: float = 0.5, fuse_every: int = 1,
+              cascades: dict | None = None) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
     start_noise = {s.object_id: rq.sample_rotation_noise(1, "uniform", 0, 30, rng[s.object_id])[0] for s in seqs}
@@ -128,18 +137,20 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
 
     # (b) per frame, every visible frame once (each step scores its own frames from these).
     per_frame = {}
-    for s in seqs if "per_frame" in methods else []:
-        err = {}
-        for f in sorted(s.images):
-            q_in = rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])[None]
-            t0, c0 = time.perf_counter(), time.process_time()
-            res = sessions[s.object_id].refine(images[f], s.boxes[f][None], q_in, K=K)
-            timing["per_frame"]["seconds"] += time.perf_counter() - t0
-            timing["per_frame"]["cpu_seconds"] += time.process_time() - c0
-            timing["per_frame"]["updates"] += 1
-            timing["per_frame"]["refinements"] += 1
-            err[f] = float(rq.geodesic_angle(res.q_refined[0], s.q_gt[f]))
-        per_frame[s.object_id] = err
+    for name in [m for m in ("per_frame", "per_frame_cascade") if m in methods]:
+        refiners = sessions if name == "per_frame" else cascades
+        for s in seqs:
+            err = {}
+            for f in sorted(s.images):
+                q_in = rq.multiply(s.q_gt[f], frame_noise[s.object_id][f % n_frames])[None]
+                t0, c0 = time.perf_counter(), time.process_time()
+                res = refiners[s.object_id].refine(images[f], s.boxes[f][None], q_in, K=K)
+                timing[name]["seconds"] += time.perf_counter() - t0
+                timing[name]["cpu_seconds"] += time.process_time() - c0
+                timing[name]["updates"] += 1
+                timing[name]["refinements"] += 1
+                err[f] = float(rq.geodesic_angle(res.q_refined[0], s.q_gt[f]))
+            per_frame[name, s.object_id] = err
 
     for step in steps:
         grid = [f for f in range(frames[0], frames[-1] + 1) if f % step == 0]
@@ -153,10 +164,12 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
             for f in grid:
                 if f >= f0 and f in s.images:
                     out["hold"][step][s.object_id][f - f0] = rq.geodesic_angle(q_start[s.object_id], s.q_gt[f])
-                    if "per_frame" in methods:
-                        out["per_frame"][step][s.object_id][f - f0] = per_frame[s.object_id][f]
+                    for name in ("per_frame", "per_frame_cascade"):
+                        if name in methods:
+                            out[name][step][s.object_id][f - f0] = per_frame[name, s.object_id][f]
         for method in [m for m in TRACKERS if m in methods]:
-            tracker = RefinerTracker({s.object_id: sessions[s.object_id] for s in live}, K, {},
+            refiners = cascades if method == "track_cascade" else sessions
+            tracker = RefinerTracker({s.object_id: refiners[s.object_id] for s in live}, K, {},
                                      predict=method == "track_predict",
                                      lost_deg=lost_deg if method == "track_lost" else None,
                                      detector_weight=detector_weight if method == "track_fuse" else None)
@@ -255,7 +268,8 @@ def plot(doc: dict, path: Path) -> None:
     steps = doc["steps"]
     fig, axes = plt.subplots(2, len(steps), figsize=(4.6 * len(steps), 6.6), sharey="row", squeeze=False)
     colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange",
-               "track_redetect": "tab:green", "track_lost": "tab:purple", "track_fuse": "tab:brown"}
+               "track_redetect": "tab:green", "track_lost": "tab:purple", "track_fuse": "tab:brown",
+               "per_frame_cascade": "tab:cyan", "track_cascade": "black"}
     for row, (key, stat) in enumerate((("curves", "mean"), ("curves_median", "median"))):
         for ax, step in zip(axes[row], steps):
             for m in [m for m in METHODS if m in doc[key]]:
@@ -289,7 +303,8 @@ def report(doc: dict) -> str:
              "track_redetect": f"(c) track + detector every {doc['redetect']} frames",
              "track_lost": f"(c) track + loss check ({doc.get('lost_deg')} deg), detector when lost",
              "track_fuse": f"(c) track + detector fused (weight {doc.get('detector_weight')}) every "
-                           + ("frame" if doc.get("fuse_every", 1) == 1 else f"{doc.get('fuse_every')} frames")}
+                           + ("frame" if doc.get("fuse_every", 1) == 1 else f"{doc.get('fuse_every')} frames"),
+             "per_frame_cascade": "(b) with the cascade", "track_cascade": "(c) track with the cascade"}
     lines = ["| step | method | mean | median | last frame | diverged (> 30 deg) | beats (b) per sequence "
              "| detector poses per frame | CPU ms per update |",
              "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -299,7 +314,7 @@ def report(doc: dict) -> str:
             beats = "" if m == "per_frame" or "beats_per_frame_share" not in r else f"{100 * r['beats_per_frame_share']:.0f}%"
             share = r.get("detector_share")
             det = "" if share is None else f"{100 * share:.1f}%"
-            cost = doc.get("cost", {}).get("per_frame" if m == "per_frame" else f"{m}_step{st}", {})
+            cost = doc.get("cost", {}).get(m if m.startswith("per_frame") else f"{m}_step{st}", {})
             ms = "" if m == "hold" or cost.get("cpu_ms_per_update") is None else f"{cost['cpu_ms_per_update']:.2f}"
             lines.append(f"| {st} | {short[m]} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} | "
                          f"{r['last_frame_mean_deg']:.2f} | {100 * r['diverged_share']:.1f}% ({r['diverged']}/{r['sequences']}) "
@@ -320,7 +335,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-frames", type=int, default=20, help="leave out sequences with fewer visible frames")
     p.add_argument("--scenes", type=int, default=0, help="use only the first N scenes (0: all)")
     p.add_argument("--seed", type=int, default=0, help="seed of the coarse poses")
-    p.add_argument("--methods", default=",".join(METHODS), help=f"what to measure (default {','.join(METHODS)})")
+    p.add_argument("--methods", default=",".join(m for m in METHODS if m not in CASCADE_METHODS),
+                   help=f"what to measure, of {','.join(METHODS)} (default: all but {', '.join(CASCADE_METHODS)}, which "
+                   "need every object's fine refiner)")
     p.add_argument("--redetect", type=int, default=10,
                    help="track_redetect: frames between a detector's poses (default 10, e.g. 3 Hz in 30 Hz video)")
     p.add_argument("--lost-deg", type=float, default=1.5,
@@ -366,6 +383,14 @@ def main(argv: list[str] | None = None) -> int:
     missing = [o for o in objects if o not in files and o not in shipped]
     if missing or not objects:
         p.error(f"no model for {missing or 'any object'}: shipped {sorted(shipped)}; give --model OBJ=FILE.onnx")
+    cascades = {}
+    if any(m in CASCADE_METHODS for m in methods):
+        from refiner_rt import RefinerCascade
+
+        no_fine = [o for o in objects if o not in shipped or "fine" not in shipped[o].stages]
+        if no_fine:
+            p.error(f"{', '.join(CASCADE_METHODS)} need each object's fine refiner; none ships for {no_fine}")
+        cascades = {o: RefinerCascade.pretrained(o, int8=not args.fp32, threads=1) for o in objects}
     sessions, model_record = {}, {}
     for o in objects:
         if o in files:
@@ -376,6 +401,9 @@ def main(argv: list[str] | None = None) -> int:
             model_record[o] = {"file": shipped[o].files["fp32" if args.fp32 else "int8"], "version": shipped[o].version,
                                "heldout_mean_deg": shipped[o].heldout.get("mean_deg"),
                                "sha256": file_sha256(shipped[o].path(int8=not args.fp32))}
+            if o in cascades:
+                fine = shipped[o].path(int8=not args.fp32, stage="fine")
+                model_record[o]["fine"] = {"file": fine.name, "sha256": file_sha256(fine)}
 
     machine = cpu_record()
     seqs, notes = load_sequences(args.data, set(objects), args.min_visib, args.min_frames)
@@ -395,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
         res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods, args.redetect,
-                        args.lost_deg, detections, args.detector_weight, args.fuse_every)
+                        args.lost_deg, detections, args.detector_weight, args.fuse_every, cascades)
         for s in scene_seqs:
             if s.object_id in res["hold"][steps[0]]:
                 row = {"scene": scene, "object": s.object_id, "frames": len(s.images)}

@@ -513,6 +513,10 @@ class BenchModel:
     torch_model: object = None
     config: dict = field(default_factory=dict)
     weights: str = "random"
+    # a RefinerCascade row: the fine refiner's file and the path timed, "fine" (the gate holds: fine_views passes)
+    # or "coarse" (coarse then fine: 1 + 2 * fine_views passes)
+    fine_path: Path | None = None
+    cascade_path: str | None = None
 
 
 def parse_variant(text: str) -> tuple[str, str, dict]:
@@ -564,6 +568,7 @@ def run_bench(
     for nthreads in threads:
         n = nthreads or available_cores()
         sessions = [RefinerSession(m.path, threads=n) for m in bench_models]
+        refiners = [s if m.fine_path is None else _cascade(s, m, n) for s, m in zip(sessions, bench_models)]
         torch_runners = {}
         if with_torch and any(m.torch_model is not None for m in bench_models):
             import torch
@@ -572,8 +577,8 @@ def run_bench(
             torch_runners = {i: TorchRefiner(m.torch_model, n) for i, m in enumerate(bench_models) if m.torch_model is not None}
         for batch in batches:
             image, boxes, q_in = synthetic_frame(batch)
-            runners = {("onnxruntime", i): (lambda s=s, K=frame_K(s): s.refine(image, boxes, q_in, K=K))
-                       for i, s in enumerate(sessions)}
+            runners = {("onnxruntime", i): (lambda s=s, K=frame_K(sessions[i]): s.refine(image, boxes, q_in, K=K))
+                       for i, s in enumerate(refiners)}
             if batch <= TORCH_MAX_BATCH:
                 runners.update({("torch", i): (lambda r=r: r.refine(image, boxes, q_in)) for i, r in torch_runners.items()})
             if probe is not None and costs:
@@ -607,6 +612,16 @@ def run_bench(
                 progress()
     _fill_ratios(rows)
     return rows
+
+
+def _cascade(coarse, m: BenchModel, threads: int):
+    """The :class:`refiner_rt.RefinerCascade` a cascade row times: with no gate it always runs coarse then fine;
+    with the widest gate (30 degrees) the fine refiner's result stands, the path of inputs already close."""
+    from refiner_rt.cascade import RefinerCascade
+    from refiner_rt.session import RefinerSession
+
+    fine = RefinerSession(m.fine_path, threads=threads)
+    return RefinerCascade(coarse, fine, gate_deg=None if m.cascade_path == "coarse" else 30.0)
 
 
 def _fill_roofline(row: BenchRow, cost: ModelCost, limits: MachineLimits) -> None:
@@ -716,6 +731,8 @@ def _roofline_inputs(bench_models, echo):
         return None, None
     costs = {}
     for i, m in enumerate(bench_models):
+        if m.fine_path is not None:
+            continue  # a cascade is several networks: no single-graph bound
         try:
             costs[i] = model_cost(m.path)
         except Exception as exc:  # onnx's shape inference on a graph it cannot follow: that row goes without a bound
@@ -913,6 +930,12 @@ def _shipped_models(selection) -> tuple[list, str]:
             if m.files.get("int8" if int8 else "fp32"):
                 path = m.path(int8=int8)  # labelled by file stem: 003_cracker_box.int8 and 003_cracker_box
                 out.append(BenchModel(path.stem, path, config=dict(m.config), weights="trained"))
+        if "fine" in m.stages and m.fine["files"].get("int8"):  # the cascade of the INT8 files, both of its paths
+            from refiner_rt.cascade import DEFAULT_FINE_VIEWS as v
+
+            for way, passes in (("fine", f"{v} passes"), ("coarse", f"{1 + 2 * v} passes")):
+                out.append(BenchModel(f"{m.object_id}.cascade.{way} ({passes})", m.path(int8=True), config=dict(m.config),
+                                      weights="trained", fine_path=m.path(int8=True, stage="fine"), cascade_path=way))
     if not chosen:
         return [], "no shipped model to time"
     ids = ", ".join(m.object_id for m in chosen)

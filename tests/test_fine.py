@@ -1,0 +1,44 @@
+"""benchmarks/fine.py and the cascade study: the card's numbers and the floor curve from error arrays, and the
+study's table, on arrays whose answers are known."""
+
+import json
+
+import numpy as np
+
+from bench_scripts import load_benchmark
+
+fine = load_benchmark("fine")
+
+
+def _errors():
+    rng = np.random.default_rng(0)
+    n = 300
+    inp = rng.uniform(0, 30, n)
+    return {"input": inp, "coarse": np.full(n, 3.0), "fine": inp * 0.5, "cascade": np.where(inp < 3, 1.0, 2.0),
+            "coarse@0": np.full(100, 2.5), "fine@0": np.full(100, 1.0), "cascade@0": np.full(100, 1.2),
+            "cascade_coarse_used": inp >= 3, "cascade@0_coarse_used": np.zeros(100, bool)}
+
+
+def test_summarise_gives_means_drift_small_inputs_and_the_floor_curve():
+    e = _errors()
+    s = fine.summarise(e)
+    assert s["n"] == 300 and s["input_0_3_n"] == int((e["input"] < 3).sum())
+    assert s["coarse"]["mean_deg"] == 3.0 and s["coarse"]["drift_mean_deg"] == 2.5
+    assert s["cascade"]["input_0_3_mean_deg"] == 1.0 and s["cascade"]["drift_mean_deg"] == 1.2
+    assert abs(s["cascade"]["coarse_used"] - np.mean(e["input"] >= 3)) < 1e-12
+    curve = s["fine"]["floor_curve"]
+    assert len(curve) == fine.FLOOR_BINS == len(s["floor_curve_n"]) and sum(s["floor_curve_n"]) == 300
+    for b, v in enumerate(curve):  # fine = input / 2: each bin's mean lies in [b / 2, (b + 1) / 2)
+        if v is not None:
+            assert b / 2 <= v < (b + 1) / 2
+    json.dumps(s)  # what the JSON stores
+
+
+def test_the_study_table_has_a_row_per_object_and_the_mean():
+    cascade = load_benchmark("studies/cascade/cascade")
+    s = fine.summarise(_errors())
+    doc = {"sets": {"fresh": {"label": "fresh renders, x", "objects": {"a": s, "b": s}, "pooled": s}}}
+    text = cascade.table(doc)
+    rows = [r for r in text.splitlines() if r.startswith("| fresh")]
+    assert len(rows) == 3 and "**mean of 2**" in rows[-1]
+    assert f"| 300 | 3.00 | {s['cascade']['mean_deg']:.2f} | 3.00 | 1.00 | 2.50 | 1.00 | 1.20 |" in rows[0]
