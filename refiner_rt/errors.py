@@ -6,7 +6,7 @@ __all__ = ["ModelError", "ModelNotFoundError", "TRAINING_INSTALL"]
 
 # What to do when a command of the training package (train, render, export, eval) runs where only the runtime is
 # installed: the wheel carries refiner_rt alone; training lives in the source checkout.
-TRAINING_INSTALL = ("the training package ships in the source checkout, not in the wheel: in a clone of refiner-rt, "
+TRAINING_INSTALL = ("it ships in the source checkout, not in the wheel: in a clone of refiner-rt, "
                     "pip install torch==2.13.0 && pip install -e '.[train]'")
 
 

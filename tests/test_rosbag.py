@@ -131,6 +131,32 @@ def test_a_bag_goes_through_track_bag_and_reads_back_with_the_refined_poses(tmp_
     assert len(dets) == 3 and len(dets[0][1].detections) == len(frames[0][2])
 
 
+def test_cascade_in_a_bag_refines_as_the_cascade_does(tmp_path):
+    from refiner_rt import RefinerCascade, pretrained_models
+
+    with_fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
+    if not with_fine:
+        pytest.skip("no fine refiner ships in this checkout")
+    bag = tmp_path / "in"
+    frames = write_bag(bag)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--mode", "refine", "--cascade"])
+    assert res.exit_code == 0, res.output
+    got = read_bag(out)
+    checked = 0
+    for i, (image, K, objects) in enumerate(frames):
+        for o in objects:
+            if o["object_id"] not in with_fine:
+                continue
+            (_, msg), = [m for m in got[pose_topic(o["object_id"])] if m[1].header.stamp.sec == 100 + i]
+            want = RefinerCascade.pretrained(o["object_id"]).refine(image, [o["box_xyxy"]], _q_in(o, i)[None],
+                                                                    K=K).q_refined[0]
+            q = msg.pose.orientation
+            assert rq.geodesic_angle(rq.from_xyzw(np.array([q.x, q.y, q.z, q.w])), want) < 0.05
+            checked += 1
+    assert checked
+
+
 def test_track_mode_follows_the_objects_from_the_first_pose(tmp_path):
     """Tracking: only the first frame's detections carry poses; every frame is the same image, so the tracker's
     rotations stay close to the truth."""
