@@ -671,6 +671,7 @@ def _fine() -> dict:
         out[obj] = {"files": d["files"], "version": d["fine_version"],
                     "card": {"fine_int8_mean_deg": round(d["eval"]["int8"]["all"]["mean_deg"], 3),
                              "fine_noise": d["noise"], "int8_scheme": d["export"]["int8_scheme"],
+                             "stages": [st["noise"] for st in d.get("stages", [])] or [d["noise"]],
                              "data": c["data"], "n": c["n"],
                              "cascade": {k: {m: (round(v, 3) if isinstance(v, float) else v)
                                              for m, v in c[k].items() if m != "floor_curve"}
@@ -716,12 +717,21 @@ def fine_markdown(fine: dict) -> str:
     lines = ["", "## Fine refiners and the cascade", "",
              "A fine refiner ships beside the coarse one for these objects (`<id>.fine.int8.onnx`, "
              "`RefinerSession.pretrained(obj, stage=\"fine\")`; `RefinerCascade.pretrained(obj)` runs both). Each "
-             f"continued the object's coarse model on inputs `{f0['fine_noise']}` degrees off "
-             "(`benchmarks/fine.py`). Measured through the runtime on the full frames of every instance in "
+             "continued the object's coarse model on small input errors only (`benchmarks/fine.py`): "
+             + ", then ".join(f"`{n}`" for n in f0["stages"]) + " degrees (`normal:0:3`: half-normal angles, a 3-degree "
+             "scale). Its INT8 file is scored on `" + f0["fine_noise"] + "` inputs. Measured through the runtime on the "
+             "full frames of every instance in "
              f"`{f0['data']}` (fresh renders no model trained on; one U(0, 30) input per instance, and the true pose "
              "for the drift), INT8, the cascade with its defaults (the fine refiner first, four views, the coarse "
              "refiner then the fine one when the fine correction exceeds 2 degrees):", "",
-             "| object | coarse: U(0, 30) | cascade: U(0, 30) | coarse: inputs 0-3 | cascade: inputs 0-3 | "
+             *fine_table(fine)]
+    return "\n".join(lines) + "\n"
+
+
+def fine_table(fine: dict) -> list[str]:
+    """The lines of the cascade's table (``models.json``'s ``fine`` entries): coarse and cascade per object, the
+    mean of the objects last."""
+    lines = ["| object | coarse: U(0, 30) | cascade: U(0, 30) | coarse: inputs 0-3 | cascade: inputs 0-3 | "
              "coarse: drift | cascade: drift | fine alone: drift | through the coarse refiner | instances |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     cols = []
@@ -736,7 +746,7 @@ def fine_markdown(fine: dict) -> str:
     if len(cols) > 1:
         mean = [np.mean([r[i] for r in cols if r[i] is not None]) for i in range(7)]
         lines.append(f"| **mean of {len(cols)}** | " + " | ".join(f"**{v:.2f}**" for v in mean) + " | | |")
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def _pct(x) -> str:

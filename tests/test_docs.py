@@ -100,6 +100,17 @@ def test_readme_tracking_code_runs_as_written(tmp_path):
     assert "q_tracked" in done.stdout
 
 
+@pytest.mark.skipif(not any("fine" in m.stages for m in pt.pretrained_models() if m.object_id == "003_cracker_box"),
+                    reason="the README's cascade example uses the cracker box's fine refiner, which does not ship here")
+def test_readme_cascade_code_runs_after_the_robot_code(tmp_path):
+    code = _readme_python_block() + _readme_python_block("## Below the floor") + (
+        "\nprint('cascade', res.q_refined, res.coarse_used, tracker.update(image, {'003_cracker_box': boxes[0]}))\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr
+    assert "cascade" in done.stdout
+
+
 def test_readme_example_uses_a_shipped_model_with_K():
     code = _readme_python_block()
     assert 'RefinerSession.pretrained("003_cracker_box"' in code and "K=K" in code
