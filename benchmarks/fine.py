@@ -75,35 +75,39 @@ def train_object(obj: str, data: Path, run: Path, cache: Path, samples: int, ext
 
 
 def runtime_errors(obj: str, coarse: Path, fine: Path, data: Path, seed: int = 2024, symmetric: bool = False,
-                   draws: int = 1, **cascade_kwargs) -> dict:
+                   draws: int = 1, gate: tuple | None = None) -> dict:
     """Per instance of ``obj`` in ``data`` (every one: ``visib_fract >= 0.3``, the box of the loader), through the
-    runtime on the full frames: the coarse refiner alone, the fine refiner alone (the cascade's views) and
-    :class:`refiner_rt.RefinerCascade`, from one U(0, 30) input per instance (``seed``) and from the true pose
-    (the drift). ``draws``: U(0, 30) inputs per instance (seeds ``seed``, ``seed + 1``...; the arrays hold them one
-    draw after the other). ``symmetric``: errors to the closest symmetric pose of ``models.data.objects``'
-    symmetries (the can's turns), as ``refiner-rt eval --all`` scores real frames. Returns the error arrays (degrees)
-    by key."""
+    runtime on the full frames: the coarse refiner alone, the fine refiner alone (the cascade's views), the coarse
+    refiner then the fine one, and :class:`refiner_rt.RefinerCascade` with gates ``gate`` (``(gate_deg,
+    coarse_gate_deg)``; default: the object's shipped gates), from U(0, 30) inputs and from the true pose
+    (the drift). The cascade's two paths are each run for every instance, so :func:`with_gate` gives the cascade of
+    any other gates from the same arrays; ``cascade`` here is the one of ``gate`` (exactly what
+    ``RefinerCascade.refine`` returns: the same calls). ``draws``: U(0, 30) inputs per instance (seeds ``seed``,
+    ``seed + 1``...; the arrays hold them one draw after the other). ``symmetric``: errors to the closest symmetric
+    pose of ``models.data.objects``' symmetries (the can's turns), as ``refiner-rt eval --all`` scores real frames.
+    Returns the error arrays (degrees) by key, and ``fine_move`` and ``coarse_move`` (``@0``): each refiner's
+    correction, degrees."""
     import cv2
 
     from models.noise import NoiseSpec, perturb
     from models.pipeline import load_splits
     from models.symmetry import symmetric_error
     from benchmarks.pretrained import SYMMETRIES
-    from refiner_rt import RefinerCascade, RefinerSession
+    from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
+    from refiner_rt.cascade import DEFAULT_FINE_VIEWS, shipped_gate
 
     samples = list(load_splits(whole_folder_spec(data, obj, "test")).test)
     q_gt = np.array([rq.from_matrix(s.R) for s in samples])
     q_ins = [perturb(q_gt, NoiseSpec.parse("uniform:0:30"), np.random.default_rng(seed + k))[0] for k in range(draws)]
     c_sess, f_sess = RefinerSession(coarse, threads=1), RefinerSession(fine, threads=1)
-    cascade = RefinerCascade(c_sess, f_sess, **cascade_kwargs)
+    views = DEFAULT_FINE_VIEWS
     by_image = defaultdict(list)
     for i, s in enumerate(samples):
         by_image[s.image_path].append(i)
     n = len(samples)
-    out = {k: np.zeros((n * (draws if "@" not in k else 1), 4))
-           for k in ("coarse", "fine", "cascade", "coarse@0", "fine@0", "cascade@0")}
-    used = {"cascade": np.zeros(n * draws, bool), "cascade@0": np.zeros(n, bool)}
+    out = {k + suffix: np.zeros((n * (draws if not suffix else 1), 4))
+           for k in ("coarse", "fine", "coarse_fine") for suffix in ("", "@0")}
     for path, idx in by_image.items():
         image = cv2.imread(path, cv2.IMREAD_COLOR)
         if image is None:
@@ -112,19 +116,54 @@ def runtime_errors(obj: str, coarse: Path, fine: Path, data: Path, seed: int = 2
         K = samples[idx[0]].K
         starts = [("", [i + k * n for i in idx], q_in[idx]) for k, q_in in enumerate(q_ins)] + [("@0", idx, q_gt[idx])]
         for suffix, rows, start in starts:
-            out["coarse" + suffix][rows] = c_sess.refine(image, boxes, start, K=K).q_refined
-            out["fine" + suffix][rows] = f_sess.refine(image, boxes, start, K=K, views=cascade.fine_views).q_refined
-            res = cascade.refine(image, boxes, start, K=K)
-            out["cascade" + suffix][rows], used["cascade" + suffix][rows] = res.q_refined, res.coarse_used
+            mid = c_sess.refine(image, boxes, start, K=K).q_refined
+            out["coarse" + suffix][rows] = mid
+            out["fine" + suffix][rows] = f_sess.refine(image, boxes, start, K=K, views=views).q_refined
+            out["coarse_fine" + suffix][rows] = f_sess.refine(image, boxes, mid, K=K, views=views).q_refined
     truth = {"": np.tile(q_gt, (draws, 1)), "@0": q_gt}
+    starts = {"": np.concatenate(q_ins), "@0": q_gt}
 
     def err(q, key):
         t = truth["@0" if "@" in key else ""]
         ids = np.array([obj] * len(t))
         return symmetric_error(q, t, ids, SYMMETRIES) if symmetric and obj in SYMMETRIES else rq.geodesic_angle(q, t)
 
-    return {"input": err(np.concatenate(q_ins), ""), **{k: err(v, k) for k, v in out.items()},
-            **{f"{k}_coarse_used": v for k, v in used.items()}}
+    e = {"input": err(starts[""], ""), **{k: err(v, k) for k, v in out.items()},
+         **{f"{k}_move{suffix}": rq.geodesic_angle(starts[suffix], out[k + suffix])
+            for k in ("fine", "coarse") for suffix in ("", "@0")}}
+    return with_gate(e, shipped_gate(obj) if gate is None else gate)
+
+
+def with_gate(e: dict, gate: tuple) -> dict:
+    """``e`` (:func:`runtime_errors`) with ``cascade``, ``cascade@0`` and their ``_coarse_used`` for the gates
+    ``(gate_deg, coarse_gate_deg)`` (either ``None``: no such check; ``gate_deg`` None: always the coarse refiner
+    then the fine one), as ``RefinerCascade`` picks its path."""
+    gate_deg, coarse_gate_deg = gate
+    out = dict(e)
+    for suffix in ("", "@0"):
+        n = len(e["fine" + suffix])
+        far = np.ones(n, bool) if gate_deg is None else e["fine_move" + suffix] > gate_deg
+        if gate_deg is not None and coarse_gate_deg is not None:
+            far |= e["coarse_move" + suffix] > coarse_gate_deg
+        out["cascade" + suffix] = np.where(far, e["coarse_fine" + suffix], e["fine" + suffix])
+        out[f"cascade{suffix}_coarse_used"] = far
+    out["gate"] = list(gate)
+    return out
+
+
+# The gates choose_gate weighs: the fine correction's and the coarse one's (degrees).
+GATES = tuple((g, c) for g in (1.0, 1.5, 2.0, 2.5, 3.0, 4.0) for c in (4.0, 6.0, 8.0, 12.0))
+
+
+def choose_gate(e: dict, gates=GATES) -> tuple[tuple, dict]:
+    """The gates of ``gates`` with the smallest mean of the cascade's U(0, 30) mean and its drift (the two things a
+    cascade is for, weighed alike), on :func:`runtime_errors`' arrays of scenes the card does not score:
+    ``((gate_deg, coarse_gate_deg), {gates: [U(0, 30) mean, drift]})``."""
+    scores = {}
+    for g in gates:
+        c = with_gate(e, g)
+        scores[g] = [float(c["cascade"].mean()), float(c["cascade@0"].mean())]
+    return min(gates, key=lambda g: sum(scores[g])), scores
 
 
 def summarise(e: dict) -> dict:
@@ -139,10 +178,49 @@ def summarise(e: dict) -> dict:
                   "input_0_3_mean_deg": float(e[k][small].mean()) if small.any() else None,
                   "floor_curve": [float(e[k][bins == b].mean()) if (bins == b).any() else None
                                   for b in range(FLOOR_BINS)]}
+    out["gate"] = e.get("gate")
     out["cascade"]["coarse_used"] = float(e["cascade_coarse_used"].mean())
     out["cascade"]["coarse_used_at_truth"] = float(e["cascade@0_coarse_used"].mean())
     out["floor_curve_n"] = [int((bins == b).sum()) for b in range(FLOOR_BINS)]
     return out
+
+
+def measure_cascade(obj: str, coarse: Path, fine: Path, heldout: Path, calibration: Path) -> tuple[dict, dict]:
+    """The object's gate, chosen on ``calibration`` (:func:`choose_gate`: rendered scenes the card does not score),
+    and the cascade with it on ``heldout`` (:func:`summarise`): ``(gate record, summary)``."""
+    gate, scores = choose_gate(runtime_errors(obj, coarse, fine, calibration, seed=7))
+    record = {"deg": gate[0], "coarse_deg": gate[1], "chosen_on": calibration.resolve().name, "seed": 7,
+              "scores": {f"{g[0]:g}/{g[1]:g}": {"mean_deg": round(v[0], 3), "drift_mean_deg": round(v[1], 3)}
+                         for g, v in scores.items()},
+              "rule": "the smallest mean of the cascade's U(0, 30) mean and its drift"}
+    return record, summarise(runtime_errors(obj, coarse, fine, heldout, gate=gate))
+
+
+def regate(obj: str, heldout: Path, calibration: Path, commit: bool) -> dict:
+    """Choose a shipped fine refiner's gate again (:func:`measure_cascade`) and rewrite its card entry."""
+    result = RESULTS_DIR / f"{obj}.json"
+    doc = json.loads(result.read_text())
+    coarse, fine = WEIGHTS_DIR / model_file_name(obj, True), WEIGHTS_DIR / doc["files"]["int8"]
+    t0 = time.perf_counter()
+    gate, cas = measure_cascade(obj, coarse, fine, heldout, calibration)
+    doc["gate"] = gate
+    doc["cascade"] = {**cas, "data": heldout.resolve().name, "seed": 2024, "coarse_file": coarse.name,
+                      "coarse_sha256": file_sha256(coarse)}
+    doc["gate_s"] = round(time.perf_counter() - t0, 1)
+    result.write_text(json.dumps(doc, indent=1) + "\n")
+    write_card()
+    c = cas
+    print(f"[{obj}] gates {gate['deg']:g}/{gate['coarse_deg']:g} deg (on {gate['chosen_on']}); U(0, 30): coarse {c['coarse']['mean_deg']:.2f} -> "
+          f"cascade {c['cascade']['mean_deg']:.2f}; drift {c['coarse']['drift_mean_deg']:.2f} -> "
+          f"{c['cascade']['drift_mean_deg']:.2f}", flush=True)
+    if commit:
+        _commit([result, WEIGHTS_DIR / INDEX_FILE, WEIGHTS_DIR / "MODELS.md", ROOT / "README.md",
+                 ROOT / "benchmarks" / "RESULTS.md"], regenerate=True,
+                message=f"{obj}: its cascade's gates chosen on other rendered scenes (fine {gate['deg']:g}, coarse "
+                f"{gate['coarse_deg']:g} deg); on fresh "
+                f"renders {c['cascade']['mean_deg']:.2f} deg from U(0, 30) (coarse alone {c['coarse']['mean_deg']:.2f}), "
+                f"a perfect pose moved {c['cascade']['drift_mean_deg']:.2f} (coarse {c['coarse']['drift_mean_deg']:.2f})")
+    return doc
 
 
 def ship_object(obj: str, run: Path, heldout: Path, calibration: Path, cache: Path, commit: bool) -> dict:
@@ -164,7 +242,7 @@ def ship_object(obj: str, run: Path, heldout: Path, calibration: Path, cache: Pa
     scheme, ev, tried = quantize_for_shipping(fp32, int8, *_fresh_quantization(fp32, obj, heldout, calibration, cache,
                                                                               noise=FINE_NOISE))
     coarse = WEIGHTS_DIR / model_file_name(obj, True)
-    cas = summarise(runtime_errors(obj, coarse, int8, heldout))
+    gate, cas = measure_cascade(obj, coarse, int8, heldout, calibration)
     coarse_meta = _metadata(coarse)
     card_meta = {"object_id": obj, "stage": "fine", "fine_version": FINE_VERSION,
                  "coarse_model": {"file": coarse.name, "sha256": file_sha256(coarse),
@@ -183,7 +261,7 @@ def ship_object(obj: str, run: Path, heldout: Path, calibration: Path, cache: Pa
            "files": {"int8": int8.name, "fp32": fp32.name}, "train": rec["train"], "stages": rec["stages"],
            "train_command": " && ".join(rec["commands"]), "noise": FINE_NOISE, "init_from": rec["init_from"],
            "export": {"max_abs_dq": exp.max_abs_dq, "int8_scheme": scheme, "int8_candidates": tried},
-           "eval": {**ev, "noise": FINE_NOISE}, "cascade": {**cas, "data": heldout.resolve().name, "seed": 2024,
+           "eval": {**ev, "noise": FINE_NOISE}, "gate": gate, "cascade": {**cas, "data": heldout.resolve().name, "seed": 2024,
                                                              "coarse_file": coarse.name,
                                                              "coarse_sha256": file_sha256(coarse)},
            "metadata": card_meta, "sizes_bytes": {"int8": int8.stat().st_size, "fp32": fp32.stat().st_size},
@@ -225,10 +303,20 @@ def main(argv=None) -> int:
     sh.add_argument("--objects", required=True, help="comma-separated YCB ids")
     sh.add_argument("--cache", type=Path, help="crop cache folder (default HELDOUT/.crops)")
     sh.add_argument("--commit", action="store_true", help="git-commit each shipped fine refiner as it is done")
+    g = sub.add_parser("gate", help="choose each shipped fine refiner's cascade gate again (on --calibration) and "
+                       "measure the cascade with it (on --heldout); the card follows")
+    g.add_argument("--heldout", type=Path, required=True, help="fresh rendered scenes (the card's ycb9_fresh_s21)")
+    g.add_argument("--calibration", type=Path, required=True, help="other fresh scenes: the gate is chosen on them")
+    g.add_argument("--objects", required=True, help="comma-separated YCB ids")
+    g.add_argument("--commit", action="store_true", help="git-commit each object's card entry")
     args = ap.parse_args(argv)
+    if args.cmd in ("ship", "gate") and args.heldout.resolve() == args.calibration.resolve():
+        ap.error("--calibration must be another folder than --heldout")
+    if args.cmd == "gate":
+        for obj in [o.strip() for o in args.objects.split(",") if o.strip()]:
+            regate(obj, args.heldout, args.calibration, args.commit)
+        return 0
     if args.cmd == "ship":
-        if args.heldout.resolve() == args.calibration.resolve():
-            ap.error("--calibration must be another folder than --heldout")
         for obj in [o.strip() for o in args.objects.split(",") if o.strip()]:
             ship_object(obj, args.run, args.heldout, args.calibration, args.cache or args.heldout / ".crops",
                         args.commit)

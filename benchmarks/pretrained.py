@@ -668,10 +668,12 @@ def _fine() -> dict:
         c = d["cascade"]
         if not coarse.is_file() or c.get("coarse_sha256") != file_sha256(coarse):
             continue
-        out[obj] = {"files": d["files"], "version": d["fine_version"],
+        out[obj] = {"files": d["files"], "version": d["fine_version"], "gate_deg": d.get("gate", {}).get("deg", 2.0),
+                    "coarse_gate_deg": d.get("gate", {}).get("coarse_deg", 8.0),
                     "card": {"fine_int8_mean_deg": round(d["eval"]["int8"]["all"]["mean_deg"], 3),
                              "fine_noise": d["noise"], "int8_scheme": d["export"]["int8_scheme"],
                              "stages": [st["noise"] for st in d.get("stages", [])] or [d["noise"]],
+                             "gate_on": d.get("gate", {}).get("chosen_on"),
                              "data": c["data"], "n": c["n"],
                              "cascade": {k: {m: (round(v, 3) if isinstance(v, float) else v)
                                              for m, v in c[k].items() if m != "floor_curve"}
@@ -722,8 +724,10 @@ def fine_markdown(fine: dict) -> str:
              "scale). Its INT8 file is scored on `" + f0["fine_noise"] + "` inputs. Measured through the runtime on the "
              "full frames of every instance in "
              f"`{f0['data']}` (fresh renders no model trained on; one U(0, 30) input per instance, and the true pose "
-             "for the drift), INT8, the cascade with its defaults (the fine refiner first, four views, the coarse "
-             "refiner then the fine one when the fine correction exceeds 2 degrees):", "",
+             "for the drift), INT8, the cascade as `RefinerCascade.pretrained` runs it (the fine refiner first, four "
+             "views, and the coarse refiner; the fine result where both corrections are within the object's gates, "
+             "else the fine refiner from the coarse one's result; the gates chosen on other rendered scenes, `"
+             + (f0.get("gate_on") or "?") + "`, for the smallest mean of the U(0, 30) mean and the drift):", "",
              *fine_table(fine)]
     return "\n".join(lines) + "\n"
 
@@ -732,8 +736,9 @@ def fine_table(fine: dict) -> list[str]:
     """The lines of the cascade's table (``models.json``'s ``fine`` entries): coarse and cascade per object, the
     mean of the objects last."""
     lines = ["| object | coarse: U(0, 30) | cascade: U(0, 30) | coarse: inputs 0-3 | cascade: inputs 0-3 | "
-             "coarse: drift | cascade: drift | fine alone: drift | through the coarse refiner | instances |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "coarse: drift | cascade: drift | fine alone: drift | gates: fine / coarse (deg) | through the coarse refiner | "
+             "instances |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     cols = []
     for obj, m in sorted(fine.items()):
         c = m["card"]["cascade"]
@@ -742,10 +747,11 @@ def fine_table(fine: dict) -> list[str]:
                c["fine"]["drift_mean_deg"]]
         cols.append(row)
         lines.append(f"| {obj} | " + " | ".join("-" if v is None else f"{v:.2f}" for v in row)
-                     + f" | {100 * c['cascade']['coarse_used']:.0f}% | {m['card']['n']} |")
+                     + f" | {m.get('gate_deg', 2.0):g} / {m.get('coarse_gate_deg', 8.0):g} | "
+                     f"{100 * c['cascade']['coarse_used']:.0f}% | {m['card']['n']} |")
     if len(cols) > 1:
         mean = [np.mean([r[i] for r in cols if r[i] is not None]) for i in range(7)]
-        lines.append(f"| **mean of {len(cols)}** | " + " | ".join(f"**{v:.2f}**" for v in mean) + " | | |")
+        lines.append(f"| **mean of {len(cols)}** | " + " | ".join(f"**{v:.2f}**" for v in mean) + " | | | |")
     return lines
 
 

@@ -513,8 +513,8 @@ class BenchModel:
     torch_model: object = None
     config: dict = field(default_factory=dict)
     weights: str = "random"
-    # a RefinerCascade row: the fine refiner's file and the path timed, "fine" (the gate holds: fine_views passes)
-    # or "coarse" (coarse then fine: 1 + 2 * fine_views passes)
+    # a RefinerCascade row: the fine refiner's file and the path timed, "fine" (the gate holds: 1 + fine_views
+    # passes) or "coarse" (coarse then fine: 1 + 2 * fine_views passes)
     fine_path: Path | None = None
     cascade_path: str | None = None
 
@@ -616,12 +616,13 @@ def run_bench(
 
 def _cascade(coarse, m: BenchModel, threads: int):
     """The :class:`refiner_rt.RefinerCascade` a cascade row times: with no gate it always runs coarse then fine;
-    with the widest gate (30 degrees) the fine refiner's result stands, the path of inputs already close."""
+    with the widest gates (30 degrees) the fine refiner's result stands, the path of inputs already close."""
     from refiner_rt.cascade import RefinerCascade
     from refiner_rt.session import RefinerSession
 
     fine = RefinerSession(m.fine_path, threads=threads)
-    return RefinerCascade(coarse, fine, gate_deg=None if m.cascade_path == "coarse" else 30.0)
+    wide = None if m.cascade_path == "coarse" else 30.0
+    return RefinerCascade(coarse, fine, gate_deg=wide, coarse_gate_deg=30.0)
 
 
 def _fill_roofline(row: BenchRow, cost: ModelCost, limits: MachineLimits) -> None:
@@ -933,7 +934,7 @@ def _shipped_models(selection) -> tuple[list, str]:
         if "fine" in m.stages and m.fine["files"].get("int8"):  # the cascade of the INT8 files, both of its paths
             from refiner_rt.cascade import DEFAULT_FINE_VIEWS as v
 
-            for way, passes in (("fine", f"{v} passes"), ("coarse", f"{1 + 2 * v} passes")):
+            for way, passes in (("fine", f"{1 + v} passes"), ("coarse", f"{1 + 2 * v} passes")):
                 out.append(BenchModel(f"{m.object_id}.cascade.{way} ({passes})", m.path(int8=True), config=dict(m.config),
                                       weights="trained", fine_path=m.path(int8=True, stage="fine"), cascade_path=way))
     if not chosen:

@@ -1,19 +1,23 @@
 """RefinerCascade: an object's coarse refiner and its fine refiner, run in turn, for results below the coarse floor.
 
 A coarse refiner corrects inputs up to 30 degrees off but has a floor: an input better than about 3 degrees comes
-out worse, and a perfect input is moved by 2-3 degrees. A fine refiner (``RefinerSession.pretrained(obj,
+out no better, and a perfect input is moved by 2-3 degrees. A fine refiner (``RefinerSession.pretrained(obj,
 stage="fine")``, ``benchmarks/fine.py``) is the same network trained further on inputs a few degrees off only; it is
-sharper there and useless far away. The cascade uses each where it is good:
+sharper there and blind far away (from an input 25 degrees off it may move by a degree or two). The cascade uses
+each where it is good:
 
-1. the fine refiner first, on every input, averaging ``fine_views`` box-jittered views (``RefinerSession.refine
-   (views=...)``): when its correction is at most ``gate_deg`` the input was already close, and that is the result
-   (a good input is not handed to the coarse refiner, which would move it by its floor);
-2. for the others (and the rows given in ``coarse``, e.g. a detector's pose), the coarse refiner from the input,
-   then the fine refiner from its output.
+1. both refiners look at every input: the coarse one (one pass) and the fine one (``fine_views`` averaged
+   box-jittered views, ``RefinerSession.refine(views=...)``);
+2. where the fine correction is at most ``gate_deg`` and the coarse one at most ``coarse_gate_deg``, the input was
+   already close: the fine result stands (a good input is not handed to the coarse refiner's floor; the coarse
+   refiner's verdict catches the far inputs the fine one cannot see);
+3. elsewhere (and for the rows given in ``coarse``, e.g. a detector's pose), the fine refiner from the coarse one's
+   result.
 
-Each step is one batched call per refiner. Cost per object: ``fine_views`` network passes when the gate holds,
-``1 + 2 * fine_views`` otherwise (``refiner-rt bench --cpu`` times it beside the single model). ``gate_deg=None``
-always runs coarse then fine. Safe across threads, as the sessions are (the cascade keeps no state).
+Each step is one batched call per refiner. Cost per object: ``1 + fine_views`` network passes when the gate holds,
+``1 + 2 * fine_views`` otherwise (``refiner-rt bench --cpu`` times both beside the single model). ``gate_deg=None``
+always runs coarse then fine. The shipped objects' gates were chosen on rendered scenes (:func:`shipped_gate`).
+Safe across threads, as the sessions are (the cascade keeps no state).
 
 Example:
     >>> cascade = RefinerCascade.pretrained("003_cracker_box")
@@ -31,14 +35,34 @@ from refiner_rt import quaternion as rq
 from refiner_rt.geometry import MAX_VIEWS
 from refiner_rt.session import RefineResult, RefinerSession
 
-__all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_FINE_VIEWS"]
+__all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_FINE_VIEWS",
+           "shipped_gate"]
 
-# The gate and the fine refiner's views, chosen on the cracker box's fresh renders (crops, fp32; benchmarks/fine.py):
-# a fine correction of at most 2 degrees means the input was within the fine refiner's sharp range (3 degrees let
-# inputs 10-20 degrees off through: 2.69 against 2.40 from U(0, 30)); four views took a sixth to a fifth off its
-# error from the true pose (1.25 -> 1.04, one view against four, before its second stage).
+# The defaults (benchmarks/fine.py chooses each shipped object's gates on rendered scenes the card does not score):
+# a fine correction of at most 2 degrees, and a coarse one of at most 8, mean the input was within the fine
+# refiner's sharp range; four views took a sixth to a fifth off the fine refiner's error from the true pose.
 DEFAULT_GATE_DEG = 2.0
+DEFAULT_COARSE_GATE_DEG = 8.0
 DEFAULT_FINE_VIEWS = 4
+
+
+def shipped_gate(object_id: str) -> tuple[float, float]:
+    """``(gate_deg, coarse_gate_deg)`` shipped with an object's fine refiner (``models.json``; chosen per object on
+    rendered scenes the card does not score, ``benchmarks/fine.py gate``), else the defaults."""
+    from refiner_rt.pretrained import pretrained_models
+
+    m = next((m for m in pretrained_models() if m.object_id == object_id), None)
+    fine = m.fine if m is not None else {}
+    return (float(fine.get("gate_deg", DEFAULT_GATE_DEG)),
+            float(fine.get("coarse_gate_deg", DEFAULT_COARSE_GATE_DEG)))
+
+
+def _check_gate(value, name: str) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and 0 < value <= 30):
+        raise ValueError(f"{name} must be a number of degrees in (0, 30], or None; got {value!r}")
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -56,17 +80,18 @@ class RefinerCascade:
     Args:
         coarse: the coarse :class:`RefinerSession` (inputs up to 30 degrees off).
         fine: the fine :class:`RefinerSession` of the same object (same crop contract).
-        gate_deg: accept the fine refiner's result alone when its correction is at most this many degrees; a number
-            in ``(0, 30]``, or ``None``: always coarse then fine.
+        gate_deg: the fine result stands where the fine correction is at most this many degrees (and the coarse one
+            at most ``coarse_gate_deg``); a number in ``(0, 30]``, or ``None``: always coarse then fine.
+        coarse_gate_deg: the coarse correction above which an input counts as far whatever the fine refiner says;
+            a number in ``(0, 30]``, or ``None``: no such check.
         fine_views: box-jittered views the fine refiner averages (``1`` to ``MAX_VIEWS``).
 
     Raises:
-        TypeError / ValueError: not sessions, sessions whose crop contracts differ, or a bad ``gate_deg`` /
-            ``fine_views``.
+        TypeError / ValueError: not sessions, sessions whose crop contracts differ, or a bad gate or ``fine_views``.
     """
 
     def __init__(self, coarse: RefinerSession, fine: RefinerSession, *, gate_deg: float | None = DEFAULT_GATE_DEG,
-                 fine_views: int = DEFAULT_FINE_VIEWS):
+                 coarse_gate_deg: float | None = DEFAULT_COARSE_GATE_DEG, fine_views: int = DEFAULT_FINE_VIEWS):
         for name, s in (("coarse", coarse), ("fine", fine)):
             if not isinstance(s, RefinerSession):
                 raise TypeError(f"{name} must be a RefinerSession; got {type(s).__name__}")
@@ -75,26 +100,26 @@ class RefinerCascade:
             raise ValueError("coarse and fine must cut the same crops: input_size, crop_context and rotation_frame "
                              f"differ ({a.input_size}, {a.crop_context}, {a.rotation_frame!r} against "
                              f"{b.input_size}, {b.crop_context}, {b.rotation_frame!r})")
-        if gate_deg is not None:
-            if isinstance(gate_deg, bool) or not isinstance(gate_deg, (int, float)) or not (
-                    math.isfinite(gate_deg) and 0 < gate_deg <= 30):
-                raise ValueError(f"gate_deg must be a number of degrees in (0, 30], or None; got {gate_deg!r}")
-            gate_deg = float(gate_deg)
+        gate_deg, coarse_gate_deg = _check_gate(gate_deg, "gate_deg"), _check_gate(coarse_gate_deg, "coarse_gate_deg")
         if type(fine_views) is not int or not 1 <= fine_views <= MAX_VIEWS:
             raise ValueError(f"fine_views must be an int in [1, {MAX_VIEWS}]; got {fine_views!r}")
         self.coarse, self.fine = coarse, fine
-        self.gate_deg, self.fine_views = gate_deg, fine_views
+        self.gate_deg, self.coarse_gate_deg, self.fine_views = gate_deg, coarse_gate_deg, fine_views
 
     @classmethod
     def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, **kwargs) -> "RefinerCascade":
         """The cascade of the refiners shipped for ``object_id`` (``refiner-rt models`` lists the objects with a
-        fine refiner). ``kwargs``: ``gate_deg`` and ``fine_views``.
+        fine refiner), with the gates chosen for that object (:func:`shipped_gate`). ``kwargs``: ``gate_deg``,
+        ``coarse_gate_deg`` and ``fine_views``.
 
         Raises:
             ValueError: no model, or no fine refiner, ships for ``object_id``.
         """
         coarse = RefinerSession.pretrained(object_id, int8=int8, threads=threads)
         fine = RefinerSession.pretrained(object_id, int8=int8, threads=threads, stage="fine")
+        gate, coarse_gate = shipped_gate(object_id)
+        kwargs.setdefault("gate_deg", gate)
+        kwargs.setdefault("coarse_gate_deg", coarse_gate)
         return cls(coarse, fine, **kwargs)
 
     @property
@@ -113,8 +138,8 @@ class RefinerCascade:
         Returns:
             :class:`CascadeResult`.
         """
-        first = self.fine.refine(image_bgr, boxes_xyxy, q_in_wxyz, K=K, views=self.fine_views, q_order=q_order, D=D)
-        n = len(first)
+        mid = self.coarse.refine(image_bgr, boxes_xyxy, q_in_wxyz, K=K, q_order=q_order, D=D)
+        n = len(mid)
         forced = np.zeros(n, dtype=bool)
         if coarse is not None:
             forced = np.asarray(coarse)
@@ -122,16 +147,26 @@ class RefinerCascade:
                 raise ValueError(f"coarse must be None or ({n},) bools, one per box; got "
                                  f"{'dtype ' + str(forced.dtype) if forced.dtype != bool else 'shape'} "
                                  f"{forced.shape}")
-        q_in, q = first.q_in, first.q_refined.copy()
-        far = forced | (True if self.gate_deg is None else rq.geodesic_angle(q_in, q) > self.gate_deg)
-        far = np.broadcast_to(far, (n,)).copy()
+        q_in = mid.q_in
+        if n == 0:
+            return CascadeResult(q_refined=q_in.copy(), q_out=q_in.copy(), q_in=q_in, coarse_used=forced)
+        boxes = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+        far = forced.copy() if self.gate_deg is not None else np.ones(n, dtype=bool)
+        q = np.zeros_like(q_in)
+        if not far.all():
+            first = self.fine.refine(image_bgr, boxes[~far], q_in[~far], K=K, views=self.fine_views, D=D).q_refined
+            near = rq.geodesic_angle(q_in[~far], first) <= self.gate_deg
+            if self.coarse_gate_deg is not None:
+                near &= rq.geodesic_angle(q_in[~far], mid.q_refined[~far]) <= self.coarse_gate_deg
+            rows = np.flatnonzero(~far)
+            q[rows[near]] = first[near]
+            far[rows[~near]] = True
         if far.any():
-            boxes = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)[far]
-            mid = self.coarse.refine(image_bgr, boxes, q_in[far], K=K, D=D)
-            q[far] = self.fine.refine(image_bgr, boxes, mid.q_refined, K=K, views=self.fine_views, D=D).q_refined
-        q_out = rq.canonical(rq.normalize(rq.multiply(rq.inverse(q_in), q))) if n else q.copy()
+            q[far] = self.fine.refine(image_bgr, boxes[far], mid.q_refined[far], K=K, views=self.fine_views,
+                                      D=D).q_refined
+        q_out = rq.canonical(rq.normalize(rq.multiply(rq.inverse(q_in), q)))
         return CascadeResult(q_refined=q, q_out=q_out, q_in=q_in, coarse_used=far)
 
     def __repr__(self) -> str:
         return (f"RefinerCascade(coarse={self.coarse.model_path}, fine={self.fine.model_path}, "
-                f"gate_deg={self.gate_deg}, fine_views={self.fine_views})")
+                f"gate_deg={self.gate_deg}, coarse_gate_deg={self.coarse_gate_deg}, fine_views={self.fine_views})")
