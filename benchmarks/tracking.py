@@ -21,8 +21,8 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
   network passes.
 
 * ``per_frame_cascade`` and ``track_cascade`` (``--methods``; they need every object's fine refiner): ``per_frame``
-  and ``track`` with :class:`refiner_rt.RefinerCascade` in place of the coarse refiner: the tracker refines from
-  frame to frame with the fine refiner and goes to the coarse one to start and where the fine correction is large.
+  and ``track`` with :class:`refiner_rt.RefinerCascade` in place of the coarse refiner (the tracker runs the coarse
+  refiner, then the fine one, on every update).
 
 Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
@@ -75,7 +75,7 @@ LABELS = {"hold": "(a) hold the initial coarse pose", "per_frame": "(b) refine e
           "track_lost": "(c) + loss-of-track check, detector only when lost",
           "track_fuse": "(c) + a detector's pose fused every N frames",
           "per_frame_cascade": "(b) with the cascade (coarse and fine refiners)",
-          "track_cascade": "(c) with the cascade: fine from frame to frame, coarse to start and recover"}
+          "track_cascade": "(c) with the cascade: coarse then fine on every update"}
 DIVERGED_DEG = 30.0
 
 
@@ -452,9 +452,9 @@ def main(argv: list[str] | None = None) -> int:
             if m in methods:  # detector poses per scored frame after the start (per_frame: one on every frame)
                 summary[m][str(st)]["detector_share"] = round(
                     detections.get(f"{m}_step{st}", 0) / summary[m][str(st)]["frames"], 4)
-    if "per_frame" in methods:
-        for st in steps:
-            summary["per_frame"][str(st)]["detector_share"] = 1.0
+    for m in ("per_frame", "per_frame_cascade"):
+        for st in steps if m in methods else []:
+            summary[m][str(st)]["detector_share"] = 1.0
     objects_table = {m: {str(st): {o: summarise(v) for o, v in sorted(per_object[m][st].items())} for st in steps}
                      for m in methods}
     # CPU time of this process (threads=1: the network's own time) is the cost; wall time also counts the waits

@@ -88,19 +88,17 @@ def test_bad_construction_and_arguments_are_named():
         RefinerCascade(coarse, fine).refine(IMAGE, BOXES, np.array([_wxyz(r) for r in Q_IN]), coarse=[1, 0])
 
 
-def test_the_tracker_starts_with_coarse_then_follows_with_fine():
+def test_the_tracker_runs_both_refiners_on_every_update():
+    """A tracker on a cascade sends every update through the coarse refiner, then the fine one (with the fine one
+    alone from frame to frame its small errors added up on rendered video)."""
     cascade = RefinerCascade(_session(COARSE), _session(SMALL))
     q0 = _wxyz(Q_IN[0])
     K = np.array([[500.0, 0, 32], [0, 500, 24], [0, 0, 1]])
-    tracker = RefinerTracker(cascade, K,
-                             {"003_cracker_box": q0})
+    tracker = RefinerTracker(cascade, K, {"003_cracker_box": q0})
     first = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]
-    assert _angle(first[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL]))[0] < 1e-6  # a coarse start
+    assert _angle(first[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL]))[0] < 1e-6
     second = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]
-    assert _angle(second[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL * SMALL]))[0] < 1e-6  # fine only
-    tracker.reset("003_cracker_box", q0)  # a detector's pose: coarse again
-    third = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]
-    assert _angle(third[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL]))[0] < 1e-6
+    assert _angle(second[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL * COARSE * SMALL]))[0] < 1e-6
 
 
 def test_the_shipped_cascade_where_a_fine_refiner_ships():
@@ -115,7 +113,7 @@ def test_the_shipped_cascade_where_a_fine_refiner_ships():
     samples = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples"
     doc = json.loads((samples / "samples.json").read_text())
     names = {m.object_id for m in with_fine}
-    checked = 0
+    near_err, far_err, far_used = [], [], []
     for f in doc["frames"]:
         image, K = cv2.imread(str(samples / f["file"])), np.array(f["K"])
         for o in f["objects"]:
@@ -124,10 +122,13 @@ def test_the_shipped_cascade_where_a_fine_refiner_ships():
             cascade = RefinerCascade.pretrained(o["object_id"])
             q_gt = np.array(o["q_gt_wxyz"])
             near = cascade.refine(image, [o["box_xyxy"]], q_gt[None], K=K)
-            far = cascade.refine(image, [o["box_xyxy"]], rq.multiply(q_gt, rq.from_axis_angle([1, 1, 0], 20.0))[None],
-                                 K=K)
-            assert far.coarse_used[0]  # the coarse refiner sees the far input
-            assert rq.geodesic_angle(near.q_refined, q_gt[None])[0] < 5.0
-            assert rq.geodesic_angle(far.q_refined, q_gt[None])[0] < 12.0  # from 20
-            checked += 1
-    assert checked
+            for axis in ([1, 1, 0], [0, 1, 1], [1, 0, 1]):
+                far = cascade.refine(image, [o["box_xyxy"]], rq.multiply(q_gt, rq.from_axis_angle(axis, 20.0))[None],
+                                     K=K)
+                far_err.append(rq.geodesic_angle(far.q_refined, q_gt[None])[0])
+                far_used.append(far.coarse_used[0])
+            near_err.append(rq.geodesic_angle(near.q_refined, q_gt[None])[0])
+    assert near_err
+    # a perfect input stays close; inputs 20 degrees off mostly go through the coarse refiner and come back
+    assert np.mean(near_err) < 2.0, near_err
+    assert np.mean(far_used) > 0.8 and np.mean(far_err) < 6.0, (far_used, far_err)

@@ -46,7 +46,8 @@ def measure(objects: list[str], folder: Path, draws: int, symmetric: bool) -> di
                            symmetric=symmetric)
         per[obj] = {**summarise(e), "wall_s": round(time.perf_counter() - t0, 1)}
         for k, v in e.items():
-            pooled.setdefault(k, []).append(v)
+            if isinstance(v, np.ndarray):  # the arrays; not the gates
+                pooled.setdefault(k, []).append(v)
         print(f"  {obj}: {per[obj]['n']} instances, coarse {per[obj]['coarse']['mean_deg']:.2f} -> cascade "
               f"{per[obj]['cascade']['mean_deg']:.2f}, drift {per[obj]['coarse']['drift_mean_deg']:.2f} -> "
               f"{per[obj]['cascade']['drift_mean_deg']:.2f} ({per[obj]['wall_s']:.0f} s)", flush=True)
