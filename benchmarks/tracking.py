@@ -477,7 +477,8 @@ def main(argv: list[str] | None = None) -> int:
                      f"deg of azimuth per scene) of {len(objects)} object(s); frames with visib_fract >= "
                      f"{args.min_visib} scored, sequences with >= {args.min_frames} such frames; coarse poses U(0, 30) deg "
                      f"around the truth, seed {args.seed}; one network pass per object and update (track_lost: two, and one more "
-                     f"per detector pose; track_fuse: one more per detector pose), threads=1"),
+                     f"per detector pose; track_fuse: one more per detector pose; the cascade: one coarse pass and four "
+                     f"fine views, four more where it goes through the coarse refiner), threads=1"),
         "data": str(args.data), "render_seed": render_record.get("seed"), "scenes": len(scenes),
         "sequences_per_object": {o: len(v) for o, v in sorted(per_object["hold"][steps[0]].items())},
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,

@@ -615,14 +615,14 @@ def run_bench(
 
 
 def _cascade(coarse, m: BenchModel, threads: int):
-    """The :class:`refiner_rt.RefinerCascade` a cascade row times: with no gate it always runs coarse then fine;
-    with the widest gates (30 degrees) the fine refiner's result stands, the path of inputs already close."""
+    """The :class:`refiner_rt.RefinerCascade` a cascade row times: with the widest gates (30 degrees) the fine
+    refiner's first result stands, the path of inputs already close (1 + fine_views passes); with a gate no correction
+    fits under, every input takes the long way (the fine refiner again from the coarse result: 1 + 2 * fine_views)."""
     from refiner_rt.cascade import RefinerCascade
     from refiner_rt.session import RefinerSession
 
     fine = RefinerSession(m.fine_path, threads=threads)
-    wide = None if m.cascade_path == "coarse" else 30.0
-    return RefinerCascade(coarse, fine, gate_deg=wide, coarse_gate_deg=30.0)
+    return RefinerCascade(coarse, fine, gate_deg=1e-9 if m.cascade_path == "coarse" else 30.0, coarse_gate_deg=30.0)
 
 
 def _fill_roofline(row: BenchRow, cost: ModelCost, limits: MachineLimits) -> None:
