@@ -23,7 +23,7 @@ from pathlib import Path
 from models.augment import PHOTOMETRIC_OPS
 
 __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_recipe", "check_masks",
-           "check_inplane_frame", "epoch_plan", "OBJECT_NAME_PATTERN",
+           "check_inplane_frame", "epoch_plan", "OBJECT_NAME_PATTERN", "object_names",
            "add_recipe_argument", "recipe_from_arguments"]
 
 SECTIONS = ("data", "model", "optimisation", "augmentation", "run")
@@ -450,14 +450,28 @@ def field_default(f) -> object:
     return f.default_factory() if f.default is MISSING else f.default
 
 
+def object_names(text: str) -> list[str]:
+    """Comma-separated object names (each :data:`OBJECT_NAME_PATTERN`): the one parser of ``--objects`` lists.
+
+    Raises:
+        ValueError: an empty list or a name with other characters, the text quoted.
+    """
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    if not names or not all(OBJECT_NAME_PATTERN.match(n) for n in names):
+        raise ValueError(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, digits, "
+                         f"_ + -); got {text!r}")
+    return names
+
+
 def _comma_names(text: str) -> list[str]:
     import argparse
 
-    names = list(_expand(["paper"])) if text.strip() == "paper" else [v.strip() for v in text.split(",") if v.strip()]
-    if not names or not all(OBJECT_NAME_PATTERN.match(n) for n in names):
-        raise argparse.ArgumentTypeError(f"expected object names like 002_master_chef_can,003_cracker_box or 'paper'; "
-                                         f"got {text!r}")
-    return names
+    if text.strip() == "paper":
+        return list(_expand(["paper"]))
+    try:
+        return object_names(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (or 'paper')") from None
 
 
 def parse_json_object(text: str) -> dict:

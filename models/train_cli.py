@@ -23,7 +23,7 @@ from pathlib import Path
 import click
 
 from models.augment import PHOTOMETRIC_OPS
-from models.recipe import (NAMED_RECIPES, OBJECT_NAME_PATTERN, SECTIONS, RecipeError, TrainRecipe, field_default,
+from models.recipe import (NAMED_RECIPES, SECTIONS, RecipeError, TrainRecipe, field_default, object_names,
                            load_recipe, parse_json_object)
 from models.training import write_logs  # noqa: F401  (re-exported: the epoch logs of a run)
 
@@ -45,12 +45,10 @@ def _names(ctx, param, value):
     """Comma-separated object names (YCB ids, your own objects' names; ``paper`` for the paper's nine)."""
     if not value:
         return None
-    names = [v.strip() for v in value.split(",") if v.strip()]
-    bad = [n for n in names if not OBJECT_NAME_PATTERN.match(n)]
-    if bad or not names:
-        raise click.BadParameter(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, "
-                                 f"digits, _ . + -); got {value!r}")
-    return names
+    try:
+        return object_names(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
 
 
 def _json_config(ctx, param, value):

@@ -39,14 +39,12 @@ def default_models_dir() -> Path:
 def _objects_option(ctx, param, value):
     if not value:
         return None
-    from models.recipe import OBJECT_NAME_PATTERN
+    from models.recipe import object_names
 
-    ids = tuple(v.strip() for v in value.split(",") if v.strip())
-    bad = [i for i in ids if not OBJECT_NAME_PATTERN.match(i)]
-    if bad or not ids:
-        raise click.BadParameter(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, "
-                                 f"digits, _ + -); got {value!r}")
-    return ids
+    try:
+        return tuple(object_names(value))
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
 
 
 def _camera_option(ctx, param, value):
