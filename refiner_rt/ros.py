@@ -228,8 +228,12 @@ class RosRefiner:
         """The refined poses of one frame (its image, its camera's ``CameraInfo`` and its detections)."""
         image = image_from_msg(image_msg)
         K, D = camera_from_info(info_msg, self.rectified)
-        dets = [d for d in detections_from_msg(detections_msg, self.class_map)
-                if self._model(d.object_id) is not None or self._skip(d.object_id)]
+        dets = []
+        for d in detections_from_msg(detections_msg, self.class_map):
+            if self._model(d.object_id) is None:
+                self._skip(d.object_id)  # no refiner for this class
+            else:
+                dets.append(d)
         if self.mode == "refine":
             return self._refine(image, K, D, dets)
         return self._track(image, K, D, dets)
