@@ -189,6 +189,27 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
     return out
 
 
+def _cascades(sessions: dict, int8: bool, threads: int) -> dict:
+    """``--cascade``: each object's shipped :class:`refiner_rt.RefinerCascade` in place of its coarse session (the
+    session kept where no fine refiner ships, or where an ``--model`` file serves the object)."""
+    from refiner_rt.cascade import RefinerCascade
+    from refiner_rt.pretrained import WEIGHTS_DIR, pretrained_models
+    from refiner_rt.tracker import _object_name
+
+    with_fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
+    out, built = {}, {}
+    for object_id, sess in sessions.items():
+        name = _object_name(object_id)
+        shipped = sess.model_path is not None and Path(sess.model_path).parent == WEIGHTS_DIR
+        if name in with_fine and shipped:
+            if name not in built:
+                built[name] = RefinerCascade.pretrained(name, int8=int8, threads=threads)
+            out[object_id] = built[name]
+        else:
+            out[object_id] = sess
+    return out
+
+
 @click.command("track")
 @click.argument("frames", type=click.Path(exists=True, file_okay=False, path_type=Path), required=False)
 @click.argument("detections", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=False)
@@ -202,8 +223,8 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
 @click.option("--mode", type=click.Choice(["track", "refine"]), default="track", show_default=True,
               help="With --bag: track (a detection's pose starts an object, later frames refine from the previous "
                    "result) or refine (every detection with a pose refined from it).")
-@click.option("--cascade", is_flag=True, help="With --bag: each object's coarse and fine refiners in turn "
-              "(RefinerCascade) where a fine refiner ships.")
+@click.option("--cascade", is_flag=True, help="Each object's coarse and fine refiners in turn (RefinerCascade) where "
+              "a fine refiner ships: five to nine network passes per object and frame instead of one.")
 @click.option("--rectified", is_flag=True, help="With --bag: the image topic is rectified: K from CameraInfo.p, "
               "no distortion.")
 @click.option("--image-topic", help="With --bag: the image topic (default: the bag's one Image or CompressedImage "
@@ -250,7 +271,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     """
     from refiner_rt.tracker import RefinerTracker
 
-    bag_only = {"--mode": mode != "track", "--cascade": cascade, "--rectified": rectified,
+    bag_only = {"--mode": mode != "track", "--rectified": rectified,
                 "--image-topic": image_topic, "--info-topic": info_topic, "--detections-topic": detections_topic,
                 "--class-map": class_map}
     if bag is not None:
@@ -295,7 +316,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     object_ids = sorted({o for d in dets.values() for o in d})
     try:
         sessions = _sessions(object_ids, models, int8=not fp32, threads=threads)
-        tracker = RefinerTracker(sessions, K, {}, predict=predict, iterations=iterations, lost_deg=lost_deg,
+        refiners = _cascades(sessions, int8=not fp32, threads=threads) if cascade else sessions
+        tracker = RefinerTracker(refiners, K, {}, predict=predict, iterations=iterations, lost_deg=lost_deg,
                                  detector_weight=detector_weight)
     except (ValueError, TypeError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
@@ -341,6 +363,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         "K": K.tolist(), "predict": predict, "iterations": iterations, "lost_deg": lost_deg,
         "detector_weight": detector_weight,
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
+        "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},
         "frames": results,
         "lost": lost,  # frame -> objects the loss-of-track check flagged there (empty without --lost-deg)
     }, indent=1))

@@ -132,3 +132,37 @@ def test_the_shipped_cascade_where_a_fine_refiner_ships():
     # a perfect input stays close; inputs 20 degrees off mostly go through the coarse refiner and come back
     assert np.mean(near_err) < 2.0, near_err
     assert np.mean(far_used) > 0.8 and np.mean(far_err) < 6.0, (far_used, far_err)
+
+
+def test_track_cli_with_cascade_runs_both_refiners(tmp_path):
+    with_fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
+    if "003_cracker_box" not in with_fine:
+        pytest.skip("the cracker box's fine refiner does not ship in this checkout")
+    import json
+    import shutil
+    from pathlib import Path
+
+    import cv2
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    samples = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples"
+    doc = json.loads((samples / "samples.json").read_text())
+    f = next(f for f in doc["frames"] if any(o["object_id"] == "003_cracker_box" for o in f["objects"]))
+    o = next(o for o in f["objects"] if o["object_id"] == "003_cracker_box")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    shutil.copy(samples / f["file"], frames / "000000.jpg")
+    q0 = rq.multiply(np.array(o["q_gt_wxyz"]), rq.from_axis_angle([0, 1, 1], 10.0))
+    dets = tmp_path / "dets.json"
+    dets.write_text(json.dumps({"K": f["K"], "frames": {"000000.jpg": {"003_cracker_box": {
+        "box": o["box_xyxy"], "q": q0.tolist()}}}}))
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json"), "--cascade"])
+    assert res.exit_code == 0, res.output
+    out = json.loads((tmp_path / "r.json").read_text())
+    got = np.array(out["frames"]["000000.jpg"]["003_cracker_box"])
+    image = cv2.imread(str(frames / "000000.jpg"))
+    want = RefinerCascade.pretrained("003_cracker_box").refine(image, [o["box_xyxy"]], q0[None], K=np.array(f["K"]),
+                                                                coarse=np.array([True])).q_refined[0]
+    assert rq.geodesic_angle(got, want) < 1e-6 and "003_cracker_box" in out["cascade"]
