@@ -42,3 +42,28 @@ def test_the_study_table_has_a_row_per_object_and_the_mean():
     rows = [r for r in text.splitlines() if r.startswith("| fresh")]
     assert len(rows) == 3 and "**mean of 2**" in rows[-1]
     assert f"| 300 | 3.00 | {s['cascade']['mean_deg']:.2f} | 3.00 | 1.00 | 2.50 | 1.00 | 1.20 |" in rows[0]
+
+
+def test_with_gate_picks_the_path_as_the_cascade_does():
+    """The fine result where the fine correction is within gate_deg and the coarse one within coarse_gate_deg, the
+    coarse-then-fine result elsewhere; no gate: always coarse then fine (RefinerCascade.refine's rule)."""
+    e = {"fine": np.array([1.0, 1.0, 1.0]), "coarse_fine": np.array([2.0, 2.0, 2.0]),
+         "fine_move": np.array([0.5, 3.0, 0.5]), "coarse_move": np.array([1.0, 1.0, 20.0]),
+         "fine@0": np.array([0.1]), "coarse_fine@0": np.array([0.9]), "fine_move@0": np.array([0.2]),
+         "coarse_move@0": np.array([2.0])}
+    c = fine.with_gate(e, (2.0, 8.0))
+    assert c["cascade"].tolist() == [1.0, 2.0, 2.0] and c["cascade_coarse_used"].tolist() == [False, True, True]
+    assert c["cascade@0"].tolist() == [0.1] and c["gate"] == [2.0, 8.0]
+    assert fine.with_gate(e, (2.0, None))["cascade"].tolist() == [1.0, 2.0, 1.0]  # no coarse check
+    assert fine.with_gate(e, (None, 8.0))["cascade"].tolist() == [2.0, 2.0, 2.0]  # no gate: always the long way
+
+
+def test_choose_gate_weighs_the_mean_and_the_drift_alike():
+    n = 100
+    rng = np.random.default_rng(1)
+    e = {"fine": np.full(n, 5.0), "coarse_fine": np.full(n, 3.0), "fine_move": rng.uniform(0, 4, n),
+         "coarse_move": rng.uniform(0, 10, n), "fine@0": np.full(n, 0.5), "coarse_fine@0": np.full(n, 2.0),
+         "fine_move@0": rng.uniform(0, 4, n), "coarse_move@0": rng.uniform(0, 10, n)}
+    gate, scores = fine.choose_gate(e)
+    assert gate in fine.GATES and set(scores) == set(fine.GATES)
+    assert sum(scores[gate]) == min(sum(v) for v in scores.values())
