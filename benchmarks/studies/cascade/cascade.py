@@ -34,8 +34,9 @@ from benchmarks.study_cli import write_json  # noqa: E402
 STAGES = ("coarse", "fine", "cascade")
 
 
-def measure(objects: list[str], folder: Path, draws: int, symmetric: bool) -> dict:
-    """Per object and pooled over objects (instances weighted alike): :func:`benchmarks.fine.summarise`."""
+def measure(objects: list[str], folder: Path, draws: int, symmetric: bool, gates: dict | None = None) -> dict:
+    """Per object and pooled over objects (instances weighted alike): :func:`benchmarks.fine.summarise`. ``gates``:
+    ``{object: (gate_deg, coarse_gate_deg)}`` in place of the shipped ones."""
     from refiner_rt.pretrained import pretrained_model
 
     per, pooled = {}, {}
@@ -43,7 +44,7 @@ def measure(objects: list[str], folder: Path, draws: int, symmetric: bool) -> di
         m = pretrained_model(obj)
         t0 = time.perf_counter()
         e = runtime_errors(obj, m.path(int8=True), m.path(int8=True, stage="fine"), folder, draws=draws,
-                           symmetric=symmetric)
+                           symmetric=symmetric, gate=(gates or {}).get(obj))
         per[obj] = {**summarise(e), "wall_s": round(time.perf_counter() - t0, 1)}
         for k, v in e.items():
             if isinstance(v, np.ndarray):  # the arrays; not the gates
@@ -115,6 +116,8 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", help="comma-separated YCB ids (default: every object with a fine refiner)")
     ap.add_argument("--draws", type=int, default=1, help="U(0, 30) inputs per rendered instance (default 1)")
     ap.add_argument("--real-draws", type=int, default=10, help="U(0, 30) inputs per real instance (default 10)")
+    ap.add_argument("--gate-on", type=Path, metavar="FOLDER", help="choose each object's gates on this folder of "
+                    "rendered scenes (fine.py's rule) instead of using the shipped ones")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--table", type=Path, metavar="JSON", help="print the Markdown table of a results file and stop")
@@ -132,6 +135,18 @@ def main(argv=None) -> int:
     if args.fresh is None and args.real is None:
         ap.error("give --fresh and/or --real")
     t0 = time.perf_counter()
+    gates = None
+    if args.gate_on is not None:
+        from benchmarks.fine import choose_gate
+        from refiner_rt.pretrained import pretrained_model
+
+        gates = {}
+        for obj in objects:
+            m = pretrained_model(obj)
+            gates[obj], _ = choose_gate(runtime_errors(obj, m.path(int8=True), m.path(int8=True, stage="fine"),
+                                                       args.gate_on, seed=7))
+            print(f"  {obj}: gates {gates[obj][0]:g} / {gates[obj][1]:g} deg, chosen on {_data_name(args.gate_on)}",
+                  flush=True)
     sets = {}
     for folder, draws, real in ((args.fresh, args.draws, False), (args.real, args.real_draws, True)):
         if folder is None:
@@ -139,8 +154,10 @@ def main(argv=None) -> int:
         name = _data_name(folder)
         print(f"{name}:", flush=True)
         sets[name] = {"label": ("real frames, " if real else "fresh renders, ") + name, "draws": draws,
-                      "real": real, **measure(objects, folder, draws, symmetric=real)}
-    doc = {"objects": objects, "sets": sets, "floor_bins_deg": 1, "wall_s": round(time.perf_counter() - t0, 1)}
+                      "real": real, **measure(objects, folder, draws, symmetric=real, gates=gates)}
+    doc = {"objects": objects, "sets": sets, "floor_bins_deg": 1, "wall_s": round(time.perf_counter() - t0, 1),
+           "gates": "shipped" if gates is None else {"chosen_on": _data_name(args.gate_on),
+                                                     **{o: list(g) for o, g in gates.items()}}}
     print(table(doc))
     if args.json:
         write_json(args.json, doc)
