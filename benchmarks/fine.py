@@ -138,13 +138,11 @@ def with_gate(e: dict, gate: tuple) -> dict:
     """``e`` (:func:`runtime_errors`) with ``cascade``, ``cascade@0`` and their ``_coarse_used`` for the gates
     ``(gate_deg, coarse_gate_deg)`` (either ``None``: no such check; ``gate_deg`` None: always the coarse refiner
     then the fine one), as ``RefinerCascade`` picks its path."""
-    gate_deg, coarse_gate_deg = gate
+    from refiner_rt.cascade import long_way
+
     out = dict(e)
     for suffix in ("", "@0"):
-        n = len(e["fine" + suffix])
-        far = np.ones(n, bool) if gate_deg is None else e["fine_move" + suffix] > gate_deg
-        if gate_deg is not None and coarse_gate_deg is not None:
-            far |= e["coarse_move" + suffix] > coarse_gate_deg
+        far = long_way(e["fine_move" + suffix], e["coarse_move" + suffix], *gate)
         out["cascade" + suffix] = np.where(far, e["coarse_fine" + suffix], e["fine" + suffix])
         out[f"cascade{suffix}_coarse_used"] = far
     out["gate"] = list(gate)

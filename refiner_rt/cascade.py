@@ -36,7 +36,7 @@ from refiner_rt.geometry import MAX_VIEWS
 from refiner_rt.session import RefineResult, RefinerSession
 
 __all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_FINE_VIEWS",
-           "shipped_gate"]
+           "shipped_gate", "long_way"]
 
 # The defaults (benchmarks/fine.py chooses each shipped object's gates on rendered scenes the card does not score):
 # a fine correction of at most 2 degrees, and a coarse one of at most 8, mean the input was within the fine
@@ -55,6 +55,18 @@ def shipped_gate(object_id: str) -> tuple[float, float]:
     fine = m.fine if m is not None else {}
     return (float(fine.get("gate_deg", DEFAULT_GATE_DEG)),
             float(fine.get("coarse_gate_deg", DEFAULT_COARSE_GATE_DEG)))
+
+
+def long_way(fine_move, coarse_move, gate_deg: float | None, coarse_gate_deg: float | None) -> np.ndarray:
+    """The cascade's path rule, the one definition: which inputs go the long way (the fine refiner again from the
+    coarse result), from each refiner's correction of the input (degrees). ``gate_deg`` None: all of them."""
+    fine_move = np.asarray(fine_move, dtype=np.float64)
+    if gate_deg is None:
+        return np.ones(fine_move.shape, dtype=bool)
+    far = fine_move > gate_deg
+    if coarse_gate_deg is not None:
+        far |= np.asarray(coarse_move, dtype=np.float64) > coarse_gate_deg
+    return far
 
 
 def _check_gate(value, name: str) -> float | None:
@@ -155,9 +167,8 @@ class RefinerCascade:
         q = np.zeros_like(q_in)
         if not far.all():
             first = self.fine.refine(image_bgr, boxes[~far], q_in[~far], K=K, views=self.fine_views, D=D).q_refined
-            near = rq.geodesic_angle(q_in[~far], first) <= self.gate_deg
-            if self.coarse_gate_deg is not None:
-                near &= rq.geodesic_angle(q_in[~far], mid.q_refined[~far]) <= self.coarse_gate_deg
+            near = ~long_way(rq.geodesic_angle(q_in[~far], first), rq.geodesic_angle(q_in[~far], mid.q_refined[~far]),
+                             self.gate_deg, self.coarse_gate_deg)
             rows = np.flatnonzero(~far)
             q[rows[near]] = first[near]
             far[rows[~near]] = True
