@@ -12,12 +12,12 @@ __version__ = "0.1.0"
 from refiner_rt.errors import ModelError, ModelNotFoundError
 
 __all__ = ["ModelError", "ModelNotFoundError", "RefinerSession", "RefineResult", "RefinerCascade", "RefinerTracker",
-           "quaternion", "pretrained_models", "__version__"]
+           "SETTLE_DEG", "quaternion", "pretrained_models", "__version__"]
 
 
 def __getattr__(name):
     # Lazy: `import refiner_rt.quaternion` (used by training code) need not load onnxruntime.
-    if name in ("RefinerSession", "RefineResult"):
+    if name in ("RefinerSession", "RefineResult", "SETTLE_DEG"):
         from refiner_rt import session
 
         return getattr(session, name)

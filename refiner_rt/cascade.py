@@ -12,10 +12,14 @@ each where it is good:
    already close: the fine result stands (a good input is not handed to the coarse refiner's floor; the coarse
    refiner's verdict catches the far inputs the fine one cannot see);
 3. elsewhere (and for the rows given in ``coarse``, e.g. a detector's pose), the fine refiner from the coarse one's
-   result.
+   result; with ``settle_deg``, the coarse refiner first runs a second pass on those rows, kept where it turns the
+   result by more than ``settle_deg`` (``RefinerSession.refine(settle_deg=...)``: a coarse pose 30-60 degrees off,
+   beyond the range the coarse refiner trained on, is brought within the fine refiner's range; README, "Coarse poses
+   far off").
 
 Each step is one batched call per refiner. Cost per object: ``1 + fine_views`` network passes when the gate holds,
-``1 + 2 * fine_views`` otherwise (``refiner-rt bench --cpu`` times both beside the single model). ``gate_deg=None``
+``1 + 2 * fine_views`` otherwise, and one more with ``settle_deg`` (``refiner-rt bench --cpu`` times both beside the
+single model). ``gate_deg=None``
 always runs coarse then fine. The shipped objects' gates were chosen on rendered scenes (:func:`shipped_gate`).
 Safe across threads, as the sessions are (the cascade keeps no state).
 
@@ -33,7 +37,7 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import MAX_VIEWS
-from refiner_rt.session import RefineResult, RefinerSession
+from refiner_rt.session import RefineResult, RefinerSession, _validate_settle
 
 __all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_FINE_VIEWS",
            "shipped_gate", "long_way"]
@@ -97,13 +101,17 @@ class RefinerCascade:
         coarse_gate_deg: the coarse correction above which an input counts as far whatever the fine refiner says;
             a number in ``(0, 30]``, or ``None``: no such check.
         fine_views: box-jittered views the fine refiner averages (``1`` to ``MAX_VIEWS``).
+        settle_deg: on the long way, a second coarse pass, kept where it turns the coarse result by more than this
+            many degrees (:data:`refiner_rt.session.SETTLE_DEG` is the measured value): for coarse poses that may be
+            more than 30 degrees off. A number in ``(0, 180]``, or None (default): one coarse pass.
 
     Raises:
         TypeError / ValueError: not sessions, sessions whose crop contracts differ, or a bad gate or ``fine_views``.
     """
 
     def __init__(self, coarse: RefinerSession, fine: RefinerSession, *, gate_deg: float | None = DEFAULT_GATE_DEG,
-                 coarse_gate_deg: float | None = DEFAULT_COARSE_GATE_DEG, fine_views: int = DEFAULT_FINE_VIEWS):
+                 coarse_gate_deg: float | None = DEFAULT_COARSE_GATE_DEG, fine_views: int = DEFAULT_FINE_VIEWS,
+                 settle_deg: float | None = None):
         for name, s in (("coarse", coarse), ("fine", fine)):
             if not isinstance(s, RefinerSession):
                 raise TypeError(f"{name} must be a RefinerSession; got {type(s).__name__}")
@@ -117,12 +125,13 @@ class RefinerCascade:
             raise ValueError(f"fine_views must be an int in [1, {MAX_VIEWS}]; got {fine_views!r}")
         self.coarse, self.fine = coarse, fine
         self.gate_deg, self.coarse_gate_deg, self.fine_views = gate_deg, coarse_gate_deg, fine_views
+        self.settle_deg = None if settle_deg is None else _validate_settle(settle_deg)
 
     @classmethod
     def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, **kwargs) -> "RefinerCascade":
         """The cascade of the refiners shipped for ``object_id`` (``refiner-rt models`` lists the objects with a
         fine refiner), with the gates chosen for that object (:func:`shipped_gate`). ``kwargs``: ``gate_deg``,
-        ``coarse_gate_deg`` and ``fine_views``.
+        ``coarse_gate_deg``, ``fine_views`` and ``settle_deg``.
 
         Raises:
             ValueError: no model, or no fine refiner, ships for ``object_id``.
@@ -173,11 +182,16 @@ class RefinerCascade:
             q[rows[near]] = first[near]
             far[rows[~near]] = True
         if far.any():
-            q[far] = self.fine.refine(image_bgr, boxes[far], mid.q_refined[far], K=K, views=self.fine_views,
-                                      D=D).q_refined
+            start = mid.q_refined[far]
+            if self.settle_deg is not None:  # RefinerSession.refine(iterations=2, settle_deg=...) from mid's pass
+                again = self.coarse.refine(image_bgr, boxes[far], start, K=K, D=D).q_refined
+                moved = rq.geodesic_angle(start, again) > self.settle_deg
+                start[moved] = again[moved]
+            q[far] = self.fine.refine(image_bgr, boxes[far], start, K=K, views=self.fine_views, D=D).q_refined
         q_out = rq.canonical(rq.normalize(rq.multiply(rq.inverse(q_in), q)))
         return CascadeResult(q_refined=q, q_out=q_out, q_in=q_in, coarse_used=far)
 
     def __repr__(self) -> str:
         return (f"RefinerCascade(coarse={self.coarse.model_path}, fine={self.fine.model_path}, "
-                f"gate_deg={self.gate_deg}, coarse_gate_deg={self.coarse_gate_deg}, fine_views={self.fine_views})")
+                f"gate_deg={self.gate_deg}, coarse_gate_deg={self.coarse_gate_deg}, fine_views={self.fine_views}, "
+                f"settle_deg={self.settle_deg})")

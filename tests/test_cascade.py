@@ -60,6 +60,20 @@ def test_a_large_coarse_correction_overrules_a_small_fine_one():
     assert not res.coarse_used.any() and _angle(res.q_refined, Q_IN * SMALL).max() < 1e-6
 
 
+def test_settle_deg_runs_a_second_coarse_pass_on_the_long_way_kept_where_it_turns_by_more():
+    """With settle_deg the coarse refiner runs twice on the long way (a 12-degree pass is kept at 8, not at 15), then
+    the fine refiner; rows where the fine result stands are not touched."""
+    q = np.array([_wxyz(r) for r in Q_IN])
+    res = RefinerCascade(_session(FAR), _session(SMALL), settle_deg=8.0).refine(IMAGE, BOXES, q)
+    assert res.coarse_used.all() and _angle(res.q_refined, Q_IN * FAR * FAR * SMALL).max() < 1e-6
+    res = RefinerCascade(_session(FAR), _session(SMALL), settle_deg=15.0).refine(IMAGE, BOXES, q)
+    assert _angle(res.q_refined, Q_IN * FAR * SMALL).max() < 1e-6
+    res = RefinerCascade(_session(COARSE), _session(SMALL), settle_deg=1.0).refine(IMAGE, BOXES, q)
+    assert not res.coarse_used.any() and _angle(res.q_refined, Q_IN * SMALL).max() < 1e-6
+    with pytest.raises(ValueError, match="settle_deg must be"):
+        RefinerCascade(_session(FAR), _session(SMALL), settle_deg=0)
+
+
 def test_forced_rows_and_no_gate():
     q = np.array([_wxyz(r) for r in Q_IN])
     gated = RefinerCascade(_session(COARSE), _session(SMALL))
@@ -132,6 +146,41 @@ def test_the_shipped_cascade_where_a_fine_refiner_ships():
     # a perfect input stays close; inputs 20 degrees off mostly go through the coarse refiner and come back
     assert np.mean(near_err) < 2.0, near_err
     assert np.mean(far_used) > 0.8 and np.mean(far_err) < 6.0, (far_used, far_err)
+
+
+def test_the_shipped_refiners_bring_poses_45_degrees_off_back_with_settle_deg():
+    """Beyond the 30 degrees the refiners trained on, one coarse pass leaves much of the error; a second, kept
+    where it turns the result by more than SETTLE_DEG, brings it back (benchmarks/studies/far_inputs)."""
+    import json
+    from pathlib import Path
+
+    import cv2
+
+    from refiner_rt.session import SETTLE_DEG
+
+    with_fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
+    samples = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples"
+    doc = json.loads((samples / "samples.json").read_text())
+    one, settled, cascade_err = [], [], []
+    for f in doc["frames"]:
+        image, K = cv2.imread(str(samples / f["file"])), np.array(f["K"])
+        for o in f["objects"]:
+            if o["object_id"] not in with_fine:
+                continue
+            coarse = RefinerSession.pretrained(o["object_id"])
+            cascade = RefinerCascade.pretrained(o["object_id"], settle_deg=SETTLE_DEG)
+            q_gt = np.array(o["q_gt_wxyz"])
+            for axis in ([1, 1, 0], [0, 1, 1], [1, 0, 1], [1, -1, 0]):
+                q_far = rq.multiply(q_gt, rq.from_axis_angle(axis, 45.0))[None]
+                box = [o["box_xyxy"]]
+                one.append(rq.geodesic_angle(coarse.refine(image, box, q_far, K=K).q_refined, q_gt[None])[0])
+                settled.append(rq.geodesic_angle(coarse.refine(image, box, q_far, K=K, iterations=2,
+                                                               settle_deg=SETTLE_DEG).q_refined, q_gt[None])[0])
+                cascade_err.append(rq.geodesic_angle(cascade.refine(image, box, q_far, K=K).q_refined, q_gt[None])[0])
+    if not one:
+        pytest.skip("no fine refiner ships for the sample frames' objects")
+    assert np.mean(settled) < 0.6 * np.mean(one), (one, settled)
+    assert np.mean(cascade_err) < 0.6 * np.mean(one), (one, cascade_err)
 
 
 def test_track_cli_with_cascade_runs_both_refiners(tmp_path):

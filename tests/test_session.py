@@ -42,6 +42,34 @@ def test_iterations_apply_the_correction_k_times():
     np.testing.assert_allclose(rq.geodesic_angle(res.q_refined, rq.from_axis_angle([0, 0, 1], 30.0)), 0, atol=1e-4)
 
 
+@pytest.mark.parametrize("views", [1, 3])
+def test_settle_deg_keeps_a_later_pass_only_where_it_turns_by_more(views):
+    """The echo model turns a rotation of angle a by a again (q -> q * q): from 1 degree a second pass turns by 2 and
+    is not kept at settle_deg 5; from 10 degrees every pass turns by more and all are kept (SciPy's composition)."""
+    sess = RefinerSession(fx.q_echo_model())
+    axes = ([0.2, -0.4, 0.9], [1.0, 0.3, 0.0], [0.0, 1.0, 1.0])
+    angles = [1.0, 10.0, 2.0]
+    q_in = np.array([rq.from_axis_angle(a, d) for a, d in zip(axes, angles)])
+    res = sess.refine(IMG, BOXES, q_in, iterations=3, views=views, settle_deg=5.0)
+    kept = [1, 3, 1]  # passes kept: 1 -> 2 degrees (the next would turn by 2); 10 -> 20 -> 40 -> 80; 2 -> 4 (then 4)
+    expect = [Rotation.from_rotvec(np.radians(d * 2 ** k) * np.array(a) / np.linalg.norm(a))
+              for a, d, k in zip(axes, angles, kept)]
+    got = [scipy_q(q) for q in res.q_refined]
+    assert all((g * e.inv()).magnitude() < 1e-6 for g, e in zip(got, expect))
+    # settling off, or one pass: the plain iterations
+    plain = sess.refine(IMG, BOXES, q_in, iterations=3, views=views)
+    np.testing.assert_allclose(rq.geodesic_angle(sess.refine(IMG, BOXES, q_in, iterations=1, settle_deg=5.0).q_refined,
+                                                 sess.refine(IMG, BOXES, q_in).q_refined), 0, atol=1e-6)
+    assert rq.geodesic_angle(plain.q_refined, res.q_refined)[1] < 1e-6  # the 10-degree row went on every pass
+
+
+@pytest.mark.parametrize("value", [0, -1.0, float("nan"), float("inf"), 181.0, True, "2"])
+def test_bad_settle_deg_is_named(value):
+    sess = RefinerSession(fx.q_echo_model())
+    with pytest.raises(ValueError, match=r"settle_deg must be a number of degrees in \(0, 180\]"):
+        sess.refine(IMG, BOXES[:1], rq.identity((1,)), iterations=2, settle_deg=value)
+
+
 def test_view_boxes_are_the_box_then_fixed_small_jitters_of_it():
     views = view_boxes(BOXES, MAX_VIEWS, 1.2).reshape(len(BOXES), MAX_VIEWS, 4)
     np.testing.assert_array_equal(views[:, 0], BOXES)
