@@ -103,7 +103,7 @@ class RefinerCascade:
         fine_views: box-jittered views the fine refiner averages (``1`` to ``MAX_VIEWS``).
         settle_deg: on the long way, a second coarse pass, kept where it turns the coarse result by more than this
             many degrees (:data:`refiner_rt.session.SETTLE_DEG` is the measured value): for coarse poses that may be
-            more than 30 degrees off. A number in ``(0, 180]``, or None (default): one coarse pass.
+            more than 30 degrees off. A number in ``(0, 180)``, or None (default): one coarse pass.
 
     Raises:
         TypeError / ValueError: not sessions, sessions whose crop contracts differ, or a bad gate or ``fine_views``.
@@ -125,7 +125,7 @@ class RefinerCascade:
             raise ValueError(f"fine_views must be an int in [1, {MAX_VIEWS}]; got {fine_views!r}")
         self.coarse, self.fine = coarse, fine
         self.gate_deg, self.coarse_gate_deg, self.fine_views = gate_deg, coarse_gate_deg, fine_views
-        self.settle_deg = None if settle_deg is None else _validate_settle(settle_deg)
+        self.settle_deg = _validate_settle(settle_deg)  # its second coarse pass is the cascade's own
 
     @classmethod
     def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, **kwargs) -> "RefinerCascade":

@@ -179,6 +179,10 @@ class RosRefiner:
             where a fine refiner ships.
         rectified, class_map: as :func:`camera_from_info` and :func:`detections_from_msg`.
         int8, threads: for the shipped models.
+        settle_deg: for detector poses that may be more than 30 degrees off: each refinement by a
+            :class:`refiner_rt.RefinerSession` runs two passes, the second kept where it turns the result by more
+            than this (:meth:`refiner_rt.RefinerSession.refine`), and the shipped cascades take it too
+            (:data:`refiner_rt.SETTLE_DEG` is the measured value). None (default): one pass.
         tracker_kwargs: passed to :class:`refiner_rt.RefinerTracker` (``predict``, ``lost_deg``...).
 
     Not thread-safe in ``"track"`` mode (one tracker per camera stream).
@@ -186,7 +190,7 @@ class RosRefiner:
 
     def __init__(self, mode: str = "track", models: Mapping | None = None, *, cascade: bool = False,
                  rectified: bool = False, class_map: Mapping | None = None, int8: bool = True, threads: int = 1,
-                 **tracker_kwargs):
+                 settle_deg: float | None = None, **tracker_kwargs):
         if mode not in ("refine", "track"):
             raise ValueError(f"mode must be 'refine' or 'track'; got {mode!r}")
         if tracker_kwargs and mode != "track":
@@ -194,6 +198,11 @@ class RosRefiner:
         self.mode, self.cascade, self.rectified = mode, bool(cascade), bool(rectified)
         self.class_map = dict(class_map or {})
         self.int8, self.threads, self.tracker_kwargs = int8, threads, tracker_kwargs
+        from refiner_rt.session import _validate_settle
+
+        self.settle_deg = _validate_settle(settle_deg)
+        if self.settle_deg is not None and mode == "track":
+            self.tracker_kwargs = {"iterations": 2, **tracker_kwargs, "settle_deg": self.settle_deg}
         self._models = dict(models or {})
         self._given = models is not None
         self._tracker = None
@@ -213,7 +222,8 @@ class RosRefiner:
         elif self.cascade and "fine" in m.stages:
             from refiner_rt.cascade import RefinerCascade
 
-            model = RefinerCascade.pretrained(object_id, int8=self.int8, threads=self.threads)
+            model = RefinerCascade.pretrained(object_id, int8=self.int8, threads=self.threads,
+                                              settle_deg=self.settle_deg)
         else:
             from refiner_rt.session import RefinerSession
 
@@ -239,6 +249,8 @@ class RosRefiner:
         return self._track(image, K, D, dets)
 
     def _refine(self, image, K, D, dets: list[Detection]) -> list[RefinedPose]:
+        from refiner_rt.session import RefinerSession
+
         out = []
         by_object: dict[str, list[Detection]] = {}
         for d in dets:
@@ -247,8 +259,11 @@ class RosRefiner:
                 continue
             by_object.setdefault(d.object_id, []).append(d)
         for object_id, group in by_object.items():
-            res = self._model(object_id).refine(image, np.array([d.box for d in group]),
-                                                np.array([d.q_wxyz for d in group]), K=K, D=D)
+            model = self._model(object_id)
+            settle = {} if self.settle_deg is None or not isinstance(model, RefinerSession) else {
+                "iterations": 2, "settle_deg": self.settle_deg}
+            res = model.refine(image, np.array([d.box for d in group]), np.array([d.q_wxyz for d in group]), K=K,
+                               D=D, **settle)
             out += [RefinedPose(object_id, q, d.position, d.box, d.score) for d, q in zip(group, res.q_refined)]
         return out
 

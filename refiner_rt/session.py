@@ -206,7 +206,8 @@ class RefineResult:
     Attributes:
         q_refined: ``(N, 4)`` float64, ``wxyz``, ``w >= 0``: refined object-to-camera rotations.
         q_out: ``(N, 4)`` float64, ``wxyz``, ``w >= 0``: the correction predicted at the last
-            iteration (in the model's rotation frame; ``q_refined = q_prev * q_out``).
+            iteration (in the model's rotation frame; ``q_refined = q_prev * q_out``); with ``settle_deg``, at
+            the last pass kept for that object.
         q_in: ``(N, 4)`` float64, ``wxyz``, ``w >= 0``: the input rotations as used (unit-normalised).
     """
 
@@ -256,10 +257,21 @@ def _as_wxyz(q, q_order: str, name: str = "q_in_wxyz"):
     return q
 
 
-def _validate_settle(value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not (
-            math.isfinite(value) and 0 < value <= 180):
-        raise ValueError(f"settle_deg must be a number of degrees in (0, 180], or None; got {value!r}")
+def _validate_settle(value, iterations: int | None = None) -> float | None:
+    """``settle_deg`` checked (None passes): degrees in ``(0, 180)``, and with ``iterations`` (the passes it would
+    choose among) at least two of them."""
+    if value is None:
+        return None
+    try:
+        ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)) and (
+            0 < float(value) < 180)
+    except OverflowError:  # an int too large for a float
+        ok = False
+    if not ok:
+        raise ValueError(f"settle_deg must be a number of degrees in (0, 180), or None; got {value!r}")
+    if iterations is not None and iterations < 2:
+        raise ValueError(f"settle_deg keeps a later pass where it turns the result by more than that: give "
+                         f"iterations=2 or more with it; got iterations={iterations}")
     return float(value)
 
 
@@ -500,8 +512,8 @@ class RefinerSession:
                 turns a result by less is the refiner's floor, not a correction). From inputs within the refiner's
                 range the first pass then stands nearly everywhere; from coarse poses 30-60 degrees off, beyond the
                 range it trained on, the later passes go on (README, "Coarse poses far off").
-                :data:`SETTLE_DEG` is the value measured there. A number in ``(0, 180]``, or None (default): every
-                pass is kept. Later passes run only for the objects still going on.
+                :data:`SETTLE_DEG` is the value measured there. A number in ``(0, 180)`` with ``iterations >= 2``,
+                or None (default): every pass is kept. Later passes run only for the objects still going on.
 
         Raises:
             ValueError / TypeError: a bad argument, named with what was expected and what was given.
@@ -520,7 +532,7 @@ class RefinerSession:
         if type(views) is not int or views != 1:
             views = self._validate_views(views)
         if settle_deg is not None:
-            settle_deg = _validate_settle(settle_deg)
+            settle_deg = _validate_settle(settle_deg, iterations)
         n = len(boxes)
         if small is None or views > 1:
             self._check_batch(n, views, "boxes_xyxy")

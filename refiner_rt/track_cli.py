@@ -189,9 +189,9 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
     return out
 
 
-def _cascades(sessions: dict, int8: bool, threads: int) -> dict:
-    """``--cascade``: each object's shipped :class:`refiner_rt.RefinerCascade` in place of its coarse session (the
-    session kept where no fine refiner ships, or where an ``--model`` file serves the object)."""
+def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None = None) -> dict:
+    """``--cascade``: each object's shipped :class:`refiner_rt.RefinerCascade` (with ``settle_deg``) in place of its
+    coarse session (the session kept where no fine refiner ships, or where an ``--model`` file serves the object)."""
     from refiner_rt.cascade import RefinerCascade
     from refiner_rt.pretrained import WEIGHTS_DIR, pretrained_models
     from refiner_rt.tracker import _object_name
@@ -203,7 +203,7 @@ def _cascades(sessions: dict, int8: bool, threads: int) -> dict:
         shipped = sess.model_path is not None and Path(sess.model_path).parent == WEIGHTS_DIR
         if name in with_fine and shipped:
             if name not in built:
-                built[name] = RefinerCascade.pretrained(name, int8=int8, threads=threads)
+                built[name] = RefinerCascade.pretrained(name, int8=int8, threads=threads, settle_deg=settle_deg)
             out[object_id] = built[name]
         else:
             out[object_id] = sess
@@ -251,6 +251,10 @@ def _cascades(sessions: dict, int8: bool, threads: int) -> dict:
                    "Default: a \"q\" re-initialises the object.")
 @click.option("--iterations", type=click.IntRange(1, MAX_ITERATIONS), default=1, show_default=True,
               help="Refinement passes per object and frame.")
+@click.option("--settle-deg", type=click.FloatRange(0.0, 180.0, min_open=True, max_open=True), default=None, metavar="DEG",
+              help="For detector poses that may be more than 30 degrees off: each refinement runs a second coarse "
+                   "pass, kept where it turns the result by more than DEG (2: the value measured on renders, "
+                   "README \"Coarse poses far off\"); with --iterations N, N passes. Default: off.")
 @click.option("--threads", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Threads each network runs on.")
 @click.option("--video", "video_path", type=click.Path(dir_okay=False, path_type=Path),
@@ -260,8 +264,8 @@ def _cascades(sessions: dict, int8: bool, threads: int) -> dict:
               help="Frames in a --video image strip, evenly spaced.")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
 def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-              class_map, models, fp32, K_text, predict, lost_deg, detector_weight, iterations, threads, video_path,
-              strip_frames, fps):
+              class_map, models, fp32, K_text, predict, lost_deg, detector_weight, iterations, settle_deg, threads,
+              video_path, strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
     DETECTIONS is JSON: {"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "frames": {"<image file>": {"<object id>": [x1,y1,x2,y2]
@@ -283,7 +287,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
             raise click.UsageError(f"{', '.join(unused)} apply to FRAMES DETECTIONS, not to --bag (a bag's "
                                    "CameraInfo gives the camera)")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-                          class_map, fp32, predict, lost_deg, threads)
+                          class_map, fp32, predict, lost_deg, threads, settle_deg)
     if frames is None or detections is None:
         raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
     used = [flag for flag, value in bag_only.items() if value]
@@ -316,9 +320,11 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     object_ids = sorted({o for d in dets.values() for o in d})
     try:
         sessions = _sessions(object_ids, models, int8=not fp32, threads=threads)
-        refiners = _cascades(sessions, int8=not fp32, threads=threads) if cascade else sessions
+        refiners = _cascades(sessions, int8=not fp32, threads=threads, settle_deg=settle_deg) if cascade else sessions
+        if settle_deg is not None:
+            iterations = max(iterations, 2)
         tracker = RefinerTracker(refiners, K, {}, predict=predict, iterations=iterations, lost_deg=lost_deg,
-                                 detector_weight=detector_weight)
+                                 detector_weight=detector_weight, settle_deg=settle_deg)
     except (ValueError, TypeError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
 
@@ -360,7 +366,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     out_path.write_text(json.dumps({
         "format": OUTPUT_FORMAT,
         "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",
-        "K": K.tolist(), "predict": predict, "iterations": iterations, "lost_deg": lost_deg,
+        "K": K.tolist(), "predict": predict, "iterations": iterations, "settle_deg": settle_deg, "lost_deg": lost_deg,
         "detector_weight": detector_weight,
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
         "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},
@@ -373,7 +379,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
 
 
 def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic, class_map, fp32,
-               predict, lost_deg, threads):
+               predict, lost_deg, threads, settle_deg):
     """``track --bag``: :func:`refiner_rt.rosbag.refine_bag` with a progress bar and one-line errors."""
     from refiner_rt.ros import RosRefiner
 
@@ -391,6 +397,7 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
         if extra and mode != "track":
             raise click.UsageError(f"{', '.join('--' + k.replace('_', '-') for k in extra)} apply to --mode track")
         refiner = RosRefiner(mode, cascade=cascade, rectified=rectified, class_map=mapping, int8=not fp32,
+                             settle_deg=settle_deg,
                              threads=threads, **extra)
         t0 = time.perf_counter()
         with _LazyBar("frames") as bar:

@@ -60,6 +60,7 @@ from refiner_rt.session import (
     _small_boxes,
     _unit_rows,
     _validate_K,
+    _validate_settle,
 )
 
 __all__ = ["RefinerTracker", "INSTANCE_SEPARATOR"]
@@ -118,6 +119,10 @@ class RefinerTracker:
             anywhere a rotation is. Rotations returned are ``wxyz``.
         D: the camera's lens distortion coefficients (OpenCV's model, ``CameraInfo.d``), as
             :meth:`RefinerSession.refine`: frames and boxes are then the raw camera's. None: a pinhole camera.
+        settle_deg: with ``iterations >= 2``, each later pass of a :class:`RefinerSession` refinement is kept only
+            where it turns the rotation by more than this many degrees, as :meth:`RefinerSession.refine` (for
+            detector poses that may be more than 30 degrees off; :data:`refiner_rt.SETTLE_DEG`). A
+            :class:`RefinerCascade` takes its own ``settle_deg``. None (default): every pass is kept.
 
     Raises:
         ValueError / TypeError: a bad argument, named, with what was expected and what was given.
@@ -132,7 +137,7 @@ class RefinerTracker:
 
     def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1,
                  lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz",
-                 D=None):
+                 D=None, settle_deg: float | None = None):
         self.K = _validate_K(K).copy()
         self.D = validate_D(D)
         _as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
@@ -149,6 +154,7 @@ class RefinerTracker:
         self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
         self.iterations = RefinerSession._validate_iterations(iterations)
         self.views = RefinerSession._validate_views(views)
+        self.settle_deg = _validate_settle(settle_deg, self.iterations)
         self._loaded: dict[str, RefinerSession] = {}  # pretrained name -> session, loaded once
         self._default: RefinerSession | None = None
         self._per_object: dict[str, RefinerSession] = {}
@@ -355,7 +361,7 @@ class RefinerTracker:
         if isinstance(sess, RefinerCascade):
             return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse)).q_refined
         return sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K,
-                           views=self.views, D=self.D).q_refined
+                           views=self.views, D=self.D, settle_deg=self.settle_deg).q_refined
 
     def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list) -> list[int]:
         """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a
@@ -432,7 +438,7 @@ class RefinerTracker:
 
     def __repr__(self) -> str:
         return (f"RefinerTracker(objects={self.object_ids}, predict={self.predict}, iterations={self.iterations}, "
-                f"lost_deg={self.lost_deg}, detector_weight={self.detector_weight})")
+                f"lost_deg={self.lost_deg}, detector_weight={self.detector_weight}, settle_deg={self.settle_deg})")
 
 
 def _optional_in_range(value, name: str, high: float, number: str, in_range: str) -> float | None:

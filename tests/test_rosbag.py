@@ -207,6 +207,29 @@ def test_the_ros_refiner_reads_messages_by_field_name():
     assert r.process(_image(image, 0), _info(K, 0), unknown) == [] and r.skipped == {"cup": 1}
 
 
+def test_settle_deg_refines_as_the_session_and_the_cascade_do():
+    """RosRefiner(settle_deg=...) in refine mode: each shipped refiner's own call with two passes and settle_deg (the
+    cascade with its settle_deg); in track mode the tracker gets two passes and the same settle_deg."""
+    from refiner_rt import RefinerCascade, RefinerSession, SETTLE_DEG
+
+    image, K, objects = _frames()[0]
+    for cascade in (False, True):
+        r = RosRefiner("refine", cascade=cascade, settle_deg=SETTLE_DEG)
+        poses = {p.object_id: p for p in r.process(_image(image, 0), _info(K, 0), _detections(0, objects))}
+        for o in objects:
+            box, q_in = np.array([o["box_xyxy"]]), _q_in(o, 0)[None]
+            model = r._model(o["object_id"])
+            want = (model.refine(image, box, q_in, K=K) if isinstance(model, RefinerCascade) else
+                    model.refine(image, box, q_in, K=K, iterations=2, settle_deg=SETTLE_DEG)).q_refined[0]
+            assert isinstance(model, RefinerCascade if cascade else RefinerSession)
+            assert cascade is False or model.settle_deg == SETTLE_DEG
+            assert rq.geodesic_angle(poses[o["object_id"]].q_wxyz, want) < 1e-9
+    tracking = RosRefiner("track", settle_deg=SETTLE_DEG)
+    assert tracking.tracker_kwargs == {"iterations": 2, "settle_deg": SETTLE_DEG}
+    with pytest.raises(ValueError, match="settle_deg must be"):
+        RosRefiner("refine", settle_deg=0)
+
+
 def test_bag_errors_are_one_line(tmp_path):
     bag = tmp_path / "in"
     write_bag(bag)

@@ -613,3 +613,33 @@ def test_tracker_takes_matrices_and_ros_ordered_quaternions_as_scipy_gives_them(
         RefinerTracker(sess, K, {}, q_order="zyxw")
     with pytest.raises(ValueError, match=r"is not a rotation matrix"):
         by_matrix.reset("003_cracker_box", 2 * np.eye(3))
+
+
+def test_settle_deg_keeps_the_second_pass_where_it_turns_by_more(tmp_path):
+    """The constant model turns by 7 degrees each pass: --settle-deg 5 keeps both passes of each update (two passes:
+    --settle-deg runs at least two), 10 keeps the first only; the tracker refuses settle_deg with one pass."""
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=3)
+    for settle, per_update in (("5", 2), ("10", 1)):
+        out = tmp_path / f"rot{settle}.json"
+        res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                        "--settle-deg", settle])
+        assert res.exit_code == 0, res.output
+        doc = json.loads(out.read_text())
+        assert doc["settle_deg"] == float(settle) and doc["iterations"] == 2
+        for i, name in enumerate(doc["frames"]):
+            assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]),
+                                 scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (per_update * (i + 1)))
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--settle-deg", "180"])
+    assert res.exit_code == 2 and "--settle-deg" in res.output and "Traceback" not in res.output
+    with pytest.raises(ValueError, match="give iterations=2 or more with it; got iterations=1"):
+        RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, settle_deg=2.0)
+    tracker = RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, iterations=3, settle_deg=10.0)
+    q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
+    assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT))
