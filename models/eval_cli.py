@@ -74,6 +74,7 @@ def run_eval(
     noise: str = "uniform:0:30",
     resample: int = 1,
     iterations: int = 1,
+    settle_deg: float | None = None,
     seed: int = 2024,
     base_only: bool = False,
     split_mode: str | None = None,
@@ -117,7 +118,7 @@ def run_eval(
     else:
         predictor_used = predictor
     errors = evaluate_errors(predictor_used, test, noise, seed=seed, resample=resample, iterations=iterations,
-                             rotation_frame=c["rotation_frame"], symmetries=c["symmetries"])
+                             rotation_frame=c["rotation_frame"], symmetries=c["symmetries"], settle_deg=settle_deg)
     summary = errors.summary()
     return {
         **summary,
@@ -133,6 +134,7 @@ def run_eval(
         "noise": noise,
         "resample": resample,
         "iterations": iterations,
+        "settle_deg": settle_deg,
         "seed": seed,
         "eval_s": time.perf_counter() - t0,
     }
@@ -190,6 +192,10 @@ def format_all_table(result: dict, title: str = "") -> str:
 @click.option("--noise", default="uniform:0:30", show_default=True, help="Coarse-pose noise of the test inputs (uniform:LOW:HIGH or normal:MEAN:STD, degrees).")
 @click.option("--resample", default=1, show_default=True, type=click.IntRange(1), help="Coarse poses per test image (the paper's over-fitting test).")
 @click.option("--iterations", default=1, show_default=True, type=click.IntRange(1), help="Refinement iterations (beyond the paper).")
+@click.option("--settle-deg", type=click.FloatRange(0.0, 180.0, min_open=True, max_open=True), default=None,
+              metavar="DEG", help="With --iterations 2 or more: a later iteration is kept only where it turns the "
+                                  "result by more than DEG (RefinerSession.refine's settle_deg; README \"Coarse poses "
+                                  "far off\").")
 @click.option("--seed", default=2024, show_default=True, type=int, help="Seed of the test coarse poses.")
 @click.option("--all", "all_instances", is_flag=True,
               help="Score every instance of DIR (no split: real frames, or rendered scenes no model trained on): "
@@ -209,8 +215,8 @@ def format_all_table(result: dict, title: str = "") -> str:
 @click.option("--cache", "cache_root", type=click.Path(file_okay=False, path_type=Path), help="Crop cache folder (default: DATA/.crops, or the user's cache folder when DATA is read-only).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1), help="Processes that build the crop cache.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed, all_instances, draws, base_only,
-             split_mode, split_seed, test_per_object, objects, device, threads, cache_root, workers, quiet):
+def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, settle_deg, seed, all_instances, draws,
+             base_only, split_mode, split_seed, test_per_object, objects, device, threads, cache_root, workers, quiet):
     """Evaluate MODEL (.pt checkpoint or .onnx) on the test split: per-object mean/std geodesic error (degrees).
 
     With --all, on every instance of DIR instead (a folder of real frames: `refiner-rt eval M --data
@@ -227,9 +233,11 @@ def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed,
     if all_instances:
         clash = [name for name, given in (("--split-mode", split_mode), ("--split-seed", split_seed),
                                           ("--test-per-object", test_per_object), ("--md", md_path)) if given]
-        if clash or resample != 1 or iterations != 1:
+        clash += ["--resample"] * (resample != 1) + ["--iterations"] * (iterations != 1) + (
+            ["--settle-deg"] * (settle_deg is not None))
+        if clash:
             raise click.UsageError(f"--all scores every instance with --draws inputs each, one pass; it takes none of "
-                                   f"{', '.join(clash + ['--resample'] * (resample != 1) + ['--iterations'] * (iterations != 1))}")
+                                   f"{', '.join(clash)}")
         try:
             result = run_eval_all(model, data, noise=noise, draws=draws, seed=seed, objects=obj_list, threads=threads,
                                   cache_root=cache_root, progress=not quiet, device=device, base_only=base_only)
@@ -242,8 +250,12 @@ def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed,
             json_path.write_text(json.dumps(result, indent=2))
             click.echo(f"Wrote {json_path}")
         return
+    if settle_deg is not None and iterations < 2:
+        raise click.UsageError("--settle-deg keeps a later iteration where it turns the result by more than DEG: "
+                               "give --iterations 2 or more with it")
     try:
-        result = run_eval(model, data, noise=noise, resample=resample, iterations=iterations, seed=seed, base_only=base_only,
+        result = run_eval(model, data, noise=noise, resample=resample, iterations=iterations, settle_deg=settle_deg,
+                          seed=seed, base_only=base_only,
                           split_mode=split_mode, split_seed=split_seed, test_per_object=test_per_object, objects=obj_list,
                           threads=threads, cache_root=cache_root, workers=workers, progress=not quiet,
                           device=device)
@@ -251,7 +263,8 @@ def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, seed,
         raise click.ClickException(str(exc)) from None
     result["command"] = "refiner-rt " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     title = (f"{model.name} ({result['arch']}, {result['runtime']}), split {result['split_mode']}, noise {noise}, "
-             f"resample {resample}, iterations {iterations}; errors in degrees")
+             f"resample {resample}, iterations {iterations}"
+             + (f", settle_deg {settle_deg:g}" if settle_deg is not None else "") + "; errors in degrees")
     click.echo(format_table(result, title))
     if json_path:
         json_path.write_text(json.dumps(result, indent=2))

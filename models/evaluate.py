@@ -54,6 +54,7 @@ def evaluate_errors(
     iterations: int = 1,
     rotation_frame: str = "camera",
     symmetries: dict | None = None,
+    settle_deg: float | None = None,
 ) -> EvalErrors:
     """Refine ``data`` from coarse poses ``q_gt * q_noise`` and measure the geodesic error.
 
@@ -68,12 +69,17 @@ def evaluate_errors(
         rotation_frame: the models' frame, ``"camera"`` or ``"ray"``. Errors are frame-independent.
         symmetries: object name -> symmetry (BOP ``models_info.json`` form); those objects' errors are to the
             closest symmetric pose (:func:`models.symmetry.symmetric_error`), the inputs' too.
+        settle_deg: with ``iterations >= 2``, a later iteration is kept only for the samples it turns by more than
+            this many degrees, and the others stop (:meth:`refiner_rt.RefinerSession.refine`'s ``settle_deg``).
 
     Returns:
         :class:`EvalErrors` with ``N * resample`` samples.
     """
     if resample < 1 or iterations < 1:
         raise ValueError(f"resample and iterations must be >= 1; got {resample}, {iterations}")
+    from refiner_rt.session import _validate_settle, settle_keeps
+
+    settle_deg = _validate_settle(settle_deg, iterations)
     noise = NoiseSpec.parse(noise) if isinstance(noise, str) else noise
     rng = np.random.default_rng(seed)
     q_gt = data.q_gt_in(rotation_frame)
@@ -85,16 +91,27 @@ def evaluate_errors(
     for _ in range(resample):
         q_in, _ = perturb(q_gt, noise, rng)
         q = q_in
-        for _ in range(iterations):
+        going = np.ones(len(q), dtype=bool)  # samples whose iterations go on (settle_deg stops the others)
+        for k in range(iterations):
             if isinstance(predictor, dict):
                 q_out = np.zeros_like(q)
                 for obj, fn in predictor.items():
-                    m = data.obj_ids == obj
+                    m = (data.obj_ids == obj) & going
                     if m.any():
                         q_out[m] = fn(data.crops[np.flatnonzero(m)], q[m])
             else:
-                q_out = predictor(data.crops, q)
-            q = rq.normalize(rq.multiply(q, q_out))
+                q_out = np.zeros_like(q)
+                q_out[going] = predictor(data.crops[np.flatnonzero(going)] if not going.all() else data.crops,
+                                         q[going])
+            q_next = q.copy()
+            q_next[going] = rq.normalize(rq.multiply(q[going], q_out[going]))
+            if k > 0 and settle_deg is not None:
+                going &= settle_keeps(q, q_next, settle_deg)
+                q = np.where(going[:, None], q_next, q)
+            else:
+                q = q_next
+            if not going.any():
+                break
         ids.append(data.obj_ids)
         e_in.append(symmetric_error(q_in, q_gt, data.obj_ids, symmetries))
         e_out.append(symmetric_error(q, q_gt, data.obj_ids, symmetries))

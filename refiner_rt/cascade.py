@@ -37,7 +37,7 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import MAX_VIEWS
-from refiner_rt.session import RefineResult, RefinerSession, _validate_settle
+from refiner_rt.session import RefineResult, RefinerSession, _validate_settle, settle_keeps
 
 __all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_FINE_VIEWS",
            "shipped_gate", "long_way"]
@@ -185,7 +185,7 @@ class RefinerCascade:
             start = mid.q_refined[far]
             if self.settle_deg is not None:  # RefinerSession.refine(iterations=2, settle_deg=...) from mid's pass
                 again = self.coarse.refine(image_bgr, boxes[far], start, K=K, D=D).q_refined
-                moved = rq.geodesic_angle(start, again) > self.settle_deg
+                moved = settle_keeps(start, again, self.settle_deg)
                 start[moved] = again[moved]
             q[far] = self.fine.refine(image_bgr, boxes[far], start, K=K, views=self.fine_views, D=D).q_refined
         q_out = rq.canonical(rq.normalize(rq.multiply(rq.inverse(q_in), q)))

@@ -257,6 +257,13 @@ def _as_wxyz(q, q_order: str, name: str = "q_in_wxyz"):
     return q
 
 
+def settle_keeps(q_before, q_after, settle_deg: float) -> np.ndarray:
+    """``(N,)`` bools: which objects keep a later refinement pass under ``settle_deg`` (the one definition the
+    session, :class:`refiner_rt.RefinerCascade`, ``refiner-rt eval`` and the far-inputs study use): those the pass
+    turns by more than ``settle_deg`` degrees (``(N, 4)`` wxyz rotations before and after the pass)."""
+    return rq.geodesic_angle(q_before, q_after) > settle_deg
+
+
 def _validate_settle(value, iterations: int | None = None) -> float | None:
     """``settle_deg`` checked (None passes): degrees in ``(0, 180)``, and with ``iterations`` (the passes it would
     choose among) at least two of them."""
@@ -781,7 +788,7 @@ class RefinerSession:
             if k == 0:
                 q, q_out = step.q_refined, step.q_out
             else:
-                moved = rq.geodesic_angle(q[going], step.q_refined) > settle_deg
+                moved = settle_keeps(q[going], step.q_refined, settle_deg)
                 going = going[moved]
                 q[going], q_out[going] = step.q_refined[moved], step.q_out[moved]
             if not len(going):

@@ -108,3 +108,35 @@ def test_runtime_views_run_the_exported_model_on_the_full_frames(saved, capsys):
     assert runtime[1]["input_mean_deg"] == pytest.approx(crops[1]["input_mean_deg"], abs=1e-9)
     assert runtime[3]["passes"] == 3 and runtime[3]["mean_deg"] != runtime[1]["mean_deg"]
     assert "| runtime |" in capsys.readouterr().out
+
+
+def test_evaluate_errors_settle_deg_stops_the_samples_a_later_iteration_barely_turns():
+    """A predictor that halves each sample's error: iteration k turns it by e / 2^k. With settle_deg 3 the second
+    iteration is kept where e / 4 > 3, the third where e / 8 > 3 (refiner_rt.session.settle_keeps), against the
+    plain iterations (SciPy's composition gives the errors: halving along the same axis)."""
+    from scipy.spatial.transform import Rotation
+
+    from models.cropset import CropSet
+    from refiner_rt import quaternion as rq
+
+    n = 40
+    q_gt = rq.from_xyzw(Rotation.random(n, random_state=4).as_quat())
+    crops = np.zeros((n, 8, 8, 3), np.uint8)
+    crops[:, 0, 0, 0] = np.arange(n)  # the row, for the predictor
+    data = CropSet(crops, rq.canonical(q_gt), np.array(["003_cracker_box"] * n))
+
+    def halve(c, q):
+        rows = c[:, 0, 0, 0].astype(int)
+        step = rq.multiply(rq.inverse(q), data.q_gt[rows])
+        axis, angle = rq.to_axis_angle(step)
+        return rq.from_axis_angle(axis, angle / 2)
+
+    plain = evaluate_errors(halve, data, "uniform:10:30", seed=5, iterations=3)
+    e = plain.err_in_deg
+    np.testing.assert_allclose(plain.err_out_deg, e / 8, atol=1e-6)
+    settled = evaluate_errors(halve, data, "uniform:10:30", seed=5, iterations=3, settle_deg=3.0)
+    want = np.where(e / 8 > 3, e / 8, np.where(e / 4 > 3, e / 4, e / 2))
+    np.testing.assert_allclose(settled.err_out_deg, want, atol=1e-6)
+    assert ((e / 4 > 3) & (e / 8 <= 3)).any() and (e / 4 <= 3).any()  # every branch is taken
+    with pytest.raises(ValueError, match="give iterations=2 or more"):
+        evaluate_errors(halve, data, iterations=1, settle_deg=3.0)

@@ -136,6 +136,20 @@ def test_more_passes_and_the_saved_model_agree_with_refiner_rt_eval(small_result
         assert measured["mean_deg"] == pytest.approx(expected["mean_deg"], abs=1e-4)
         assert measured["input_mean_deg"] == pytest.approx(row["input_mean_deg"], abs=1e-9)
     assert row["iterations"]["2"]["mean_deg"] != pytest.approx(row["mean_deg"], abs=1e-6)  # a second pass ran
+    # --settle-deg: a second pass kept where it turns by more than 179 degrees is never kept (one pass), one kept
+    # where it turns by more than 1e-6 always is (two passes); without --iterations 2 it is a usage error
+    for settle, expected in (("179", row), ("1e-6", row["iterations"]["2"])):
+        out = tmp_path / f"settle{settle}.json"
+        res = CliRunner().invoke(main, ["eval", str(ckpt), "--data", str(cubes), "--iterations", "2", "--settle-deg",
+                                        settle, "--json", str(out), "--cache", str(tmp_path / "cache"), "--threads",
+                                        "1", "--quiet"], catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+        doc = json.loads(out.read_text())
+        assert doc["settle_deg"] == float(settle)
+        assert doc["objects"]["003_cracker_box"]["mean_deg"] == pytest.approx(expected["mean_deg"], abs=1e-4)
+    for bad in (["--settle-deg", "2"], ["--settle-deg", "2", "--iterations", "2", "--all"]):
+        res = CliRunner().invoke(main, ["eval", str(ckpt), "--data", str(cubes), *bad])
+        assert res.exit_code == 2 and "--settle-deg" in res.output and "Traceback" not in res.output
     doc_path = tmp_path / "a.json"
     doc_path.write_text(json.dumps(small_result))
     capsys.readouterr()

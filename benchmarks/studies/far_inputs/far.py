@@ -91,9 +91,10 @@ def settled(r: dict, settle: float | None, cascade: bool, gate: tuple) -> np.nda
     coarse refiner, one pass)."""
     from refiner_rt import quaternion as rq
     from refiner_rt.cascade import long_way
+    from refiner_rt.session import settle_keeps
 
     ang = rq.geodesic_angle
-    again = np.zeros(len(r["x"]), dtype=bool) if settle is None else ang(r["c1"], r["c2"]) > settle
+    again = np.zeros(len(r["x"]), dtype=bool) if settle is None else settle_keeps(r["c1"], r["c2"], settle)
     if not cascade:
         return np.where(again[:, None], r["c2"], r["c1"])
     far = long_way(ang(r["x"], r["f0"]), ang(r["x"], r["c1"]), *gate)
