@@ -41,7 +41,7 @@ from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
 INPUTS = {"near": "uniform:0:30", "far": "uniform:30:60", "truth": None}  # the three inputs, by name
-SETTLES = (2.0, 3.0, 5.0, 8.0)  # the settle_deg values scored
+SETTLES = (1.0, 1.5, 2.0, 3.0, 5.0, 8.0)  # the settle_deg values scored
 SEED = 7
 
 
