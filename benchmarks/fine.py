@@ -52,6 +52,19 @@ SCHEMA = "refiner-rt/fine-eval/1"
 FLOOR_BINS = 30              # the floor curve: output error in 1-degree bins of input error, 0 to 30
 
 
+def objects_with_fine(objects: str | None, error) -> list[str]:
+    """The objects a cascade study runs on: ``objects`` (comma-separated YCB ids), default every object whose fine
+    refiner ships; ``error(message)`` (``ArgumentParser.error``) for one without."""
+    from refiner_rt.pretrained import pretrained_models
+
+    with_fine = [m.object_id for m in pretrained_models() if "fine" in m.stages]
+    chosen = [o.strip() for o in objects.split(",")] if objects else with_fine
+    missing = sorted(set(chosen) - set(with_fine))
+    if missing or not chosen:
+        error(f"no fine refiner ships for {missing or 'any object'}")
+    return chosen
+
+
 def train_object(obj: str, data: Path, run: Path, cache: Path, samples: int, extra_train: list[Path]) -> dict:
     """Train ``obj``'s fine refiner from its shipped coarse model through :data:`FINE_STAGES` (a stage whose
     checkpoint exists is reused; ``samples`` replaces the first stage's budget): the record of the last stage."""

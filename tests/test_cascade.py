@@ -115,34 +115,36 @@ def test_the_tracker_runs_both_refiners_on_every_update():
     assert _angle(second[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL * COARSE * SMALL]))[0] < 1e-6
 
 
-def test_the_shipped_cascade_where_a_fine_refiner_ships():
-    with_fine = [m for m in pretrained_models() if "fine" in m.stages]
-    if not with_fine:
-        pytest.skip("no fine refiner ships in this checkout")
+def _sample_objects_with_fine():
+    """``(image, K, object entry)`` for every object of the shipped sample frames whose fine refiner ships."""
     import json
     from pathlib import Path
 
     import cv2
 
+    with_fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
+    if not with_fine:
+        pytest.skip("no fine refiner ships in this checkout")
     samples = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples"
     doc = json.loads((samples / "samples.json").read_text())
-    names = {m.object_id for m in with_fine}
-    near_err, far_err, far_used = [], [], []
     for f in doc["frames"]:
         image, K = cv2.imread(str(samples / f["file"])), np.array(f["K"])
-        for o in f["objects"]:
-            if o["object_id"] not in names:
-                continue
-            cascade = RefinerCascade.pretrained(o["object_id"])
-            q_gt = np.array(o["q_gt_wxyz"])
-            near = cascade.refine(image, [o["box_xyxy"]], q_gt[None], K=K)
-            for axis in ([1, 1, 0], [0, 1, 1], [1, 0, 1]):
-                far = cascade.refine(image, [o["box_xyxy"]], rq.multiply(q_gt, rq.from_axis_angle(axis, 20.0))[None],
-                                     K=K)
-                far_err.append(rq.geodesic_angle(far.q_refined, q_gt[None])[0])
-                far_used.append(far.coarse_used[0])
-            near_err.append(rq.geodesic_angle(near.q_refined, q_gt[None])[0])
-    assert near_err
+        yield from ((image, K, o) for o in f["objects"] if o["object_id"] in with_fine)
+
+
+def test_the_shipped_cascade_where_a_fine_refiner_ships():
+    near_err, far_err, far_used = [], [], []
+    for image, K, o in _sample_objects_with_fine():
+        cascade = RefinerCascade.pretrained(o["object_id"])
+        q_gt = np.array(o["q_gt_wxyz"])
+        near = cascade.refine(image, [o["box_xyxy"]], q_gt[None], K=K)
+        for axis in ([1, 1, 0], [0, 1, 1], [1, 0, 1]):
+            far = cascade.refine(image, [o["box_xyxy"]], rq.multiply(q_gt, rq.from_axis_angle(axis, 20.0))[None],
+                                 K=K)
+            far_err.append(rq.geodesic_angle(far.q_refined, q_gt[None])[0])
+            far_used.append(far.coarse_used[0])
+        near_err.append(rq.geodesic_angle(near.q_refined, q_gt[None])[0])
+    assert near_err, "no sample frame object has a fine refiner"
     # a perfect input stays close; inputs 20 degrees off mostly go through the coarse refiner and come back
     assert np.mean(near_err) < 2.0, near_err
     assert np.mean(far_used) > 0.8 and np.mean(far_err) < 6.0, (far_used, far_err)
@@ -151,34 +153,21 @@ def test_the_shipped_cascade_where_a_fine_refiner_ships():
 def test_the_shipped_refiners_bring_poses_45_degrees_off_back_with_settle_deg():
     """Beyond the 30 degrees the refiners trained on, one coarse pass leaves much of the error; a second, kept
     where it turns the result by more than SETTLE_DEG, brings it back (benchmarks/studies/far_inputs)."""
-    import json
-    from pathlib import Path
-
-    import cv2
-
     from refiner_rt.session import SETTLE_DEG
 
-    with_fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
-    samples = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples"
-    doc = json.loads((samples / "samples.json").read_text())
     one, settled, cascade_err = [], [], []
-    for f in doc["frames"]:
-        image, K = cv2.imread(str(samples / f["file"])), np.array(f["K"])
-        for o in f["objects"]:
-            if o["object_id"] not in with_fine:
-                continue
-            coarse = RefinerSession.pretrained(o["object_id"])
-            cascade = RefinerCascade.pretrained(o["object_id"], settle_deg=SETTLE_DEG)
-            q_gt = np.array(o["q_gt_wxyz"])
-            for axis in ([1, 1, 0], [0, 1, 1], [1, 0, 1], [1, -1, 0]):
-                q_far = rq.multiply(q_gt, rq.from_axis_angle(axis, 45.0))[None]
-                box = [o["box_xyxy"]]
-                one.append(rq.geodesic_angle(coarse.refine(image, box, q_far, K=K).q_refined, q_gt[None])[0])
-                settled.append(rq.geodesic_angle(coarse.refine(image, box, q_far, K=K, iterations=2,
-                                                               settle_deg=SETTLE_DEG).q_refined, q_gt[None])[0])
-                cascade_err.append(rq.geodesic_angle(cascade.refine(image, box, q_far, K=K).q_refined, q_gt[None])[0])
-    if not one:
-        pytest.skip("no fine refiner ships for the sample frames' objects")
+    for image, K, o in _sample_objects_with_fine():
+        coarse = RefinerSession.pretrained(o["object_id"])
+        cascade = RefinerCascade.pretrained(o["object_id"], settle_deg=SETTLE_DEG)
+        q_gt = np.array(o["q_gt_wxyz"])
+        for axis in ([1, 1, 0], [0, 1, 1], [1, 0, 1], [1, -1, 0]):
+            q_far = rq.multiply(q_gt, rq.from_axis_angle(axis, 45.0))[None]
+            box = [o["box_xyxy"]]
+            one.append(rq.geodesic_angle(coarse.refine(image, box, q_far, K=K).q_refined, q_gt[None])[0])
+            settled.append(rq.geodesic_angle(coarse.refine(image, box, q_far, K=K, iterations=2,
+                                                           settle_deg=SETTLE_DEG).q_refined, q_gt[None])[0])
+            cascade_err.append(rq.geodesic_angle(cascade.refine(image, box, q_far, K=K).q_refined, q_gt[None])[0])
+    assert one, "no sample frame object has a fine refiner"
     assert np.mean(settled) < 0.6 * np.mean(one), (one, settled)
     assert np.mean(cascade_err) < 0.6 * np.mean(one), (one, cascade_err)
 

@@ -14,7 +14,6 @@ how much of the turn the network corrects: 0 all of it, 1 none.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 

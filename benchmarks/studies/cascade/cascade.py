@@ -27,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.fine import FLOOR_BINS, runtime_errors, summarise  # noqa: E402
+from benchmarks.fine import FLOOR_BINS, objects_with_fine, runtime_errors, summarise  # noqa: E402
 from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
@@ -125,13 +125,7 @@ def main(argv=None) -> int:
     if args.table:
         print(table(json.loads(args.table.read_text())))
         return 0
-    from refiner_rt.pretrained import pretrained_models
-
-    with_fine = [m.object_id for m in pretrained_models() if "fine" in m.stages]
-    objects = [o.strip() for o in args.objects.split(",")] if args.objects else with_fine
-    missing = sorted(set(objects) - set(with_fine))
-    if missing or not objects:
-        ap.error(f"no fine refiner ships for {missing or 'any object'}")
+    objects = objects_with_fine(args.objects, ap.error)
     if args.fresh is None and args.real is None:
         ap.error("give --fresh and/or --real")
     t0 = time.perf_counter()

@@ -37,6 +37,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.fine import objects_with_fine  # noqa: E402
 from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
@@ -210,14 +211,9 @@ def main(argv=None) -> int:
         return 0
     if not args.data and not args.real:
         ap.error("give at least one --data or --real folder")
-    from refiner_rt.pretrained import pretrained_models
     from refiner_rt.session import SETTLE_DEG
 
-    with_fine = [m.object_id for m in pretrained_models() if "fine" in m.stages]
-    objects = [o.strip() for o in args.objects.split(",")] if args.objects else with_fine
-    missing = sorted(set(objects) - set(with_fine))
-    if missing or not objects:
-        ap.error(f"no fine refiner ships for {missing or 'any object'}")
+    objects = objects_with_fine(args.objects, ap.error)
     settle_check = SETTLE_DEG if args.check is None else args.check
     t0 = time.perf_counter()
     sets = {}
