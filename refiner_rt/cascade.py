@@ -19,8 +19,7 @@ each where it is good:
 
 Each step is one batched call per refiner. Cost per object: ``1 + fine_views`` network passes when the gate holds,
 ``1 + 2 * fine_views`` otherwise, and one more with ``settle_deg`` (``refiner-rt bench --cpu`` times both beside the
-single model). ``gate_deg=None``
-always runs coarse then fine. The shipped objects' gates were chosen on rendered scenes (:func:`shipped_gate`).
+single model). ``gate_deg=None`` always runs coarse then fine. The shipped objects' gates were chosen on rendered scenes (:func:`shipped_gate`).
 Safe across threads, as the sessions are (the cascade keeps no state).
 
 Example:
