@@ -138,12 +138,13 @@ def machine() -> dict:
 def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cache: Path, val: int | None = None,
                   test: int | None = None, init: Path | None = None, extra_train: list[Path] = (), *,
                   noise: str | None = None, lr: float | None = None, name: str | None = None,
-                  other_set: bool = True, photometric: dict | None = None) -> list[str]:
+                  other_set: bool = True, photometric: dict | None = None, seed: int | None = None) -> list[str]:
     """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given, a model
     of another set unless ``other_set`` is False; every crop of the ``extra_train`` folders joins the training part of
-    ``data``'s split). ``noise``, ``lr`` and ``photometric`` (``{operation: probability}``, models.augment) replace the
-    recipe's; ``name`` (default ``obj``) names the outputs in ``run``."""
-    r = {**RECIPE, **({"val": val} if val else {}), **({"test": test} if test else {}), **({"lr": lr} if lr else {})}
+    ``data``'s split). ``noise``, ``lr``, ``photometric`` (``{operation: probability}``, models.augment) and ``seed``
+    (the training run's, not the split's) replace the recipe's; ``name`` (default ``obj``) names the outputs in ``run``."""
+    r = {**RECIPE, **({"val": val} if val else {}), **({"test": test} if test else {}), **({"lr": lr} if lr else {}),
+         **({"seed": seed} if seed is not None else {})}
     name = name or obj
     aug = r["photometric"] if photometric is None else photometric
     return [sys.executable, str(ROOT / "benchmarks" / "data_scaling.py"), "--data", str(data), "--object", obj,
@@ -814,7 +815,7 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
             " for the objects with a value in the last column; the others on the scenes held out whole from their "
             "own training set")
         measured_on = (
-            f"measured on **rendered scenes of a set that no shipped model trained on** ("
+            "measured on **rendered scenes of a set that no shipped model trained on** ("
             + ", ".join(f"`{x}`" for x in sets) + f": {scenes} rendered with another seed than the training set, "
             "every instance of each object scored; `benchmarks/DATA.md` has its command)" + which + ". The last column "
             "is the fp32 model on its training set's own held-out test scenes (the split is drawn over the nine objects)."
@@ -907,7 +908,7 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
         lines += ["", "Then, for each: `refiner-rt export CKPT -o OBJ.onnx` (the fp32 file) and the INT8 file, quantised "
                   "from it with the fastest scheme whose mean error on the scored crops stays within "
                   f"{MAX_INT8_COST_DEG} deg of fp32's ({schemes}). Static schemes calibrate on "
-                  + (f"three quarters of the object's instances in " + ", ".join(f"`{c}`" for c in calib)
+                  + ("three quarters of the object's instances in " + ", ".join(f"`{c}`" for c in calib)
                      + " (other fresh scenes; the rest check the agreement), by "
                      "`python benchmarks/pretrained.py requantize --heldout HELDOUT --calibration CALIB`"
                      if calib else "the object's training crops, by `python benchmarks/pretrained.py build`")

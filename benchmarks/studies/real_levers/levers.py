@@ -16,6 +16,11 @@ lever                  training data, augmentation
 ``robot-long``         ``robot`` on every training crop of the set (about 5,000) for ``--long-samples`` samples
 ``mix-long``           ``robot-long`` with every crop of ``--mix`` (tabletop scenes of ids that the robot set
                        does not use) joining the training part
+``cycles``             ``--cycles``: Blender Cycles renders of the robot set's arrangements (``render --engine
+                       cycles`` with the robot set's seed, so scene i is the robot set's scene i seen along another
+                       camera path), the recipe's augmentation
+``robot-same-scenes``  the control for ``cycles``: the robot set's TinyRenderer images of the same scenes (the
+                       scenes ``--cycles`` holds), split by the same rule with the same sizes
 =====================  ========================================================================================
 
 The ``tabletop`` row is the control: the same amount of further training on the kind of scenes the model already saw.
@@ -46,7 +51,8 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
-LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long")
+LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long", "cycles",
+          "robot-same-scenes")
 
 
 def photometric() -> dict:
@@ -57,19 +63,20 @@ def photometric() -> dict:
 
 
 def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, v5: Path,
-              extra_train: tuple = ()) -> tuple[Path, dict]:
-    """Train ``obj`` for ``lever`` (its checkpoint reused when it exists) and export it: ``(fp32 ONNX, record)``."""
+              extra_train: tuple = (), seed: int | None = None) -> tuple[Path, dict]:
+    """Train ``obj`` for ``lever`` (its checkpoint reused when it exists) and export it: ``(fp32 ONNX, record)``.
+    ``seed``: the training run's seed (default: the recipe's), to see how much a row moves with it alone."""
     from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
     from export.onnx_export import export_checkpoint
 
-    folder = run / lever.replace("+", "_")
+    folder = run / (lever.replace("+", "_") + ("" if seed is None else f"_seed{seed}"))
     folder.mkdir(parents=True, exist_ok=True)
     cache = run / "cache"
     (run / data.name).mkdir(exist_ok=True)  # the version-5 checkpoint, its batch-norm statistics from data's crops
     init, _ = recover_shipped(obj, data, run / data.name, cache, weights=v5)
     # The split's validation and test parts are small: the rows are scored on the real frames and fresh renders.
     cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init, extra_train=extra_train,
-                        photometric=photometric() if lever.endswith("+photo") else {})
+                        photometric=photometric() if lever.endswith("+photo") else {}, seed=seed)
     t0 = time.perf_counter()
     ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
     train_s = time.perf_counter() - t0
@@ -79,8 +86,39 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     row = json.loads((folder / f"{obj}.train.json").read_text())["rows"][-1]
     from benchmarks.pretrained import RECIPE_NAME
 
-    return onnx, {"recipe": RECIPE_NAME, "command": _card_command(cmd), "train_s": round(train_s, 1),
+    return onnx, {"recipe": RECIPE_NAME, **({} if seed is None else {"seed": seed}), "command": _card_command(cmd),
+                  "train_s": round(train_s, 1),
                   **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "mean_deg", "wall_s")}}
+
+
+def same_scenes(robot: Path, cycles: Path, run: Path) -> Path:
+    """A folder in ``run`` of links to the scenes of ``robot`` that ``cycles`` rendered too (the same seed and scene
+    ids: the same arrangements), so that a control row trains on the TinyRenderer images of exactly those scenes.
+
+    Raises:
+        SystemExit: the two sets were not rendered from the same seed, or ``robot`` lacks one of the scenes.
+    """
+    def seed(folder):
+        return json.loads((folder / "render_config.json").read_text()).get("seed")
+
+    if seed(robot) != seed(cycles):
+        raise SystemExit(f"--cycles {cycles} was rendered with seed {seed(cycles)} and --robot {robot} with "
+                         f"{seed(robot)}: the control needs the same arrangements (render --engine cycles --seed "
+                         f"{seed(robot)})")
+    out = run / f"{robot.name}_scenes_of_{cycles.name}"
+    if out.is_dir():
+        return out
+    scenes = sorted(d.name for d in cycles.iterdir() if d.is_dir() and d.name.isdigit())
+    missing = [s for s in scenes if not (robot / s).is_dir()]
+    if missing:
+        raise SystemExit(f"--robot {robot} lacks scenes {missing[:5]} of --cycles {cycles}")
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.mkdir(parents=True, exist_ok=True)
+    for name in scenes + ["objects.json", "render_config.json"]:
+        if not (tmp / name).exists():
+            (tmp / name).symlink_to((robot / name).resolve())
+    tmp.rename(out)
+    return out
 
 
 def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
@@ -103,6 +141,11 @@ def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
     return out
 
 
+def _label(row: dict) -> str:
+    """A row's lever, with its training seed where one was given (``cycles seed 1``)."""
+    return row["lever"] + (f" seed {row['seed']}" if "seed" in row else "")
+
+
 def table(docs: list[dict]) -> str:
     """Markdown: a row per object and lever (real frames: mean and drift; fresh renders: mean), then per lever the
     change against ``v5`` averaged over the objects that lever ran on."""
@@ -110,17 +153,18 @@ def table(docs: list[dict]) -> str:
     fresh = list(docs[0].get("fresh", []))
     lines = ["| object | lever | real: mean | real: drift | " + " | ".join(fresh) + " |",
              "|---|---|---:|---:|" + "---:|" * len(fresh)]
-    by = {(r["object"], r["lever"]): r for r in rows}
+    by = {(r["object"], _label(r)): r for r in rows}
+    labels = [x for lever in LEVERS for x in [lever] + sorted({_label(r) for r in rows if r["lever"] == lever} - {lever})]
     objects = sorted({r["object"] for r in rows})
     for obj in objects:
-        for lever in LEVERS:
+        for lever in labels:
             r = by.get((obj, lever))
             if r:
                 lines.append(f"| {obj} | `{lever}` | {r['real']['mean_deg']:.2f} | {r['real']['drift_mean_deg']:.2f} | "
                              + " | ".join(f"{r[f]['mean_deg']:.2f}" if f in r else "-" for f in fresh) + " |")
     lines += ["", "| lever | objects | real: mean change against `v5` | real: drift change | "
               + " | ".join(f"{f}: change" for f in fresh) + " |", "|---|---|---:|---:|" + "---:|" * len(fresh)]
-    for lever in LEVERS[1:]:
+    for lever in labels[1:]:
         got = [o for o in objects if (o, lever) in by and (o, "v5") in by]
         if not got:
             continue
@@ -148,10 +192,14 @@ def main(argv=None) -> int:
                     "made before version 6 shipped)")
     ap.add_argument("--samples", type=int, default=60_000)
     ap.add_argument("--long-samples", type=int, default=150_000, help="samples of the robot-long and mix-long rows")
+    ap.add_argument("--cycles", type=Path, help="cycles and robot-same-scenes: Cycles renders (robot layout) with "
+                    "--robot's seed (render --engine cycles), finished scenes only")
     ap.add_argument("--mix", type=Path, help="mix-long: tabletop scenes whose ids the robot set does not use "
                     "(render --first-scene N, N >= its scene count)")
     ap.add_argument("--sizes", type=int, default=2_500,
                     help="training crops per object at most (the same for every lever: the tabletop set is smaller)")
+    ap.add_argument("--seed", type=int, help="the training runs' seed (default: the recipe's); its rows train into "
+                    "folders of their own and are labelled with it")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if args.table:
@@ -180,11 +228,21 @@ def main(argv=None) -> int:
             elif lever == "mix-long":
                 onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5,
                                          extra_train=(args.mix,))
+            elif lever == "cycles":
+                if not args.cycles:
+                    ap.error("--levers cycles needs --cycles")
+                onnx, record = train_row(lever, obj, args.cycles, args.run, args.samples, args.sizes, args.v5,
+                                         seed=args.seed)
+            elif lever == "robot-same-scenes":
+                if not args.cycles:
+                    ap.error("--levers robot-same-scenes needs --cycles")
+                onnx, record = train_row(lever, obj, same_scenes(args.robot, args.cycles, args.run), args.run,
+                                         args.samples, args.sizes, args.v5, seed=args.seed)
             elif lever == "robot-long":
                 onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5)
             else:
                 data = args.robot if lever.startswith("robot") else args.tabletop
-                onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5)
+                onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5, seed=args.seed)
             row = {"lever": lever, "object": obj, **record, **score(Path(onnx), obj, args.real, fresh),
                    "row_s": round(time.perf_counter() - t0, 1)}
             doc["rows"].append(row)
