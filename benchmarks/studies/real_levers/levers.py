@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -106,9 +107,11 @@ def same_scenes(robot: Path, cycles: Path, run: Path) -> Path:
                          f"{seed(robot)}: the control needs the same arrangements (render --engine cycles --seed "
                          f"{seed(robot)})")
     out = run / f"{robot.name}_scenes_of_{cycles.name}"
-    if out.is_dir():
-        return out
     scenes = sorted(d.name for d in cycles.iterdir() if d.is_dir() and d.name.isdigit())
+    if out.is_dir():
+        if sorted(d.name for d in out.iterdir() if d.name.isdigit()) == scenes:
+            return out
+        shutil.rmtree(out)  # links only: --cycles has grown (a resumed render) since they were made
     missing = [s for s in scenes if not (robot / s).is_dir()]
     if missing:
         raise SystemExit(f"--robot {robot} lacks scenes {missing[:5]} of --cycles {cycles}")
@@ -227,7 +230,7 @@ def main(argv=None) -> int:
                 onnx, record = args.v5 / model_file_name(obj, int8=False), {}
             elif lever == "mix-long":
                 onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5,
-                                         extra_train=(args.mix,))
+                                         extra_train=(args.mix,), seed=args.seed)
             elif lever == "cycles":
                 if not args.cycles:
                     ap.error("--levers cycles needs --cycles")
@@ -239,7 +242,8 @@ def main(argv=None) -> int:
                 onnx, record = train_row(lever, obj, same_scenes(args.robot, args.cycles, args.run), args.run,
                                          args.samples, args.sizes, args.v5, seed=args.seed)
             elif lever == "robot-long":
-                onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5)
+                onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5,
+                                         seed=args.seed)
             else:
                 data = args.robot if lever.startswith("robot") else args.tabletop
                 onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5, seed=args.seed)
