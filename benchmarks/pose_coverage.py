@@ -12,6 +12,14 @@ Usage (from the repository root)::
 
     python benchmarks/pose_coverage.py --data DIR [--sizes 3000,5000,3000,3000] [--modes frames,scenes] \\
         [--json benchmarks/results/pose_coverage.json]
+    python benchmarks/pose_coverage.py --data DIR [--data DIR2 ...] --query REAL [--json PATH]
+
+With ``--query`` (a BOP folder of other images, e.g. real frames) nothing is split: every instance of the query
+(``visib_fract >= 0.3``) is measured against every instance of each ``--data`` folder, twice: the nearest rotation,
+and the nearest *viewing direction* (the direction from the object to the camera in the object's frame, which a
+turn about the viewing ray leaves unchanged: the nearest rotation once a training crop may be turned in the image
+plane by any angle, ``refiner-rt train --inplane 180``). A query whose nearest rotation is far while its nearest
+direction is close shows the object rolled about the ray as no training scene had it (leaning, or a tilted camera).
 
 ``--sizes`` are the per-object ``train_base,train_finetune,val,test`` of the split (default: the improved
 refiner's baseline and scenes experiments); the split is ``make_splits`` with ``--split-seed``, as in training.
@@ -72,12 +80,50 @@ def nearest_angles(query: np.ndarray, reference: np.ndarray, chunk: int = 2048) 
     return np.degrees(2.0 * np.arccos(np.clip(best, 0.0, 1.0)))
 
 
+def viewing_directions(q_ray: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` unit vectors from the object to the camera in the object's frame, from ray-frame rotations ``(N,
+    4)`` (object to ray frame, wxyz): ``R^T (0, 0, -1)``, unchanged by a turn about the ray."""
+    return -rq.to_matrix(q_ray)[:, 2, :]
+
+
+def nearest_direction_angles(query: np.ndarray, reference: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """Angle (degrees) from every ``query`` unit vector ``(N, 3)`` to its nearest ``reference`` vector ``(M, 3)``."""
+    if len(reference) == 0:
+        raise ValueError("reference holds no directions: there is nothing to be near")
+    best = np.empty(len(query))
+    for i in range(0, len(query), chunk):
+        best[i:i + chunk] = (query[i:i + chunk] @ reference.T).max(axis=1)
+    return np.degrees(np.arccos(np.clip(best, -1.0, 1.0)))
+
+
+def query_coverage(query, references: dict) -> dict:
+    """Per reference folder and object of ``query``: the nearest rotation and the nearest viewing direction of every
+    query instance among all the reference's instances of that object, summarised (objects it lacks are left out)."""
+    out = {}
+    q_query = ray_frame_rotations(query)
+    objects = np.array([s.obj_id for s in query])
+    for name, samples in references.items():
+        q_ref = ray_frame_rotations(samples)
+        ref_objects = np.array([s.obj_id for s in samples])
+        per_object = {}
+        for obj in sorted(set(objects)):
+            mine, theirs = q_query[objects == obj], q_ref[ref_objects == obj]
+            if not len(theirs):
+                continue
+            rotation = nearest_angles(mine, theirs)
+            direction = nearest_direction_angles(viewing_directions(mine), viewing_directions(theirs))
+            per_object[obj] = {"n": int(len(mine)), "reference": int(len(theirs)),
+                               "rotation": summarize(rotation), "direction": summarize(direction)}
+        out[name] = per_object
+    return out
+
+
 def summarize(angles: np.ndarray) -> dict:
     """Mean, median, 90th percentile and the fraction under each of :data:`THRESHOLDS_DEG`."""
     if len(angles) == 0:
         raise ValueError("no angles to summarise")
     out = {"n": int(len(angles)), "mean_deg": float(angles.mean()), "median_deg": float(np.median(angles)),
-           "p90_deg": float(np.percentile(angles, 90))}
+           "p90_deg": float(np.percentile(angles, 90)), "max_deg": float(angles.max())}
     out.update({f"under_{t:g}_deg": float((angles < t).mean()) for t in THRESHOLDS_DEG})
     return out
 
@@ -111,6 +157,42 @@ def _parse_sizes(text: str) -> tuple[int, int, int, int]:
         raise SystemExit(f"--sizes: expected train_base,train_finetune,val,test per object like 3000,5000,3000,3000 "
                          f"(some training and some test); got {text!r}")
     return sizes
+
+
+def run_query(args) -> dict:
+    from models.data import load_bop
+
+    t0 = time.perf_counter()
+    objects = args.objects.split(",") if args.objects else None
+
+    def load(folder: Path) -> list:
+        try:
+            samples = load_bop(folder, min_visib=0.3)
+        except (FileNotFoundError, ValueError) as exc:
+            raise SystemExit(f"{folder}: {exc}") from None
+        samples = [s for s in samples if objects is None or s.obj_id in objects]
+        if not samples:
+            raise SystemExit(f"{folder}: no instance with visib_fract >= 0.3" + (f" of {objects}" if objects else ""))
+        return samples
+
+    query = load(args.query)
+    references = {folder.name: load(folder) for folder in args.data}
+    return {"query": str(args.query), "data": [str(d) for d in args.data], "min_visib": 0.3,
+            "coverage": query_coverage(query, references), "command": "python " + shlex.join(sys.argv),
+            "wall_s": round(time.perf_counter() - t0, 1),
+            "machine": {"python": platform.python_version(), "platform": platform.platform()}}
+
+
+def query_table(result: dict) -> str:
+    """Markdown rows: one per reference folder and object, nearest rotation and nearest viewing direction."""
+    lines = ["| training set | object | query instances | its instances | nearest rotation: median | max | "
+             "nearest viewing direction: median | max |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for name, per_object in result["coverage"].items():
+        for obj, r in per_object.items():
+            rot, d = r["rotation"], r["direction"]
+            lines.append(f"| {name} | {obj} | {r['n']} | {r['reference']} | {rot['median_deg']:.1f} | "
+                         f"{rot['max_deg']:.1f} | {d['median_deg']:.1f} | {d['max_deg']:.1f} |")
+    return "\n".join(lines)
 
 
 def run(args) -> dict:
@@ -158,7 +240,12 @@ def table(result: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True, help="dataset folder (BOP split folder or YCB-Video root)")
+    parser.add_argument("--data", type=Path, required=True, action="append",
+                        help="dataset folder (BOP split folder or YCB-Video root); with --query, one or more "
+                             "training sets, each given with its own --data")
+    parser.add_argument("--query", type=Path, default=None,
+                        help="a BOP folder of other images (real frames): measure its instances against every "
+                             "instance of each --data, no split")
     parser.add_argument("--sizes", default="3000,5000,3000,3000",
                         help="per-object train_base,train_finetune,val,test (default: %(default)s)")
     parser.add_argument("--modes", default="frames,scenes", help="split modes, comma-separated (default: %(default)s)")
@@ -166,8 +253,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split-seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="write the result here")
     args = parser.parse_args(argv)
-    result = run(args)
-    print(table(result))
+    if args.query is not None:
+        result = run_query(args)
+        print(query_table(result))
+    else:
+        if len(args.data) > 1:
+            parser.error("several --data folders need --query (the split protocols measure one folder)")
+        args.data = args.data[0]
+        result = run(args)
+        print(table(result))
     if args.json:
         write_json(args.json, result)
         print(f"wrote {args.json}")

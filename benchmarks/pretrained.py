@@ -138,11 +138,14 @@ def machine() -> dict:
 def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cache: Path, val: int | None = None,
                   test: int | None = None, init: Path | None = None, extra_train: list[Path] = (), *,
                   noise: str | None = None, lr: float | None = None, name: str | None = None,
-                  other_set: bool = True, photometric: dict | None = None, seed: int | None = None) -> list[str]:
+                  other_set: bool = True, photometric: dict | None = None, seed: int | None = None,
+                  inplane: float = 0.0) -> list[str]:
     """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given, a model
     of another set unless ``other_set`` is False; every crop of the ``extra_train`` folders joins the training part of
     ``data``'s split). ``noise``, ``lr``, ``photometric`` (``{operation: probability}``, models.augment) and ``seed``
-    (the training run's, not the split's) replace the recipe's; ``name`` (default ``obj``) names the outputs in ``run``."""
+    (the training run's, not the split's) replace the recipe's; ``inplane`` (degrees, 0: none) turns every training
+    crop about the viewing ray by up to that angle (``--inplane``); ``name`` (default ``obj``) names the outputs in
+    ``run``."""
     r = {**RECIPE, **({"val": val} if val else {}), **({"test": test} if test else {}), **({"lr": lr} if lr else {}),
          **({"seed": seed} if seed is not None else {})}
     name = name or obj
@@ -154,6 +157,7 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
             "--seed", str(r["seed"]),
             "--augment", "--background", str(r["background"]), "--skip-plain", "--skip-jitter",
             *[a for op, p in aug.items() for a in (f"--aug-{op.replace('_', '-')}", str(p))],
+            *(["--inplane", f"{inplane:g}"] if inplane else []),
             "--samples", str(samples), "--cache", str(cache), "--threads", "1",
             *(["--bf16"] if r["bf16"] else []),
             # the shipped model trained on another set (DATA is the scenes after it: benchmarks/DATA.md)

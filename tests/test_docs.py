@@ -163,6 +163,20 @@ def test_first_stage_commands_train_on_turns_then_go_on_from_that_network():
     assert "--init-other-set" in build.train_command(data, "x", run, 300, 16000, data / ".crops", init=run / "a.pt")
 
 
+def test_train_command_turns_crops_in_plane_only_when_asked():
+    """``inplane`` reaches data_scaling.py as ``--inplane DEG``, with the recipe's ray frame that the turns need;
+    without it the command has no turns."""
+    build = load_benchmark("pretrained")
+    run, data = Path("/srv/r/v6"), Path("/srv/d/ycb9_tabletop")
+    plain = build.train_command(data, "011_banana", run, 300, 2500, data / ".crops")
+    assert "--inplane" not in plain
+    turned = build.train_command(data, "011_banana", run, 300, 2500, data / ".crops", inplane=180.0)
+    assert turned[turned.index("--inplane") + 1] == "180"
+    assert turned[turned.index("--rotation-frame") + 1] == "ray"
+    assert build.train_command(data, "011_banana", run, 300, 2500, data / ".crops", inplane=22.5)[
+        turned.index("--inplane") + 1] == "22.5"
+
+
 def _card_docs():
     build = load_benchmark("pretrained")
     docs = build._load_results()

@@ -116,3 +116,44 @@ def test_cli_names_a_missing_dataset_folder(tmp_path):
     cov = _load()
     with pytest.raises(SystemExit, match=r"--data .*nowhere: dataset folder not found"):
         cov.main(["--data", str(tmp_path / "nowhere")])
+
+
+def test_a_turn_about_the_ray_moves_the_rotation_but_not_the_viewing_direction():
+    """A query rotated about the viewing ray by 40 deg from its only reference is 40 deg away in rotation and 0 in
+    viewing direction; one tilted about the image x axis by 25 deg is 25 deg away in both (SciPy's rotations)."""
+    cov = _load()
+    R = Rotation.from_euler("xyz", [30, -20, 75], degrees=True)
+    box = [300.0, 220.0, 340.0, 260.0]  # on the optical axis: the ray frame is the camera frame
+    rolled = Rotation.from_euler("z", 40, degrees=True) * R
+    tilted = Rotation.from_euler("x", 25, degrees=True) * R
+    query = [_sample(rolled.as_matrix(), box), _sample(tilted.as_matrix(), box)]
+    out = cov.query_coverage(query, {"train": [_sample(R.as_matrix(), box)]})["train"]["003_cracker_box"]
+    assert out["n"] == 2 and out["reference"] == 1
+    assert out["rotation"]["max_deg"] == pytest.approx(40.0, abs=1e-4)
+    assert out["rotation"]["mean_deg"] == pytest.approx(32.5, abs=1e-4)
+    assert out["direction"]["mean_deg"] == pytest.approx(12.5, abs=1e-4)  # 0 and 25
+    # The direction is the camera's, seen from the object: R^T (0, 0, -1), against SciPy.
+    d = cov.viewing_directions(_wxyz(R))[0]
+    np.testing.assert_allclose(d, R.inv().apply([0.0, 0.0, -1.0]), atol=1e-12)
+
+
+def test_query_cli_measures_one_folder_against_another(tmp_path, capsys):
+    cov = _load()
+    make_cube_dataset(tmp_path / "train", scenes=4, frames=6)
+    make_cube_dataset(tmp_path / "query", scenes=2, frames=3, seed=7)
+    out = tmp_path / "q.json"
+    assert cov.main(["--data", str(tmp_path / "train"), "--query", str(tmp_path / "query"), "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    rows = doc["coverage"]["train"]
+    assert rows and all(r["n"] > 0 and 0 <= r["direction"]["max_deg"] <= r["rotation"]["max_deg"] + 1e-6
+                        for r in rows.values())
+    assert "| train |" in capsys.readouterr().out
+    # Itself as the training set: every query instance has a twin.
+    assert cov.main(["--data", str(tmp_path / "query"), "--query", str(tmp_path / "query")]) == 0
+    assert "| query | " in capsys.readouterr().out
+
+
+def test_several_data_folders_need_a_query(tmp_path):
+    cov = _load()
+    with pytest.raises(SystemExit):
+        cov.main(["--data", str(tmp_path / "a"), "--data", str(tmp_path / "b")])

@@ -21,6 +21,10 @@ lever                  training data, augmentation
                        camera path), the recipe's augmentation
 ``robot-same-scenes``  the control for ``cycles``: the robot set's TinyRenderer images of the same scenes (the
                        scenes ``--cycles`` holds), split by the same rule with the same sizes
+``tabletop+inplane``   ``tabletop`` with every training crop turned about the viewing ray by up to ``--inplane``
+                       degrees, the coarse pose with it (``refiner-rt train --inplane``): rolls of the object about
+                       the ray that no training scene had, as an object leaning on another or a tilted camera shows
+``robot+inplane``      ``robot`` with the same turns
 =====================  ========================================================================================
 
 The ``tabletop`` row is the control: the same amount of further training on the kind of scenes the model already saw.
@@ -53,7 +57,7 @@ from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
 LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long", "cycles",
-          "robot-same-scenes")
+          "robot-same-scenes", "tabletop+inplane", "robot+inplane")
 
 
 def photometric() -> dict:
@@ -64,20 +68,23 @@ def photometric() -> dict:
 
 
 def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, v5: Path,
-              extra_train: tuple = (), seed: int | None = None) -> tuple[Path, dict]:
+              extra_train: tuple = (), seed: int | None = None, inplane: float = 0.0) -> tuple[Path, dict]:
     """Train ``obj`` for ``lever`` (its checkpoint reused when it exists) and export it: ``(fp32 ONNX, record)``.
-    ``seed``: the training run's seed (default: the recipe's), to see how much a row moves with it alone."""
+    ``seed``: the training run's seed (default: the recipe's), to see how much a row moves with it alone;
+    ``inplane``: the largest in-plane turn of the ``+inplane`` levers (degrees)."""
     from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
     from export.onnx_export import export_checkpoint
 
-    folder = run / (lever.replace("+", "_") + ("" if seed is None else f"_seed{seed}"))
+    turns = lever.endswith("+inplane")
+    folder = run / (lever.replace("+", "_") + (f"{inplane:g}" if turns else "") + ("" if seed is None else f"_seed{seed}"))
     folder.mkdir(parents=True, exist_ok=True)
     cache = run / "cache"
     (run / data.name).mkdir(exist_ok=True)  # the version-5 checkpoint, its batch-norm statistics from data's crops
     init, _ = recover_shipped(obj, data, run / data.name, cache, weights=v5)
     # The split's validation and test parts are small: the rows are scored on the real frames and fresh renders.
     cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init, extra_train=extra_train,
-                        photometric=photometric() if lever.endswith("+photo") else {}, seed=seed)
+                        photometric=photometric() if lever.endswith("+photo") else {}, seed=seed,
+                        inplane=inplane if turns else 0.0)
     t0 = time.perf_counter()
     ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
     train_s = time.perf_counter() - t0
@@ -87,7 +94,8 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     row = json.loads((folder / f"{obj}.train.json").read_text())["rows"][-1]
     from benchmarks.pretrained import RECIPE_NAME
 
-    return onnx, {"recipe": RECIPE_NAME, **({} if seed is None else {"seed": seed}), "command": _card_command(cmd),
+    return onnx, {"recipe": RECIPE_NAME, **({} if seed is None else {"seed": seed}),
+                  **({"inplane_deg": inplane} if turns else {}), "command": _card_command(cmd),
                   "train_s": round(train_s, 1),
                   **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "mean_deg", "wall_s")}}
 
@@ -145,8 +153,10 @@ def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
 
 
 def _label(row: dict) -> str:
-    """A row's lever, with its training seed where one was given (``cycles seed 1``)."""
-    return row["lever"] + (f" seed {row['seed']}" if "seed" in row else "")
+    """A row's lever, with its largest in-plane turn and its training seed where they were given (``cycles seed 1``,
+    ``tabletop+inplane 180``)."""
+    return (row["lever"] + (f" {row['inplane_deg']:g}" if "inplane_deg" in row else "")
+            + (f" seed {row['seed']}" if "seed" in row else ""))
 
 
 def table(docs: list[dict]) -> str:
@@ -203,8 +213,12 @@ def main(argv=None) -> int:
                     help="training crops per object at most (the same for every lever: the tabletop set is smaller)")
     ap.add_argument("--seed", type=int, help="the training runs' seed (default: the recipe's); its rows train into "
                     "folders of their own and are labelled with it")
+    ap.add_argument("--inplane", type=float, default=180.0, help="the +inplane levers: the largest turn of a training "
+                    "crop about the viewing ray, degrees in (0, 180] (default: every roll)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if not 0.0 < args.inplane <= 180.0:
+        ap.error(f"--inplane must be an angle in (0, 180] degrees; got {args.inplane:g}")
     if args.table:
         print(table([json.loads(p.read_text()) for p in args.table]))
         return 0
@@ -246,7 +260,8 @@ def main(argv=None) -> int:
                                          seed=args.seed)
             else:
                 data = args.robot if lever.startswith("robot") else args.tabletop
-                onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5, seed=args.seed)
+                onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5, seed=args.seed,
+                                         inplane=args.inplane)
             row = {"lever": lever, "object": obj, **record, **score(Path(onnx), obj, args.real, fresh),
                    "row_s": round(time.perf_counter() - t0, 1)}
             doc["rows"].append(row)
