@@ -474,3 +474,40 @@ def test_cycles_images_line_up_with_the_ground_truth_masks(models_dir, tmp_path)
         seg = np.asarray(seg).reshape(120, 160) >= 0
         assert seg.sum() > 200
         assert (alpha & seg).sum() / (alpha | seg).sum() > 0.9
+
+
+def test_real_rendered_redraws_each_annotated_object_where_the_frame_shows_it(rendered, models_dir, tmp_path):
+    """benchmarks/real_rendered.py on a rendered folder: drawn at the ground-truth poses over grey, the objects
+    cover the pixels the folder's visible masks give them (IoU > 0.95, the renderer's own segmentation as the
+    reference); the rest is grey; the copy keeps its ground truth, and --data is left as it was."""
+    from bench_scripts import load_benchmark
+
+    tool = load_benchmark("real_rendered")
+    out, _ = rendered
+    before = sorted(p.name for p in (out / "000000" / "rgb").iterdir())
+    copy = tmp_path / "copy"
+    record = tool.rerender_folder(out, copy, models_dir, background="grey", progress=False)
+    assert record["frames"] == 8 and record["instances"] > 0
+    assert sorted(p.name for p in (out / "000000" / "rgb").iterdir()) == before
+    for scene in ("000000", "000001"):
+        assert (copy / scene / "scene_gt.json").read_text() == (out / scene / "scene_gt.json").read_text()
+        gt = json.loads((out / scene / "scene_gt.json").read_text())
+        for im, anns in gt.items():
+            image = cv2.imread(str(copy / scene / "rgb" / f"{int(im):06d}.png"))
+            drawn = (image != tool.GREY).any(axis=2)
+            visible = np.zeros_like(drawn)
+            for k in range(len(anns)):
+                visible |= cv2.imread(str(out / scene / "mask_visib" / f"{int(im):06d}_{k:06d}.png"), 0) > 0
+            assert (drawn & visible).sum() / (drawn | visible).sum() > 0.95
+    assert len(load_bop(copy)) == len(load_bop(out))
+
+
+def test_real_rendered_refuses_to_overwrite_its_input(rendered, tmp_path):
+    from bench_scripts import load_benchmark
+
+    tool = load_benchmark("real_rendered")
+    out, _ = rendered
+    with pytest.raises(SystemExit):
+        tool.main(["--data", str(out), "--out", str(out)])
+    with pytest.raises(SystemExit, match="no BOP scene"):
+        tool.rerender_folder(tmp_path, tmp_path / "x", Path("."), progress=False)
