@@ -25,6 +25,7 @@ lever                  training data, augmentation
                        degrees, the coarse pose with it (``refiner-rt train --inplane``): rolls of the object about
                        the ray that no training scene had, as an object leaning on another or a tilted camera shows
 ``robot+inplane``      ``robot`` with the same turns
+``mix-long+inplane``   ``mix-long`` with the same turns (``robot-long+inplane`` likewise)
 =====================  ========================================================================================
 
 The ``tabletop`` row is the control: the same amount of further training on the kind of scenes the model already saw.
@@ -57,7 +58,7 @@ from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
 LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long", "cycles",
-          "robot-same-scenes", "tabletop+inplane", "robot+inplane")
+          "robot-same-scenes", "tabletop+inplane", "robot+inplane", "robot-long+inplane", "mix-long+inplane")
 
 
 def photometric() -> dict:
@@ -220,6 +221,9 @@ def main(argv=None) -> int:
     if not 0.0 < args.inplane <= 180.0:
         ap.error(f"--inplane must be an angle in (0, 180] degrees; got {args.inplane:g}")
     if args.table:
+        missing = [str(p) for p in args.table if not p.is_file()]
+        if missing:
+            ap.error(f"--table: no such file {', '.join(missing)} (the --json files of earlier runs)")
         print(table([json.loads(p.read_text()) for p in args.table]))
         return 0
     missing = [f"--{k}" for k in ("robot", "tabletop", "real", "fresh", "objects", "run", "json", "v5")
@@ -238,13 +242,16 @@ def main(argv=None) -> int:
             if (lever, obj) in done:
                 continue
             t0 = time.perf_counter()
+            turns = args.inplane if lever.endswith("+inplane") else 0.0
             if lever == "v5":
                 from refiner_rt.pretrained import model_file_name
 
                 onnx, record = args.v5 / model_file_name(obj, int8=False), {}
-            elif lever == "mix-long":
+            elif lever.startswith("mix-long"):
+                if not args.mix:
+                    ap.error(f"--levers {lever} needs --mix")
                 onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5,
-                                         extra_train=(args.mix,), seed=args.seed)
+                                         extra_train=(args.mix,), seed=args.seed, inplane=turns)
             elif lever == "cycles":
                 if not args.cycles:
                     ap.error("--levers cycles needs --cycles")
@@ -255,13 +262,13 @@ def main(argv=None) -> int:
                     ap.error("--levers robot-same-scenes needs --cycles")
                 onnx, record = train_row(lever, obj, same_scenes(args.robot, args.cycles, args.run), args.run,
                                          args.samples, args.sizes, args.v5, seed=args.seed)
-            elif lever == "robot-long":
+            elif lever.startswith("robot-long"):
                 onnx, record = train_row(lever, obj, args.robot, args.run, args.long_samples, 16_000, args.v5,
-                                         seed=args.seed)
+                                         seed=args.seed, inplane=turns)
             else:
                 data = args.robot if lever.startswith("robot") else args.tabletop
                 onnx, record = train_row(lever, obj, data, args.run, args.samples, args.sizes, args.v5, seed=args.seed,
-                                         inplane=args.inplane)
+                                         inplane=turns)
             row = {"lever": lever, "object": obj, **record, **score(Path(onnx), obj, args.real, fresh),
                    "row_s": round(time.perf_counter() - t0, 1)}
             doc["rows"].append(row)
