@@ -18,8 +18,9 @@ With ``--query`` (a BOP folder of other images, e.g. real frames) nothing is spl
 (``visib_fract >= 0.3``) is measured against every instance of each ``--data`` folder, twice: the nearest rotation,
 and the nearest *viewing direction* (the direction from the object to the camera in the object's frame, which a
 turn about the viewing ray leaves unchanged: the nearest rotation once a training crop may be turned in the image
-plane by any angle, ``refiner-rt train --inplane 180``). A query whose nearest rotation is far while its nearest
-direction is close shows the object rolled about the ray as no training scene had it (leaning, or a tilted camera).
+plane by any angle, ``refiner-rt train --inplane 180``), with the number of training instances within 10 degrees
+of each (median). A query whose nearest rotation is far while its nearest direction is close shows the object rolled
+about the ray as no training scene had it (leaning, or a tilted camera).
 
 ``--sizes`` are the per-object ``train_base,train_finetune,val,test`` of the split (default: the improved
 refiner's baseline and scenes experiments); the split is ``make_splits`` with ``--split-seed``, as in training.
@@ -46,6 +47,7 @@ from refiner_rt import quaternion as rq  # noqa: E402
 from refiner_rt.geometry import ray_quaternions  # noqa: E402
 
 THRESHOLDS_DEG = (2.0, 5.0, 10.0)
+NEIGHBOUR_DEG = 10.0  # --query: reference instances this near a query instance are counted
 
 
 def ray_frame_rotations(samples) -> np.ndarray:
@@ -111,9 +113,15 @@ def query_coverage(query, references: dict) -> dict:
             if not len(theirs):
                 continue
             rotation = nearest_angles(mine, theirs)
-            direction = nearest_direction_angles(viewing_directions(mine), viewing_directions(theirs))
+            d_mine, d_theirs = viewing_directions(mine), viewing_directions(theirs)
+            direction = nearest_direction_angles(d_mine, d_theirs)
+            # How many reference instances lie within NEIGHBOUR_DEG of each query instance (median over the query).
+            half = np.cos(np.radians(NEIGHBOUR_DEG) / 2)
+            near_rot = (np.abs(mine @ theirs.T) > half).sum(axis=1)
+            near_dir = (d_mine @ d_theirs.T > np.cos(np.radians(NEIGHBOUR_DEG))).sum(axis=1)
             per_object[obj] = {"n": int(len(mine)), "reference": int(len(theirs)),
-                               "rotation": summarize(rotation), "direction": summarize(direction)}
+                               "rotation": {**summarize(rotation), "neighbours_median": float(np.median(near_rot))},
+                               "direction": {**summarize(direction), "neighbours_median": float(np.median(near_dir))}}
         out[name] = per_object
     return out
 
@@ -185,13 +193,15 @@ def run_query(args) -> dict:
 
 def query_table(result: dict) -> str:
     """Markdown rows: one per reference folder and object, nearest rotation and nearest viewing direction."""
-    lines = ["| training set | object | query instances | its instances | nearest rotation: median | max | "
-             "nearest viewing direction: median | max |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| training set | object | query instances | its instances | nearest rotation: median / max (deg) | "
+             f"within {NEIGHBOUR_DEG:g} deg | nearest viewing direction: median / max (deg) | within {NEIGHBOUR_DEG:g} deg |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     for name, per_object in result["coverage"].items():
         for obj, r in per_object.items():
             rot, d = r["rotation"], r["direction"]
-            lines.append(f"| {name} | {obj} | {r['n']} | {r['reference']} | {rot['median_deg']:.1f} | "
-                         f"{rot['max_deg']:.1f} | {d['median_deg']:.1f} | {d['max_deg']:.1f} |")
+            lines.append(f"| {name} | {obj} | {r['n']} | {r['reference']} | {rot['median_deg']:.1f} / "
+                         f"{rot['max_deg']:.1f} | {rot['neighbours_median']:g} | {d['median_deg']:.1f} / "
+                         f"{d['max_deg']:.1f} | {d['neighbours_median']:g} |")
     return "\n".join(lines)
 
 

@@ -157,3 +157,13 @@ def test_several_data_folders_need_a_query(tmp_path):
     cov = _load()
     with pytest.raises(SystemExit):
         cov.main(["--data", str(tmp_path / "a"), "--data", str(tmp_path / "b")])
+
+
+def test_neighbours_count_the_reference_instances_within_ten_degrees():
+    cov = _load()
+    box = [300.0, 220.0, 340.0, 260.0]
+    R = Rotation.from_euler("xyz", [10, 20, 30], degrees=True)
+    refs = [Rotation.from_euler("z", a, degrees=True) * R for a in (3, 8, 12, 40)]  # 2 within 10 deg in rotation
+    out = cov.query_coverage([_sample(R.as_matrix(), box)], {"t": [_sample(r.as_matrix(), box) for r in refs]})
+    row = out["t"]["003_cracker_box"]
+    assert row["rotation"]["neighbours_median"] == 2 and row["direction"]["neighbours_median"] == 4

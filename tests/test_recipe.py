@@ -59,6 +59,7 @@ def test_named_recipes_are_valid_and_paper_is_the_defaults():
         RECIPE["val"], RECIPE["test"], RECIPE["lr"], RECIPE["background"], RECIPE["seed"], RECIPE["bf16"])
     assert built.arch_config == RECIPE["config"] == held.arch_config
     assert built.rotation_frame == RECIPE["rotation_frame"] == held.rotation_frame
+    assert built.inplane == RECIPE["inplane"]
 
 
 def test_recipe_files_round_trip_and_toml_reads(tmp_path):
