@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import re
 import sys
 import time
@@ -208,7 +207,8 @@ def _runs(args, mode: str, train_all, sizes: list[int], augment_sizes: list[int]
 
 
 def _initial_model(args, spec, config: dict):
-    """The ``--init`` checkpoint's network, refused unless it is the study's network on the same split.
+    """The ``--init`` checkpoint's network, refused unless it is the study's network on the same split (or the same
+    network but for the fusion network's ``roll``, which changes no weight).
 
     Its own training crops may be any of the study's training crops, but none of its validation or test crops: the
     checkpoint's recorded split must be ``spec``'s without the extra training folders. ``config``: the study's
@@ -218,6 +218,12 @@ def _initial_model(args, spec, config: dict):
     from models.pipeline import checkpoint_spec
 
     model, info = models.load_checkpoint(args.init)
+    if model.arch == args.arch and {**model.config, "roll": config.get("roll")} == config != model.config:
+        # The same network with another input turn (the fusion network's ``roll``): the same weights, so a
+        # network trained without the canonical roll may go on with it.
+        state = model.state_dict()
+        model = models.build_refiner(args.arch, **config)
+        model.load_state_dict(state)
     if model.arch != args.arch or model.config != config:
         raise SystemExit(f"--init {args.init}: a {model.arch} network with config {json.dumps(model.config)}; the study "
                          f"trains --arch {args.arch} --config {json.dumps(args.config)}")

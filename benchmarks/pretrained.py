@@ -140,20 +140,22 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
                   test: int | None = None, init: Path | None = None, extra_train: list[Path] = (), *,
                   noise: str | None = None, lr: float | None = None, name: str | None = None,
                   other_set: bool = True, photometric: dict | None = None, seed: int | None = None,
-                  inplane: float | None = None) -> list[str]:
+                  inplane: float | None = None, roll: str | None = None) -> list[str]:
     """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given, a model
     of another set unless ``other_set`` is False; every crop of the ``extra_train`` folders joins the training part of
     ``data``'s split). ``noise``, ``lr``, ``photometric`` (``{operation: probability}``, models.augment) and ``seed``
     (the training run's, not the split's) and ``inplane`` (the largest turn of a training crop about the viewing ray,
-    degrees, 0: none; ``--inplane``) replace the recipe's; ``name`` (default ``obj``) names the outputs in ``run``."""
+    degrees, 0: none; ``--inplane``) and ``roll`` (the fusion network's input turn, ``"canonical"`` or ``"none"``)
+    replace the recipe's; ``name`` (default ``obj``) names the outputs in ``run``."""
     r = {**RECIPE, **({"val": val} if val else {}), **({"test": test} if test else {}), **({"lr": lr} if lr else {}),
          **({"seed": seed} if seed is not None else {})}
     name = name or obj
     aug = r["photometric"] if photometric is None else photometric
     inplane = r["inplane"] if inplane is None else inplane
+    config = r["config"] if roll is None else {**r["config"], "roll": roll}
     return [sys.executable, str(ROOT / "benchmarks" / "data_scaling.py"), "--data", str(data), "--object", obj,
             "--modes", r["split_mode"], "--sizes", str(sizes), "--val", str(r["val"]), "--test", str(r["test"]),
-            "--split-objects", r["split_objects"], "--arch", r["arch"], "--config", json.dumps(r["config"]),
+            "--split-objects", r["split_objects"], "--arch", r["arch"], "--config", json.dumps(config),
             "--rotation-frame", r["rotation_frame"], "--lr", str(r["lr"]), *(["--noise", noise] if noise else []),
             "--seed", str(r["seed"]),
             "--augment", "--background", str(r["background"]), "--skip-plain", "--skip-jitter",

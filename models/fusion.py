@@ -23,9 +23,11 @@ import torch
 from torch import nn
 
 from models.blocks import InputNormalization, RefinementHead, Refiner, mlp, unit_normalize, validate_int_list
+from models.losses import quat_multiply
 from models.registry import register_refiner
 
-__all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices"]
+__all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices", "roll_angle",
+           "canonical_roll"]
 
 
 def _quadratic_form_matrix() -> torch.Tensor:
@@ -108,6 +110,40 @@ def correction_from_matrices(r_in: torch.Tensor, r_abs: torch.Tensor) -> torch.T
     return unit_normalize(q)
 
 
+def roll_angle(q: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` image angle (radians, clockwise from up, x right and y down) of the object's z axis under the
+    rotations ``q`` (``(N, 4)`` wxyz, object to the viewing-ray frame), or of its x axis where the z axis lies
+    within 30 degrees of the ray (its image direction is then ill-defined; the x axis is at least 60 degrees off)."""
+    r = quaternion_to_matrix_flat(q).view(-1, 3, 3)
+    z, x = r[:, :, 2], r[:, :, 0]
+    use_z = (z[:, 0] * z[:, 0] + z[:, 1] * z[:, 1]) > 0.25  # sin(30 deg)^2
+    axis = torch.where(use_z[:, None], z, x)
+    return torch.atan2(axis[:, 0], -axis[:, 1])
+
+
+def canonical_roll(image: torch.Tensor, q_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Turn each crop about its centre, and its coarse rotation about the viewing ray with it, so that the axis of
+    :func:`roll_angle` points up: ``(image (N, C, S, S) float, q_in (N, 4))`` in and out.
+
+    Turning the image by ``phi`` (a pixel offset ``d -> R(phi) d``, x right, y down) shows the object turned by
+    ``q_z(phi)`` about the ray, so the turned crop goes with ``q_z(phi) * q_in``, and ``q_out = q_in^-1 q_gt`` is the
+    same for both. Here ``phi = -roll_angle(q_in)``. Corners the turn uncovers are filled by reflection, as the
+    training's in-plane turns fill them (bilinear, ``align_corners=False``).
+    """
+    psi = roll_angle(q_in)
+    c, s = torch.cos(psi)[:, None, None], torch.sin(psi)[:, None, None]
+    size = image.shape[-1]
+    u = (torch.arange(size, dtype=image.dtype, device=image.device) * 2 + 1) / size - 1  # pixel centres in [-1, 1]
+    x_out, y_out = u[None, None, :], u[None, :, None]
+    # The output pixel at d samples the input at R(-phi) d = R(psi) d.
+    grid = torch.stack([c * x_out - s * y_out, s * x_out + c * y_out], dim=-1).to(image.dtype)
+    turned = torch.nn.functional.grid_sample(image, grid, mode="bilinear", padding_mode="reflection",
+                                             align_corners=False)
+    half = -psi / 2
+    q_turn = torch.stack([torch.cos(half), torch.zeros_like(half), torch.zeros_like(half), torch.sin(half)], dim=1)
+    return turned, quat_multiply(q_turn.to(q_in.dtype), q_in)
+
+
 @register_refiner("fusion")
 class FusionRefiner(Refiner):
     """Shallow CNN + rotation-matrix pose stage + multiplicative fusion ``concat[a, b, a*b]``.
@@ -125,6 +161,12 @@ class FusionRefiner(Refiner):
           never has to learn the composition of two rotations).
         * ``pose_widths`` (default ``[64, 512]``): pose MLP widths; the last must equal ``fuse_width``.
         * ``head_widths`` (default ``[256, 64]``).
+        * ``roll`` (``"none"``, default; or ``"canonical"``): with ``"canonical"`` the graph first turns the crop
+          about its centre so that the coarse pose's object z axis points up in it (its x axis where the z axis is
+          within 30 degrees of the viewing ray), and the coarse pose with it (:func:`canonical_roll`). The network
+          then sees every viewing direction at one roll, whatever the object's roll about the ray in the image (an
+          object leaning on another, a tilted camera): rolls its training scenes lack cost nothing. ``q_out`` is
+          unchanged by the turn, so the contract is the same. Ray frame only: the roll is about the viewing ray.
 
     Shape:
         - image: ``(N, S, S, 3)`` uint8, NHWC, ``channel_order`` (default BGR).
@@ -142,6 +184,7 @@ class FusionRefiner(Refiner):
         "output": "relative",
         "pose_widths": [64, 512],
         "head_widths": [256, 64],
+        "roll": "none",
     }
 
     @classmethod
@@ -167,6 +210,8 @@ class FusionRefiner(Refiner):
             raise ValueError(f"config['output'] must be 'relative' or 'absolute'; got {cfg['output']!r}")
         if cfg["fusion"] not in ("product", "concat"):
             raise ValueError(f"config['fusion'] must be 'product' or 'concat'; got {cfg['fusion']!r}")
+        if cfg["roll"] not in ("none", "canonical"):
+            raise ValueError(f"config['roll'] must be 'none' or 'canonical'; got {cfg['roll']!r}")
         return cfg
 
     def __init__(self, **config):
@@ -201,7 +246,10 @@ class FusionRefiner(Refiner):
     def forward(self, image: torch.Tensor, q_in: torch.Tensor) -> torch.Tensor:
         """Predict ``q_out`` (``q_refined = q_in * q_out``); same contract as :meth:`Refiner.forward`."""
         self._check_inputs(image, q_in)
-        a = self.features(self.normalize(image))
+        x = self.normalize(image)
+        if self.config["roll"] == "canonical":
+            x, q_in = canonical_roll(x, q_in)
+        a = self.features(x)
         matrix_needed = self.config["pose_input"] == "matrix" or self.config["output"] == "absolute"
         r_in = quaternion_to_matrix_flat(q_in) if matrix_needed else None
         b = self.pose(r_in if self.config["pose_input"] == "matrix" else q_in)

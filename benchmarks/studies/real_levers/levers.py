@@ -26,6 +26,9 @@ lever                  training data, augmentation
                        the ray that no training scene had, as an object leaning on another or a tilted camera shows
 ``robot+inplane``      ``robot`` with the same turns
 ``mix-long+inplane``   ``mix-long`` with the same turns (``robot-long+inplane`` likewise)
+``tabletop+roll``      ``tabletop`` with the network's canonical roll (``models.fusion.canonical_roll``): every crop
+                       is turned, inside the network, so that the coarse pose's object z axis points up in it, so the
+                       network sees each viewing direction at one roll (``robot+roll``, ``mix-long+roll`` likewise)
 =====================  ========================================================================================
 
 The ``tabletop`` row is the control: the same amount of further training on the kind of scenes the model already saw.
@@ -58,7 +61,8 @@ from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 
 LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long", "cycles",
-          "robot-same-scenes", "tabletop+inplane", "robot+inplane", "robot-long+inplane", "mix-long+inplane")
+          "robot-same-scenes", "tabletop+inplane", "robot+inplane", "robot-long+inplane", "mix-long+inplane",
+          "tabletop+roll", "robot+roll", "mix-long+roll")
 
 
 def photometric() -> dict:
@@ -76,7 +80,7 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
     from export.onnx_export import export_checkpoint
 
-    turns = lever.endswith("+inplane")
+    turns, roll = lever.endswith("+inplane"), lever.endswith("+roll")
     folder = run / (lever.replace("+", "_") + (f"{inplane:g}" if turns else "") + ("" if seed is None else f"_seed{seed}"))
     folder.mkdir(parents=True, exist_ok=True)
     cache = run / "cache"
@@ -85,7 +89,7 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     # The split's validation and test parts are small: the rows are scored on the real frames and fresh renders.
     cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init, extra_train=extra_train,
                         photometric=photometric() if lever.endswith("+photo") else {}, seed=seed,
-                        inplane=inplane if turns else 0.0)
+                        inplane=inplane if turns else 0.0, roll="canonical" if roll else None)
     t0 = time.perf_counter()
     ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
     train_s = time.perf_counter() - t0
@@ -96,7 +100,8 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     from benchmarks.pretrained import RECIPE_NAME
 
     return onnx, {"recipe": RECIPE_NAME, **({} if seed is None else {"seed": seed}),
-                  **({"inplane_deg": inplane} if turns else {}), "command": _card_command(cmd),
+                  **({"inplane_deg": inplane} if turns else {}), **({"roll": "canonical"} if roll else {}),
+                  "command": _card_command(cmd),
                   "train_s": round(train_s, 1),
                   **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "mean_deg", "wall_s")}}
 
