@@ -216,6 +216,10 @@ class TrainRecipe:
             raise RecipeError("epochs_geodesic", "epochs must be >= 0 with at least one in total; got "
                               f"epochs_mse={self.epochs_mse}, epochs_geodesic={self.epochs_geodesic}")
         check_inplane_frame(self.inplane, self.rotation_frame)
+        if (self.arch_config or {}).get("roll", "none") != "none" and self.rotation_frame != "ray":
+            raise RecipeError("arch_config", f"--config roll {self.arch_config['roll']!r} needs --rotation-frame ray "
+                              "(the network turns each crop about its viewing ray); got --rotation-frame "
+                              f"{self.rotation_frame}")
         if self.base_per_object == 0 and self.base_ckpt is None:
             raise RecipeError("base_per_object", "0 needs --base (a trained base network); without it the base stage "
                               "trains on these images")

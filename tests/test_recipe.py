@@ -78,6 +78,7 @@ def test_recipe_files_round_trip_and_toml_reads(tmp_path):
 
 @pytest.mark.parametrize("changes, field, words", [
     ({"inplane": 10.0}, "inplane", "--inplane 10 needs --rotation-frame ray"),
+    ({"arch": "fusion", "arch_config": {"roll": "canonical"}}, "arch_config", "roll 'canonical' needs --rotation-frame ray"),
     ({"base_per_object": 0}, "base_per_object", "0 needs --base"),
     ({"lr": 0.0}, "lr", "lr must be a number > 0"),
     ({"background": 1.5}, "background", "background must be a number in [0, 1]"),
