@@ -72,6 +72,44 @@ def photometric() -> dict:
     return {k[len("aug_"):]: v for k, v in NAMED_RECIPES["robot-real-v6"].items() if k.startswith("aug_")}
 
 
+def row_folder(run: Path, lever: str, seed: int | None = None, inplane: float | None = None) -> Path:
+    """Where a row trains (its checkpoint, log and fp32 ONNX file): ``run/<lever>[<inplane>][_seed<seed>]``."""
+    return run / (lever.replace("+", "_") + ("" if inplane is None else f"{inplane:g}")
+                  + ("" if seed is None else f"_seed{seed}"))
+
+
+def score_redrawn(docs: list[dict], run: Path, v5: Path, redrawn: Path) -> dict:
+    """Every row of ``docs`` scored again, as on the real frames (10 draws, the drift), on ``redrawn``: the real frames
+    with their objects re-drawn at the true poses (``benchmarks/real_rendered.py``), so that a row's gain on the
+    view can be told from its gain on the appearance. ``{label: {object: {"mean_deg", "drift_mean_deg"}}}``."""
+    from models.eval_cli import run_eval_all
+    from refiner_rt.pretrained import model_file_name
+
+    out: dict = {}
+    for row in (r for doc in docs for r in doc["rows"]):
+        obj, lever = row["object"], row["lever"]
+        onnx = (v5 / model_file_name(obj, int8=False) if lever == "v5"
+                else row_folder(run, lever, row.get("seed"), row.get("inplane_deg")) / f"{obj}.onnx")
+        if not onnx.is_file():
+            raise SystemExit(f"{onnx}: the row's model is not there (--run and --v5 as when the rows were trained)")
+        r = run_eval_all(onnx, redrawn, objects=[obj], draws=10, threads=1, progress=False)["objects"][obj]
+        out.setdefault(_label(row), {})[obj] = {"mean_deg": round(r["mean_deg"], 3),
+                                               "drift_mean_deg": round(r["drift_mean_deg"], 3)}
+    return out
+
+
+def redrawn_table(scores: dict, real_rows: list[dict]) -> str:
+    """Markdown: per object and row, the real frames' mean beside the re-drawn frames' mean and drift."""
+    real = {(r["object"], _label(r)): r["real"] for r in real_rows}
+    lines = ["| object | lever | real frames: mean | re-drawn: mean | re-drawn: drift |", "|---|---|---:|---:|---:|"]
+    for obj in sorted({o for per in scores.values() for o in per}):
+        for label, per in scores.items():
+            if obj in per:
+                lines.append(f"| {obj} | `{label}` | {real[(obj, label)]['mean_deg']:.2f} | {per[obj]['mean_deg']:.2f} "
+                             f"| {per[obj]['drift_mean_deg']:.2f} |")
+    return "\n".join(lines)
+
+
 def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, v5: Path,
               extra_train: tuple = (), seed: int | None = None, inplane: float = 0.0) -> tuple[Path, dict]:
     """Train ``obj`` for ``lever`` (its checkpoint reused when it exists) and export it: ``(fp32 ONNX, record)``.
@@ -81,7 +119,7 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     from export.onnx_export import export_checkpoint
 
     turns, roll = lever.endswith("+inplane"), lever.endswith("+roll")
-    folder = run / (lever.replace("+", "_") + (f"{inplane:g}" if turns else "") + ("" if seed is None else f"_seed{seed}"))
+    folder = row_folder(run, lever, seed, inplane if turns else None)
     folder.mkdir(parents=True, exist_ok=True)
     cache = run / "cache"
     (run / data.name).mkdir(exist_ok=True)  # the version-5 checkpoint, its batch-norm statistics from data's crops
@@ -221,6 +259,8 @@ def main(argv=None) -> int:
                     "folders of their own and are labelled with it")
     ap.add_argument("--inplane", type=float, default=180.0, help="the +inplane levers: the largest turn of a training "
                     "crop about the viewing ray, degrees in (0, 180] (default: every roll)")
+    ap.add_argument("--redrawn", type=Path, help="with --table: score every row of the tables again on this folder of "
+                    "the real frames re-drawn at their true poses (benchmarks/real_rendered.py; needs --run and --v5)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if not 0.0 < args.inplane <= 180.0:
@@ -229,7 +269,16 @@ def main(argv=None) -> int:
         missing = [str(p) for p in args.table if not p.is_file()]
         if missing:
             ap.error(f"--table: no such file {', '.join(missing)} (the --json files of earlier runs)")
-        print(table([json.loads(p.read_text()) for p in args.table]))
+        docs = [json.loads(p.read_text()) for p in args.table]
+        if args.redrawn:
+            if not (args.run and args.v5):
+                ap.error("--redrawn needs --run and --v5 (where the rows' models are)")
+            scores = score_redrawn(docs, args.run, args.v5, args.redrawn)
+            if args.json:
+                write_json(args.json, {"redrawn": _data_name(args.redrawn), "draws": 10, "scores": scores})
+            print(redrawn_table(scores, [r for d in docs for r in d["rows"]]))
+            return 0
+        print(table(docs))
         return 0
     missing = [f"--{k}" for k in ("robot", "tabletop", "real", "fresh", "objects", "run", "json", "v5")
                if not getattr(args, k)]
