@@ -218,12 +218,10 @@ def _initial_model(args, spec, config: dict):
     from models.pipeline import checkpoint_spec
 
     model, info = models.load_checkpoint(args.init)
-    if model.arch == args.arch and {**model.config, "roll": config.get("roll")} == config != model.config:
-        # The same network with another input turn (the fusion network's ``roll``): the same weights, so a
-        # network trained without the canonical roll may go on with it.
-        state = model.state_dict()
-        model = models.build_refiner(args.arch, **config)
-        model.load_state_dict(state)
+    if model.arch == args.arch:
+        from models.fusion import with_roll
+
+        model = with_roll(model, config)  # the same weights with another input turn may go on
     if model.arch != args.arch or model.config != config:
         raise SystemExit(f"--init {args.init}: a {model.arch} network with config {json.dumps(model.config)}; the study "
                          f"trains --arch {args.arch} --config {json.dumps(args.config)}")

@@ -71,10 +71,11 @@ SCHEMA = "refiner-rt/pretrained-eval/1"
 # heldout-scenes-v2 (ycb9_v2's 10,000 scenes), version 3 with heldout-scenes-v3 from version 2 on ycb9_v3's 8,000 new
 # scenes, version 4 with the same recipe from version 3 on ycb9_v4's 8,000 new scenes, every crop of ycb9_v3 joining
 # the training part (``build --extra-train``), version 5 likewise from version 4 on ycb9_v5's 5,000 new scenes, every
-# crop of ycb9_v3 and ycb9_v4 joining. Version 6 continues each version-5 model with ``robot-real-v6`` (the same
-# network and rates, camera-like photometric augmentation, float32) on scenes of the robot layout (ycb9_robot:
-# objects resting on every face, cameras where a robot's would be; benchmarks/studies/real_levers).
-RECIPE_NAME = "robot-real-v6"
+# crop of ycb9_v3 and ycb9_v4 joining. Version 6 continues each version-5 model with ``robot-roll-v6`` (the same
+# network with the canonical roll, the same rates, float32) on scenes of the robot layout (ycb9_robot: objects resting
+# on every face, cameras where a robot's would be) with tabletop scenes joining (``build --extra-train
+# ycb9_tabletop_s32_next``): benchmarks/studies/real_levers, "The views the training scenes lack".
+RECIPE_NAME = "robot-roll-v6"
 MODEL_VERSION = "6"
 # Versions 3 to 5 start each object from the model that ships now (its fp32 file, turned back into a checkpoint by
 # export.recover); the build refuses to start from a model of this same version (that would be training twice).

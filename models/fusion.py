@@ -27,7 +27,7 @@ from models.losses import quat_multiply
 from models.registry import register_refiner
 
 __all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices", "roll_angle",
-           "canonical_roll"]
+           "canonical_roll", "with_roll"]
 
 
 def _quadratic_form_matrix() -> torch.Tensor:
@@ -142,6 +142,22 @@ def canonical_roll(image: torch.Tensor, q_in: torch.Tensor) -> tuple[torch.Tenso
     half = -psi / 2
     q_turn = torch.stack([torch.cos(half), torch.zeros_like(half), torch.zeros_like(half), torch.sin(half)], dim=1)
     return turned, quat_multiply(q_turn.to(q_in.dtype), q_in)
+
+
+def with_roll(model, config: dict):
+    """``model`` rebuilt with ``config`` when the two differ only in the fusion network's ``roll`` (the turn changes no
+    weight, so a network trained without it may go on with it, and back), its weights kept; else ``model`` as it is
+    (the caller's own checks then refuse another network)."""
+    mine = getattr(model, "config", None)
+    if getattr(model, "arch", None) != "fusion" or not mine or "roll" not in config:
+        return model
+    if {**mine, "roll": config["roll"]} != {**mine, **config} or mine.get("roll") == config["roll"]:
+        return model
+    from models.registry import build_refiner
+
+    turned = build_refiner("fusion", **{**mine, "roll": config["roll"]})
+    turned.load_state_dict(model.state_dict())
+    return turned.train(model.training)
 
 
 @register_refiner("fusion")

@@ -144,6 +144,10 @@ def load_init(recipe: TrainRecipe):
     except (OSError, ValueError, KeyError) as exc:
         message = str(exc) if str(exc).startswith(str(recipe.init)) else f"{recipe.init}: {exc}"
         raise RecipeError("init", message) from None
+    if recipe.arch_config and model.arch == recipe.arch:
+        from models.fusion import with_roll
+
+        model = with_roll(model, {**model.config, **recipe.arch_config})  # going on with another input turn
     _check_same_network(recipe, model, info, recipe.init, "init", "--init")
     return model.train()
 

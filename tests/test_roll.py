@@ -117,3 +117,22 @@ def test_a_network_without_the_roll_goes_on_with_it_with_the_same_weights(tmp_pa
     wider = {**config, "fuse_width": 64}  # any other difference is another network: refused
     with pytest.raises(SystemExit, match="a fusion network with config"):
         scaling._initial_model(SimpleNamespace(**{**vars(args), "config": wider}), None, wider)
+
+
+def test_refiner_rt_train_init_goes_on_with_the_roll_and_keeps_every_weight(tmp_path):
+    from models.recipe import TrainRecipe
+    from models.training import load_init
+
+    torch.manual_seed(0)
+    plain = models.build_refiner("fusion", input_size=32, **SMALL)
+    ckpt = models.save_checkpoint(plain, tmp_path / "plain.pt", objects=["003_cracker_box"], rotation_frame="ray")
+    recipe = TrainRecipe.from_dict({"arch": "fusion", "arch_config": {"roll": "canonical"}, "rotation_frame": "ray",
+                                    "init": str(ckpt)})
+    model = load_init(recipe)
+    assert model.config["roll"] == "canonical" and model.training
+    for name, value in plain.state_dict().items():
+        assert torch.equal(model.state_dict()[name], value), name
+    other = TrainRecipe.from_dict({"arch": "fusion", "arch_config": {"roll": "canonical", "fuse_width": 64},
+                                   "rotation_frame": "ray", "init": str(ckpt)})
+    with pytest.raises(Exception, match="differs from the --init checkpoint's config"):
+        load_init(other)
