@@ -27,7 +27,7 @@ from models.losses import quat_multiply
 from models.registry import register_refiner
 
 __all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices", "roll_angle",
-           "canonical_roll", "with_roll"]
+           "turn_grid", "canonical_roll", "with_roll"]
 
 
 def _quadratic_form_matrix() -> torch.Tensor:
@@ -121,6 +121,16 @@ def roll_angle(q: torch.Tensor) -> torch.Tensor:
     return torch.atan2(axis[:, 0], -axis[:, 1])
 
 
+def turn_grid(phi: torch.Tensor, size: int) -> torch.Tensor:
+    """``(N, size, size, 2)`` ``grid_sample`` grid (``align_corners=False``) that turns a square image about its centre
+    by ``phi`` (``(N,)`` radians; a pixel offset ``d -> R(phi) d``, x right, y down): the output pixel at ``d`` samples
+    the input at ``R(-phi) d``. The one rule for the training's in-plane turns and the network's canonical roll."""
+    c, s = torch.cos(phi)[:, None, None], torch.sin(phi)[:, None, None]
+    u = (torch.arange(size, dtype=phi.dtype, device=phi.device) * 2 + 1) / size - 1  # pixel centres in [-1, 1]
+    x_out, y_out = u[None, None, :], u[None, :, None]
+    return torch.stack([c * x_out + s * y_out, c * y_out - s * x_out], dim=-1)
+
+
 def canonical_roll(image: torch.Tensor, q_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Turn each crop about its centre, and its coarse rotation about the viewing ray with it, so that the axis of
     :func:`roll_angle` points up: ``(image (N, C, S, S) float, q_in (N, 4))`` in and out.
@@ -131,12 +141,7 @@ def canonical_roll(image: torch.Tensor, q_in: torch.Tensor) -> tuple[torch.Tenso
     training's in-plane turns fill them (bilinear, ``align_corners=False``).
     """
     psi = roll_angle(q_in)
-    c, s = torch.cos(psi)[:, None, None], torch.sin(psi)[:, None, None]
-    size = image.shape[-1]
-    u = (torch.arange(size, dtype=image.dtype, device=image.device) * 2 + 1) / size - 1  # pixel centres in [-1, 1]
-    x_out, y_out = u[None, None, :], u[None, :, None]
-    # The output pixel at d samples the input at R(-phi) d = R(psi) d.
-    grid = torch.stack([c * x_out - s * y_out, s * x_out + c * y_out], dim=-1).to(image.dtype)
+    grid = turn_grid(-psi, image.shape[-1]).to(image.dtype)
     turned = torch.nn.functional.grid_sample(image, grid, mode="bilinear", padding_mode="reflection",
                                              align_corners=False)
     half = -psi / 2

@@ -249,15 +249,12 @@ def _rotate_in_plane(
     Returns:
         the turned images, the turned masks (None without masks), and ``q_z(phi)`` per crop ``(N, 4)`` wxyz float64.
     """
+    from models.fusion import turn_grid
+
     n = images.shape[0]
     phi = (torch.rand(n, generator=gen, dtype=torch.float64) * 2 - 1) * math.radians(max_deg)
-    size = images.shape[1]
-    c, s = torch.cos(phi).float()[:, None, None], torch.sin(phi).float()[:, None, None]
-    # Each output pixel samples the input at R(-phi) of its position (pixel centres in grid_sample's [-1, 1] units,
-    # the grid F.affine_grid would give, written out: its batched matrix product is the slow part).
-    u = torch.linspace(-1, 1, size) * (size - 1) / size
-    x_out, y_out = u[None, None, :], u[None, :, None]
-    grid = torch.stack([c * x_out + s * y_out, c * y_out - s * x_out], dim=-1)
+    # The grid F.affine_grid would give, written out: its batched matrix product is the slow part.
+    grid = turn_grid(phi.float(), images.shape[1])
     x = images.permute(0, 3, 1, 2).float()
     x = F.grid_sample(x, grid, mode="bilinear", padding_mode="reflection", align_corners=False)
     out = x.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).contiguous()
