@@ -185,8 +185,12 @@ def run_query(args) -> dict:
 
     query = load(args.query)
     references = {folder.name: load(folder) for folder in args.data}
-    return {"query": str(args.query), "data": [str(d) for d in args.data], "min_visib": 0.3,
-            "coverage": query_coverage(query, references), "command": "python " + shlex.join(sys.argv),
+    from benchmarks.real import _data_name
+
+    # The query (real frames) is named as the folder's dataset, REAL in the command: no machine path is recorded.
+    argv = ["REAL" if Path(a) == args.query else a for a in sys.argv]
+    return {"query": _data_name(args.query), "data": [str(d) for d in args.data], "min_visib": 0.3,
+            "coverage": query_coverage(query, references), "command": "python " + shlex.join(argv),
             "wall_s": round(time.perf_counter() - t0, 1),
             "machine": {"python": platform.python_version(), "platform": platform.platform()}}
 

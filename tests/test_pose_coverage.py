@@ -144,6 +144,7 @@ def test_query_cli_measures_one_folder_against_another(tmp_path, capsys):
     out = tmp_path / "q.json"
     assert cov.main(["--data", str(tmp_path / "train"), "--query", str(tmp_path / "query"), "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
+    assert doc["query"] == "query" and "--query REAL" in doc["command"]  # no machine path recorded
     rows = doc["coverage"]["train"]
     assert rows and all(r["n"] > 0 and 0 <= r["direction"]["max_deg"] <= r["rotation"]["max_deg"] + 1e-6
                         for r in rows.values())
