@@ -167,7 +167,7 @@ def _parse_sizes(text: str) -> tuple[int, int, int, int]:
     return sizes
 
 
-def run_query(args) -> dict:
+def run_query(args, argv: list[str]) -> dict:
     from models.data import load_bop
 
     t0 = time.perf_counter()
@@ -188,9 +188,10 @@ def run_query(args) -> dict:
     from benchmarks.real import _data_name
 
     # The query (real frames) is named as the folder's dataset, REAL in the command: no machine path is recorded.
-    argv = ["REAL" if Path(a) == args.query else a for a in sys.argv]
+    argv = ["REAL" if Path(a) == args.query else a for a in argv]
     return {"query": _data_name(args.query), "data": [str(d) for d in args.data], "min_visib": 0.3,
-            "coverage": query_coverage(query, references), "command": "python " + shlex.join(argv),
+            "coverage": query_coverage(query, references),
+            "command": "python benchmarks/pose_coverage.py " + shlex.join(argv),
             "wall_s": round(time.perf_counter() - t0, 1),
             "machine": {"python": platform.python_version(), "platform": platform.platform()}}
 
@@ -268,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="write the result here")
     args = parser.parse_args(argv)
     if args.query is not None:
-        result = run_query(args)
+        result = run_query(args, list(sys.argv[1:] if argv is None else argv))
         print(query_table(result))
     else:
         if len(args.data) > 1:
