@@ -79,6 +79,7 @@ def build_default_models(specs, workdir: Path, int8: bool = True, echo=None) -> 
 
         import models
         from export import export_model
+        from export.onnx_export import model_roll
         from export.quantize import DEFAULT_SCHEME, quantize_model
     except ModuleNotFoundError as exc:
         raise click.ClickException(
@@ -97,7 +98,9 @@ def build_default_models(specs, workdir: Path, int8: bool = True, echo=None) -> 
         _check_free_space(workdir, need, label)
         t0 = time.perf_counter()
         with _disk_full_is_clear(workdir, need, label):
-            export_model(model, path, checkpoint_sha256="random-weights")
+            # a network with the canonical roll turns crops about the viewing ray: it exists in the ray frame only
+            info = {"rotation_frame": "ray"} if model_roll(model) != "none" else None
+            export_model(model, path, info=info, checkpoint_sha256="random-weights")
         line = f"  {label}: exported in {time.perf_counter() - t0:.1f} s"
         fp32.append(BenchModel(label, path, model, config))
         if int8:

@@ -274,7 +274,7 @@ def build_model_metadata(
     if not isinstance(train_noise, str):
         raise ValueError(f"checkpoint info 'train_noise' must be a string such as 'uniform:0:30'; got {train_noise!r}")
     extra = dict(metadata_extra or {})
-    reserved = sorted(set(extra) & (set(REQUIRED_KEYS) | {"quantization"}))
+    reserved = sorted(set(extra) & (set(REQUIRED_KEYS) | {"quantization", "roll"}))
     if reserved:
         raise ValueError(f"metadata_extra must not redefine contract key(s) {reserved}; they are set by the exporter")
     # What a user's own object needs beside its name: the meshes it was rendered from (file, sha256, unit), and its
@@ -293,7 +293,24 @@ def build_model_metadata(
         checkpoint_sha256=checkpoint_sha256,
         version=refiner_rt.__version__,
         extra={"model_config": model.config, **extra},
+        roll=model_roll(model),
     )
+
+
+def model_roll(model: Refiner) -> str:
+    """The turn the runtime makes before ``model``'s graph: the fusion network's ``roll`` config (``"none"`` or
+    ``"canonical"``; models.fusion.canonical_roll), ``"none"`` for every other network."""
+    return model.config.get("roll", "none") if model.arch == "fusion" else "none"
+
+
+def graph_network(model: Refiner) -> Refiner:
+    """The network an exported file holds: ``model`` itself, or for a network with the canonical roll the same
+    weights without it. The turn is a warp of each crop that the runtime makes before the graph
+    (refiner_rt.preprocess.canonical_roll; metadata ``roll``), a few microseconds there against as much time as the
+    network itself as an ONNX GridSample."""
+    from models.fusion import with_roll
+
+    return with_roll(model, {"roll": "none"}) if model_roll(model) != "none" else model
 
 
 def export_model(
@@ -342,13 +359,16 @@ def export_model(
     if lrn not in LRN_LOWERINGS:
         raise ValueError(f"lrn must be one of {sorted(LRN_LOWERINGS)}; got {lrn!r}")
     props = build_model_metadata(model, info=info, checkpoint_sha256=checkpoint_sha256, metadata_extra=metadata_extra)
+    network = graph_network(model)  # without the canonical roll, which the runtime makes (metadata ``roll``)
 
-    proto = to_onnx_proto(model, opset, lrn=lrn)
+    proto = to_onnx_proto(network, opset, lrn=lrn)
     onnx.helper.set_model_props(proto, props)
     proto.doc_string = (
         f"refiner-rt {model.arch} refiner: {INPUT_IMAGE} (batch, {model.input_size}, {model.input_size}, 3) uint8 "
         f"NHWC {model.channel_order}, {INPUT_QUATERNION} (batch, 4) float32 wxyz -> {OUTPUT_QUATERNION} (batch, 4) "
         f"float32 wxyz unit; q_refined = q_in * q_out"
+        + ("; the runtime first turns each crop and its q_in about the viewing ray (metadata roll = "
+           f"{props['roll']!r})" if "roll" in props else "")
     )
     if proto.ByteSize() > _MAX_PROTO_BYTES:
         raise ValueError(f"model is {proto.ByteSize() / 1e9:.2f} GB; a self-contained ONNX file is limited to 2 GB")
@@ -359,7 +379,7 @@ def export_model(
     try:
         with open(tmp, "wb") as f:
             f.write(data)
-        result = check_parity(model, tmp, n=n_parity, tol=tol, seed=PARITY_SEED)
+        result = check_parity(network, tmp, n=n_parity, tol=tol, seed=PARITY_SEED)
         if not result.passed:
             raise ParityError(
                 f"refusing to write {out_path}: onnxruntime differs from PyTorch by max |dq| = {result.max_abs_dq:.3g} "

@@ -324,7 +324,8 @@ def dataset_calibration(
             it in ``train_base``); its ``data`` is replaced by ``data_dir``.
 
     Returns:
-        :class:`Calibration` in the model's channel order (``source="dataset:<folder name>:train_base:<n>"``: the
+        :class:`Calibration` in the model's channel order, as the graph takes them (for a model with the canonical
+        roll, each crop and rotation turned as the runtime turns them) (``source="dataset:<folder name>:train_base:<n>"``: the
         folder's name only, since the source goes into the model's metadata and a model must not carry the paths of
         the machine that made it).
 
@@ -367,6 +368,11 @@ def dataset_calibration(
 
     images, q_in = draw(order[:n])
     check_images, check_q_in = draw(order[n : n + n_check])
+    if contract.roll == "canonical":  # what the graph sees: the runtime turns each crop before it
+        from refiner_rt.preprocess import canonical_roll
+
+        (images, q_in), (check_images, check_q_in) = ((im, q.astype(np.float32)) for im, q in (
+            canonical_roll(images, q_in), canonical_roll(check_images, check_q_in)))
     return Calibration(
         images=images, q_in=q_in, source=f"dataset:{Path(data_dir).resolve().name}:train_base:{n}",
         check_images=check_images, check_q_in=check_q_in,

@@ -49,8 +49,10 @@ def checkpoint_from_onnx(onnx_path, out, images: np.ndarray, q_in: np.ndarray, *
     Args:
         onnx_path: a float32 refiner ONNX file exported by this project (metadata ``quantization`` "none").
         out: the checkpoint to write (``*.pt``).
-        images: ``(N, S, S, 3)`` uint8 NHWC crops in the model's channel order, like its training crops (N >= 16):
-            the batch whose per-channel statistics rebuild the BatchNorm layers, then the parity inputs.
+        images: ``(N, S, S, 3)`` uint8 NHWC crops in the model's channel order, like its training crops (N >= 16),
+            as the graph takes them (for a model with the canonical roll, turned: ``export.quantize.dataset_calibration``
+            gives them so): the batch whose per-channel statistics rebuild the BatchNorm layers, then the parity
+            inputs.
         q_in: ``(N, 4)`` float32 coarse rotations, ``wxyz``, in the model's rotation frame.
         tol: largest ``max |dq|`` allowed between the recovered network and the file.
 
@@ -80,7 +82,10 @@ def checkpoint_from_onnx(onnx_path, out, images: np.ndarray, q_in: np.ndarray, *
     if q_in.shape != (len(images), 4):
         raise RecoverError(f"q_in must be ({len(images)}, 4) wxyz; got {q_in.shape}")
 
-    model = models.build_refiner(props["arch"], **json.loads(props["model_config"]))
+    config = json.loads(props["model_config"])
+    # The file holds the network without the canonical roll (the runtime turns the crops before the graph): the
+    # weights are recovered on that network, from crops as the graph takes them, and the roll is put back at the end.
+    model = models.build_refiner(props["arch"], **{**config, **({"roll": "none"} if "roll" in config else {})})
     state = model.state_dict()
     bns = {name: m for name, m in model.named_modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)}
     modules = dict(model.named_modules())
@@ -144,4 +149,6 @@ def checkpoint_from_onnx(onnx_path, out, images: np.ndarray, q_in: np.ndarray, *
     }
     if props.get("data"):
         info["data"] = json.loads(props["data"])
-    return models.save_checkpoint(model.train(), out, **info)
+    from models.fusion import with_roll
+
+    return models.save_checkpoint(with_roll(model, config).train(), out, **info)

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 __all__ = [
     "file_sha256",
     "FORMAT",
+    "FORMAT_ROLL",
+    "ROLLS",
     "INPUT_IMAGE",
     "INPUT_QUATERNION",
     "OUTPUT_QUATERNION",
@@ -28,6 +30,11 @@ __all__ = [
 ]
 
 FORMAT = "refiner-rt/onnx/1"
+# Format 2 is format 1 plus the key ``roll``: a turn of every crop and its coarse rotation that the runtime makes
+# before the graph (refiner_rt.preprocess.canonical_roll). A file that needs it says format 2, so that a runtime
+# which knows only format 1 refuses it instead of feeding it unturned crops.
+FORMAT_ROLL = "refiner-rt/onnx/2"
+ROLLS = ("none", "canonical")
 INPUT_IMAGE = "image"          # (batch, S, S, 3) uint8, channel order from the metadata
 INPUT_QUATERNION = "q_in"      # (batch, 4) float32, wxyz, object-to-camera (or ray frame, see rotation_frame)
 OUTPUT_QUATERNION = "q_out"    # (batch, 4) float32, wxyz, unit norm: correction, q_refined = q_in * q_out
@@ -74,6 +81,9 @@ class ModelContract:
         checkpoint_sha256: SHA-256 of the checkpoint the model was exported from.
         version: refiner-rt version that exported the model.
         extra: every other metadata key, as written.
+        roll: ``"none"``, or ``"canonical"``: before each pass the runtime turns every crop about its centre, and its
+            coarse rotation about the viewing ray, so that the coarse pose's object z axis points up
+            (:func:`refiner_rt.preprocess.canonical_roll`; format 2, ray frame only).
     """
 
     arch: str
@@ -87,11 +97,12 @@ class ModelContract:
     checkpoint_sha256: str
     version: str
     extra: dict = field(default_factory=dict)
+    roll: str = "none"
 
     def as_dict(self) -> dict:
         """The contract as plain Python values (what ``RefinerSession.metadata`` returns)."""
         return {
-            "refiner_rt.format": FORMAT,
+            "refiner_rt.format": FORMAT if self.roll == "none" else FORMAT_ROLL,
             "refiner_rt.version": self.version,
             "arch": self.arch,
             "input_size": self.input_size,
@@ -103,6 +114,7 @@ class ModelContract:
             "train_noise": self.train_noise,
             "quantization": self.quantization,
             "checkpoint_sha256": self.checkpoint_sha256,
+            **({"roll": self.roll} if self.roll != "none" else {}),
             **self.extra,
         }
 
@@ -120,10 +132,12 @@ def build_metadata(
     version: str,
     quantization: str = "none",
     extra: dict | None = None,
+    roll: str = "none",
 ) -> dict[str, str]:
-    """The ``metadata_props`` of a refiner model as ``{key: str}``, validated by :func:`parse_metadata`."""
+    """The ``metadata_props`` of a refiner model as ``{key: str}``, validated by :func:`parse_metadata` (format 2 with
+    its ``roll`` key when ``roll`` is not ``"none"``)."""
     props = {
-        "refiner_rt.format": FORMAT,
+        "refiner_rt.format": FORMAT if roll == "none" else FORMAT_ROLL,
         "refiner_rt.version": str(version),
         "arch": str(arch),
         "input_size": str(int(input_size)),
@@ -135,6 +149,7 @@ def build_metadata(
         "train_noise": str(train_noise),
         "checkpoint_sha256": str(checkpoint_sha256),
         "quantization": str(quantization),
+        **({"roll": str(roll)} if roll != "none" else {}),
     }
     for k, v in (extra or {}).items():
         props[str(k)] = v if isinstance(v, str) else json.dumps(v)
@@ -155,10 +170,22 @@ def parse_metadata(props: dict[str, str]) -> ModelContract:
             f"model metadata is missing required key(s) {missing}: not a refiner-rt model, or exported by "
             f"an incompatible tool (expected keys {list(REQUIRED_KEYS)})"
         )
-    if props["refiner_rt.format"] != FORMAT:
+    if props["refiner_rt.format"] not in (FORMAT, FORMAT_ROLL):
         raise ValueError(
-            f"model metadata key 'refiner_rt.format' is {props['refiner_rt.format']!r}; this runtime understands {FORMAT!r}"
+            f"model metadata key 'refiner_rt.format' is {props['refiner_rt.format']!r}; this runtime understands "
+            f"{FORMAT!r} and {FORMAT_ROLL!r}"
         )
+    roll = props.get("roll", "none")
+    if props["refiner_rt.format"] == FORMAT_ROLL:
+        if "roll" not in props or roll not in ROLLS or roll == "none":
+            raise ValueError(f"model metadata key 'roll' must be one of {ROLLS[1:]} in a {FORMAT_ROLL!r} model; got "
+                             f"{props.get('roll', 'no such key')!r}")
+        if props["rotation_frame"] != "ray":
+            raise ValueError(f"model metadata key 'roll' is {roll!r}, a turn about the viewing ray: it needs "
+                             f"rotation_frame 'ray'; got {props['rotation_frame']!r}")
+    elif "roll" in props:
+        raise ValueError(f"model metadata key 'roll' ({roll!r}) belongs to format {FORMAT_ROLL!r}; this model says "
+                         f"{FORMAT!r}")
     if props["quaternion_order"] != "wxyz":
         raise ValueError(f"model metadata key 'quaternion_order' is {props['quaternion_order']!r}; expected 'wxyz'")
     try:
@@ -188,7 +215,7 @@ def parse_metadata(props: dict[str, str]) -> ModelContract:
     quantization = props.get("quantization", "none")
     if quantization not in QUANTIZATIONS:
         raise ValueError(f"model metadata key 'quantization' must be one of {QUANTIZATIONS}; got {quantization!r}")
-    known = set(REQUIRED_KEYS) | {"quantization"}
+    known = set(REQUIRED_KEYS) | {"quantization", "roll"}
     extra = {k: v for k, v in props.items() if k not in known}
     return ModelContract(
         arch=props["arch"],
@@ -202,6 +229,7 @@ def parse_metadata(props: dict[str, str]) -> ModelContract:
         checkpoint_sha256=props["checkpoint_sha256"],
         version=props["refiner_rt.version"],
         extra=extra,
+        roll=roll,
     )
 
 

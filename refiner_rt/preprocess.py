@@ -16,6 +16,8 @@ Conventions:
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -27,6 +29,9 @@ __all__ = [
     "crop_to_square",
     "crop_batch",
     "resize_crop",
+    "roll_angle",
+    "roll_angles",
+    "canonical_roll",
     "validate_image",
     "validate_boxes",
 ]
@@ -208,3 +213,58 @@ def resize_crop(crop: np.ndarray, size: int, out=None) -> np.ndarray:
     """
     h, w = crop.shape[:2]
     return crop_to_square(crop, (0.0, 0.0, float(w), float(h)), size, context=1.0, out=out)
+
+
+# --------------------------------------------------------------------------------------------- the canonical roll
+# A model whose metadata says ``roll = "canonical"`` (refiner_rt.metadata) was trained with each crop turned about its
+# centre so that the coarse pose's object z axis points up in the image (its x axis where the z axis lies within 30
+# degrees of the viewing ray), and the coarse pose turned with it (models.fusion.canonical_roll, the training's
+# definition in PyTorch). Its ONNX graph is the network alone: the runtime makes the turn here, one small warp per
+# crop, before each pass.
+_AXIS_NEAR_RAY = 0.25  # sin(30 deg) ** 2: the z axis's image length below which the x axis is used
+
+
+def roll_angle(w: float, x: float, y: float, z: float) -> float:
+    """The image angle (radians, clockwise from up, x right and y down) of the object's z axis under the unit rotation
+    ``(w, x, y, z)`` (object to the viewing-ray frame), or of its x axis where the z axis lies within 30 degrees of
+    the ray. The runtime's twin of ``models.fusion.roll_angle`` (plain floats: one crop at a time is the common case,
+    where numpy's per-call cost would exceed the maths)."""
+    zx, zy = 2.0 * (x * z + w * y), 2.0 * (y * z - w * x)  # R's third column: the object z axis
+    if zx * zx + zy * zy > _AXIS_NEAR_RAY:
+        return math.atan2(zx, -zy)
+    return math.atan2(1.0 - 2.0 * (y * y + z * z), -2.0 * (x * y + w * z))  # R's first column: the x axis
+
+
+def roll_angles(q_wxyz) -> np.ndarray:
+    """``(N,)`` :func:`roll_angle` of each row of ``q_wxyz`` (``(N, 4)``)."""
+    return np.array([roll_angle(*row) for row in np.asarray(q_wxyz, dtype=np.float64).tolist()])
+
+
+def canonical_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each ``S x S`` crop turned about its centre so that the axis of :func:`roll_angle` points up, and its rotation
+    turned about the viewing ray with it: ``(crops (N, S, S, 3) uint8, q (N, 4) float64 wxyz)``.
+
+    The turn is the training's (``models.fusion.canonical_roll``): bilinear, corners filled by reflection about the
+    crop's edges, the output pixel at offset ``d`` from the centre taking the input at ``R(psi) d``, ``psi`` the roll
+    angle; the rotation becomes ``q_z(-psi) * q``. Here in uint8, with OpenCV's fixed-point weights: within one grey
+    level of the float turn. ``out``: an optional preallocated ``(N, S, S, 3)`` uint8 array.
+    """
+    crops = np.asarray(crops)
+    out = np.empty_like(crops) if out is None else out
+    size = crops.shape[1]
+    centre = (size - 1) / 2.0
+    # Reflected once into a border wide enough for any turn (a corner reaches centre * (sqrt(2) - 1) past an edge),
+    # then warped with no border rule: twice as fast as OpenCV's reflecting warp, the same pixels within a grey level.
+    pad = math.ceil(centre * (math.sqrt(2.0) - 1.0)) + 2
+    padded = np.empty((size + 2 * pad, size + 2 * pad, crops.shape[3]), dtype=crops.dtype)
+    q_turned = []
+    for i, (w, x, y, z) in enumerate(np.asarray(q_wxyz, dtype=np.float64).tolist()):
+        psi = roll_angle(w, x, y, z)
+        c, s = math.cos(psi), math.sin(psi)
+        m = np.array([[c, -s, centre * (1.0 - c + s) + pad], [s, c, centre * (1.0 - s - c) + pad]])
+        cv2.copyMakeBorder(crops[i], pad, pad, pad, pad, cv2.BORDER_REFLECT, dst=padded)
+        cv2.warpAffine(padded, m, (size, size), dst=out[i], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                       borderMode=cv2.BORDER_REPLICATE)
+        hw, hz = math.cos(psi / 2.0), -math.sin(psi / 2.0)  # q_z(-psi) * q
+        q_turned.append((hw * w - hz * z, hw * x - hz * y, hw * y + hz * x, hw * z + hz * w))
+    return out, np.array(q_turned, dtype=np.float64).reshape(-1, 4)

@@ -1,7 +1,6 @@
 """`refiner-rt demo`: the sample frames and their ground truth, the coarse rotations, the table and picture (with
 constant-output stand-in models, and with the shipped models when any ship), the user-image mode and bad options."""
 
-import json
 import re
 
 import cv2

@@ -6,7 +6,6 @@ import hashlib
 import json
 
 import numpy as np
-import pytest
 from click.testing import CliRunner
 
 from refiner_rt.cli import main

@@ -80,7 +80,38 @@ def test_canonical_roll_turns_crops_as_the_training_in_plane_turn_does():
     assert np.degrees((got.inv() * expected).magnitude()).max() < 1e-3
 
 
-def test_canonical_roll_network_keeps_the_contract_and_exports_with_parity(tmp_path):
+def _smooth_crops(n: int, size: int, seed: int) -> np.ndarray:
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    return np.stack([cv2.GaussianBlur(c, (7, 7), 2) for c in rng.integers(0, 256, (n, size, size, 3), dtype=np.uint8)])
+
+
+def test_the_runtime_turn_is_the_training_turn():
+    """refiner_rt.preprocess.canonical_roll (OpenCV, uint8, plain floats) against models.fusion.canonical_roll
+    (PyTorch GridSample, float): the same angle, the same rotation, pixels within a grey level (its rounding)."""
+    from refiner_rt.preprocess import canonical_roll as runtime_roll
+    from refiner_rt.preprocess import roll_angles
+
+    q = _wxyz(Rotation.random(64, random_state=5))
+    crops = _smooth_crops(64, 48, 0)
+    np.testing.assert_allclose(roll_angles(q.double().numpy()), roll_angle(q.double()).numpy(), atol=1e-9)
+    turned, q_turned = runtime_roll(crops, q.numpy())
+    ref, q_ref = canonical_roll(torch.tensor(crops).permute(0, 3, 1, 2).float(), q)
+    assert turned.dtype == np.uint8 and turned.shape == crops.shape
+    diff = np.abs(turned.astype(np.float32) - ref.permute(0, 2, 3, 1).numpy())
+    assert diff.max() <= 1.0 + 1e-3 and diff.mean() < 0.3  # rounding, and OpenCV's fixed-point weights
+    np.testing.assert_allclose(q_turned, q_ref.numpy(), atol=1e-6)
+
+
+def test_canonical_roll_network_keeps_the_contract_and_exports_the_turn_for_the_runtime(tmp_path):
+    """The file holds the network without the turn (no GridSample), says format 2 with ``roll = canonical``, and the
+    runtime, which makes the turn, gives what the PyTorch network with the roll gives."""
+    import onnx
+
+    from refiner_rt import RefinerSession
+    from refiner_rt.metadata import FORMAT_ROLL
+
     torch.manual_seed(0)
     model = models.build_refiner("fusion", input_size=32, roll="canonical", **SMALL).eval()
     assert model.config["roll"] == "canonical"
@@ -90,7 +121,63 @@ def test_canonical_roll_network_keeps_the_contract_and_exports_with_parity(tmp_p
     assert out.shape == (5, 4) and torch.allclose(out.norm(dim=1), torch.ones(5), atol=1e-5)
     report = export.export_model(model, tmp_path / "roll.onnx", info={"rotation_frame": "ray"})
     assert report.max_abs_dq <= 1e-4
-    assert export.check_parity(model, report.path, n=64, seed=3).passed
+    proto = onnx.load(str(report.path))
+    assert "GridSample" not in {node.op_type for node in proto.graph.node}
+    sess = RefinerSession(report.path)
+    assert sess.contract.roll == "canonical" and sess.metadata["refiner_rt.format"] == FORMAT_ROLL
+    crops = _smooth_crops(40, 32, 1)
+    q_in = _wxyz(Rotation.random(40, random_state=2))
+    with torch.no_grad():
+        ref = model(torch.tensor(crops), q_in).double().numpy()  # the network takes BGR, as the runtime
+    got = sess.refine_crops(crops, q_in.numpy().astype(np.float64)).q_out
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs((got * ref).sum(axis=1)) / np.linalg.norm(ref, axis=1), 0, 1)))
+    assert angle.max() < 0.05  # the uint8 turn's rounding only
+    # one crop at a time (the runtime's plain-float path without the roll) gives the same
+    one = sess.refine_crops(crops[:1], q_in[:1].numpy().astype(np.float64)).q_out
+    np.testing.assert_allclose(one, got[:1], atol=1e-6)
+
+
+def test_a_roll_model_needs_format_2_and_the_ray_frame():
+    from refiner_rt.metadata import FORMAT, FORMAT_ROLL, build_metadata, parse_metadata
+
+    common = dict(arch="fusion", input_size=64, channel_order="RGB", crop_context=1.2, objects=["x"],
+                  train_noise="uniform:0:30", checkpoint_sha256="none", version="0")
+    props = build_metadata(rotation_frame="ray", roll="canonical", **common)
+    assert props["refiner_rt.format"] == FORMAT_ROLL and parse_metadata(props).roll == "canonical"
+    assert build_metadata(rotation_frame="ray", **common)["refiner_rt.format"] == FORMAT
+    with pytest.raises(ValueError, match="'roll'.*belongs to format"):
+        parse_metadata({**props, "refiner_rt.format": FORMAT})
+    with pytest.raises(ValueError, match="'roll' must be one of"):
+        parse_metadata({**props, "roll": "sideways"})
+    with pytest.raises(ValueError, match="'roll' must be one of"):
+        parse_metadata({k: v for k, v in props.items() if k != "roll"})
+    with pytest.raises(ValueError, match="needs rotation_frame 'ray'"):
+        build_metadata(rotation_frame="camera", roll="canonical", **common)
+
+
+def test_a_roll_export_recovers_and_quantises_with_the_turn(tmp_path):
+    """export.recover gives back the network with the roll from the file (on crops as the graph takes them), and the
+    INT8 file keeps format 2 and the roll."""
+    from export.quantize import quantize_model
+    from export.recover import checkpoint_from_onnx
+    from refiner_rt import RefinerSession
+    from refiner_rt.preprocess import canonical_roll as runtime_roll
+
+    torch.manual_seed(1)
+    model = models.build_refiner("fusion", input_size=32, roll="canonical", **SMALL).eval()
+    fp32 = export.export_model(model, tmp_path / "roll.onnx", info={"rotation_frame": "ray"}).path
+    crops = _smooth_crops(32, 32, 3)
+    q_in = _wxyz(Rotation.random(32, random_state=4)).numpy()
+    turned, q_turned = runtime_roll(crops, q_in)
+    ckpt = checkpoint_from_onnx(fp32, tmp_path / "back.pt", turned, q_turned.astype(np.float32), tol=1e-3)
+    back, _ = models.load_checkpoint(ckpt)
+    assert back.config["roll"] == "canonical"
+    with torch.no_grad():
+        a = back.eval()(torch.tensor(crops), torch.tensor(q_in)).numpy()
+        b = model(torch.tensor(crops), torch.tensor(q_in)).numpy()
+    np.testing.assert_allclose(np.abs((a * b).sum(axis=1)), 1.0, atol=1e-4)
+    int8 = quantize_model(fp32, tmp_path / "roll.int8.onnx", enforce=False).path
+    assert RefinerSession(int8).contract.roll == "canonical"
 
 
 def test_roll_must_be_none_or_canonical():
