@@ -306,23 +306,15 @@ def run(args) -> dict:
             t0 = time.perf_counter()
             res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
             wall = round(time.perf_counter() - t0, 1)
-            predictor = torch_predictor(res.model.eval())
-            errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
             row = {"mode": mode, "train_crops": n, **({"train_scenes": r.train_scenes} if r.train_scenes else {}),
                    **({"init": str(args.init)} if args.init else {}),
                    "augment": r.augment, "background": r.background, "occlude": r.occlude,
                    **({"relight": r.relight} if r.relight else {}),
                    **({"photometric": cfg.photometric} if cfg.photometric else {}), "epochs": epochs,
                    "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
-                   "val_mean_deg": res.best_val_deg, **errors.summary()["pooled"],
+                   "val_mean_deg": res.best_val_deg,
                    "scenes": scenes, "wall_s": wall}
-            if args.iterations > 1:
-                # The same test crops and coarse poses, refined again from each pass's output (RefinerSession's
-                # ``iterations``); one pass is the row's own error.
-                row["iterations"] = {
-                    str(k): evaluate_errors(predictor, test, iterations=k,
-                                            rotation_frame=args.rotation_frame).summary()["pooled"]
-                    for k in range(2, args.iterations + 1)}
+            # Saved before the test split is scored: hours of training must not hang on the evaluation after it.
             if args.save:
                 slug = re.sub(r"[^A-Za-z0-9.]+", "-", _augment_label(row))
                 scenes_tag = f"_s{r.train_scenes}" if r.train_scenes else ""
@@ -336,6 +328,18 @@ def run(args) -> dict:
                                        **({"train_scene_ids": sorted(set(train.scene_ids.astype(str).tolist()))}
                                           if r.train_scenes else {}))
                 row["checkpoint"] = str(path)
+            predictor = torch_predictor(res.model.eval())
+            errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
+            pooled = errors.summary()["pooled"]
+            row = {**{k: v for k, v in row.items() if k not in ("scenes", "wall_s", "checkpoint")}, **pooled,
+                   **{k: row[k] for k in ("scenes", "wall_s", "checkpoint") if k in row}}
+            if args.iterations > 1:
+                # The same test crops and coarse poses, refined again from each pass's output (RefinerSession's
+                # ``iterations``); one pass is the row's own error.
+                row["iterations"] = {
+                    str(k): evaluate_errors(predictor, test, iterations=k,
+                                            rotation_frame=args.rotation_frame).summary()["pooled"]
+                    for k in range(2, args.iterations + 1)}
             rows.append(row)
             scenes_note = f" scenes={r.train_scenes}" if r.train_scenes else ""
             print(f"{mode:6s} n={n:6d}{scenes_note} augment={r.augment!s:5s} background={r.background:.2f} "
