@@ -323,3 +323,21 @@ def test_extra_train_adds_new_scenes_and_init_starts_from_a_trained_model(tmp_pa
     with pytest.raises(SystemExit):
         study.main([*argv, "--extra-train", str(tmp_path / "missing")])
     assert "--extra-train: not a folder" in capsys.readouterr().err
+
+
+def test_the_network_is_saved_before_the_test_split_is_scored(cubes, tmp_path, monkeypatch):
+    """A failure while scoring (after what may be hours of training) keeps the trained network on disk."""
+    study = _load()
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("scoring failed")
+
+    monkeypatch.setattr("models.evaluate.evaluate_errors", fail)  # the study imports it when it runs
+    argv = [*_common(cubes, tmp_path, tmp_path / "a.json"), "--modes", "scenes", "--sizes", "10", "--samples", "32",
+            "--epoch-samples", "32", "--save", str(tmp_path / "models")]
+    with pytest.raises(RuntimeError, match="scoring failed"):
+        study.main(argv)
+    saved = list((tmp_path / "models").glob("*.pt"))
+    assert len(saved) == 1
+    model, info = models.load_checkpoint(saved[0])
+    assert info["objects"] == ["003_cracker_box"]
