@@ -299,14 +299,14 @@ def build_model_metadata(
 
 def model_roll(model: Refiner) -> str:
     """The turn the runtime makes before ``model``'s graph: the fusion network's ``roll`` config (``"none"`` or
-    ``"canonical"``; models.fusion.canonical_roll), ``"none"`` for every other network."""
+    ``"canonical"`` or ``"quarter"``; models.fusion.ROLLS), ``"none"`` for every other network."""
     return model.config.get("roll", "none") if model.arch == "fusion" else "none"
 
 
 def graph_network(model: Refiner) -> Refiner:
-    """The network an exported file holds: ``model`` itself, or for a network with the canonical roll the same
+    """The network an exported file holds: ``model`` itself, or for a network with a roll (models.fusion.ROLLS) the same
     weights without it. The turn is a warp of each crop that the runtime makes before the graph
-    (refiner_rt.preprocess.canonical_roll; metadata ``roll``), a few microseconds there against as much time as the
+    (refiner_rt.preprocess.ROLL_TURNS; metadata ``roll``), a few microseconds there against as much time as the
     network itself as an ONNX GridSample."""
     from models.fusion import with_roll
 
@@ -359,7 +359,7 @@ def export_model(
     if lrn not in LRN_LOWERINGS:
         raise ValueError(f"lrn must be one of {sorted(LRN_LOWERINGS)}; got {lrn!r}")
     props = build_model_metadata(model, info=info, checkpoint_sha256=checkpoint_sha256, metadata_extra=metadata_extra)
-    network = graph_network(model)  # without the canonical roll, which the runtime makes (metadata ``roll``)
+    network = graph_network(model)  # without its roll, which the runtime makes (metadata ``roll``)
 
     proto = to_onnx_proto(network, opset, lrn=lrn)
     onnx.helper.set_model_props(proto, props)

@@ -368,11 +368,12 @@ def dataset_calibration(
 
     images, q_in = draw(order[:n])
     check_images, check_q_in = draw(order[n : n + n_check])
-    if contract.roll == "canonical":  # what the graph sees: the runtime turns each crop before it
-        from refiner_rt.preprocess import canonical_roll
+    if contract.roll != "none":  # what the graph sees: the runtime turns each crop before it
+        from refiner_rt.preprocess import ROLL_TURNS
 
+        turn = ROLL_TURNS[contract.roll]
         (images, q_in), (check_images, check_q_in) = ((im, q.astype(np.float32)) for im, q in (
-            canonical_roll(images, q_in), canonical_roll(check_images, check_q_in)))
+            turn(images, q_in), turn(check_images, check_q_in)))
     return Calibration(
         images=images, q_in=q_in, source=f"dataset:{Path(data_dir).resolve().name}:train_base:{n}",
         check_images=check_images, check_q_in=check_q_in,

@@ -19,6 +19,8 @@ conversion happens inside the graph.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -27,7 +29,7 @@ from models.losses import quat_multiply
 from models.registry import register_refiner
 
 __all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices", "roll_angle",
-           "turn_grid", "canonical_roll", "with_roll"]
+           "turn_grid", "canonical_roll", "quarter_roll", "ROLLS", "with_roll"]
 
 
 def _quadratic_form_matrix() -> torch.Tensor:
@@ -149,6 +151,31 @@ def canonical_roll(image: torch.Tensor, q_in: torch.Tensor) -> tuple[torch.Tenso
     return turned, quat_multiply(q_turn.to(q_in.dtype), q_in)
 
 
+def quarter_roll(image: torch.Tensor, q_in: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`canonical_roll` in quarter turns: each crop turned by the multiple of 90 degrees nearest to the one that
+    points the axis of :func:`roll_angle` up (so that it then points within 45 degrees of up), and the coarse rotation
+    with it; ``(image (N, C, S, S), q_in (N, 4))`` in and out.
+
+    A quarter turn moves pixels without resampling them and uncovers no corner, and a crop whose axis already points
+    within 45 degrees of up (an object standing on a table under a level camera) is not turned at all: the network
+    sees it as a network without the roll does, and only the views rolled further are turned.
+    """
+    k = torch.round(roll_angle(q_in) / (math.pi / 2)).remainder(4)  # quarter turns to undo, 0-3
+    turned = image.clone()
+    for quarter in (1, 2, 3):
+        rows = k == quarter
+        if bool(rows.any()):
+            # a turn by -quarter * 90 degrees, clockwise positive (x right, y down): counter-clockwise on screen
+            turned[rows] = torch.rot90(image[rows], quarter, dims=(2, 3))
+    half = -k * (math.pi / 4)
+    q_turn = torch.stack([torch.cos(half), torch.zeros_like(half), torch.zeros_like(half), torch.sin(half)], dim=1)
+    return turned, quat_multiply(q_turn.to(q_in.dtype), q_in)
+
+
+# The fusion network's input turns: none, the canonical roll (continuous), its quarter turns.
+ROLLS = {"canonical": canonical_roll, "quarter": quarter_roll}
+
+
 def with_roll(model, config: dict):
     """``model`` rebuilt with ``config`` when the two differ only in the fusion network's ``roll`` (the turn changes no
     weight, so a network trained without it may go on with it, and back), its weights kept; else ``model`` as it is
@@ -188,6 +215,8 @@ class FusionRefiner(Refiner):
           then sees every viewing direction at one roll, whatever the object's roll about the ray in the image (an
           object leaning on another, a tilted camera): rolls its training scenes lack cost nothing. ``q_out`` is
           unchanged by the turn, so the contract is the same. Ray frame only: the roll is about the viewing ray.
+          ``"quarter"``: the same in quarter turns (:func:`quarter_roll`): views within 45 degrees of that roll are
+          left as they are, the others turned by 90, 180 or 270 degrees without resampling.
 
     Shape:
         - image: ``(N, S, S, 3)`` uint8, NHWC, ``channel_order`` (default BGR).
@@ -231,8 +260,8 @@ class FusionRefiner(Refiner):
             raise ValueError(f"config['output'] must be 'relative' or 'absolute'; got {cfg['output']!r}")
         if cfg["fusion"] not in ("product", "concat"):
             raise ValueError(f"config['fusion'] must be 'product' or 'concat'; got {cfg['fusion']!r}")
-        if cfg["roll"] not in ("none", "canonical"):
-            raise ValueError(f"config['roll'] must be 'none' or 'canonical'; got {cfg['roll']!r}")
+        if cfg["roll"] not in ("none", *ROLLS):
+            raise ValueError(f"config['roll'] must be one of {('none', *ROLLS)}; got {cfg['roll']!r}")
         return cfg
 
     def __init__(self, **config):
@@ -268,8 +297,8 @@ class FusionRefiner(Refiner):
         """Predict ``q_out`` (``q_refined = q_in * q_out``); same contract as :meth:`Refiner.forward`."""
         self._check_inputs(image, q_in)
         x = self.normalize(image)
-        if self.config["roll"] == "canonical":
-            x, q_in = canonical_roll(x, q_in)
+        if self.config["roll"] != "none":
+            x, q_in = ROLLS[self.config["roll"]](x, q_in)
         a = self.features(x)
         matrix_needed = self.config["pose_input"] == "matrix" or self.config["output"] == "absolute"
         r_in = quaternion_to_matrix_flat(q_in) if matrix_needed else None

@@ -34,7 +34,7 @@ FORMAT = "refiner-rt/onnx/1"
 # before the graph (refiner_rt.preprocess.canonical_roll). A file that needs it says format 2, so that a runtime
 # which knows only format 1 refuses it instead of feeding it unturned crops.
 FORMAT_ROLL = "refiner-rt/onnx/2"
-ROLLS = ("none", "canonical")
+ROLLS = ("none", "canonical", "quarter")
 INPUT_IMAGE = "image"          # (batch, S, S, 3) uint8, channel order from the metadata
 INPUT_QUATERNION = "q_in"      # (batch, 4) float32, wxyz, object-to-camera (or ray frame, see rotation_frame)
 OUTPUT_QUATERNION = "q_out"    # (batch, 4) float32, wxyz, unit norm: correction, q_refined = q_in * q_out
@@ -81,9 +81,10 @@ class ModelContract:
         checkpoint_sha256: SHA-256 of the checkpoint the model was exported from.
         version: refiner-rt version that exported the model.
         extra: every other metadata key, as written.
-        roll: ``"none"``, or ``"canonical"``: before each pass the runtime turns every crop about its centre, and its
-            coarse rotation about the viewing ray, so that the coarse pose's object z axis points up
-            (:func:`refiner_rt.preprocess.canonical_roll`; format 2, ray frame only).
+        roll: ``"none"``, ``"canonical"`` or ``"quarter"``: before each pass the runtime turns every crop about its
+            centre, and its coarse rotation about the viewing ray, so that the coarse pose's object z axis points up
+            (:func:`refiner_rt.preprocess.canonical_roll`), or within 45 degrees of up in quarter turns
+            (:func:`refiner_rt.preprocess.quarter_roll`); format 2, ray frame only.
     """
 
     arch: str

@@ -32,6 +32,8 @@ __all__ = [
     "roll_angle",
     "roll_angles",
     "canonical_roll",
+    "quarter_roll",
+    "ROLL_TURNS",
     "validate_image",
     "validate_boxes",
 ]
@@ -268,3 +270,22 @@ def canonical_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None) -> 
         hw, hz = math.cos(psi / 2.0), -math.sin(psi / 2.0)  # q_z(-psi) * q
         q_turned.append((hw * w - hz * z, hw * x - hz * y, hw * y + hz * x, hw * z + hz * w))
     return out, np.array(q_turned, dtype=np.float64).reshape(-1, 4)
+
+
+def quarter_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`canonical_roll` in quarter turns (``models.fusion.quarter_roll``): each crop turned by the multiple of 90
+    degrees nearest to the canonical turn, so that the axis then points within 45 degrees of up, and its rotation
+    with it. Pixels are moved, never resampled: equal to the training's turn. ``(crops, q)`` as there."""
+    crops = np.asarray(crops)
+    out = np.empty_like(crops) if out is None else out
+    q_turned = []
+    for i, (w, x, y, z) in enumerate(np.asarray(q_wxyz, dtype=np.float64).tolist()):
+        k = round(roll_angle(w, x, y, z) / (math.pi / 2)) % 4  # quarter turns to undo, 0-3
+        out[i] = np.rot90(crops[i], k, axes=(0, 1)) if k else crops[i]
+        hw, hz = math.cos(k * math.pi / 4), -math.sin(k * math.pi / 4)  # q_z(-k * 90 deg) * q
+        q_turned.append((hw * w - hz * z, hw * x - hz * y, hw * y + hz * x, hw * z + hz * w))
+    return out, np.array(q_turned, dtype=np.float64).reshape(-1, 4)
+
+
+# The turn the runtime makes before the graph, by the metadata's ``roll``.
+ROLL_TURNS = {"canonical": canonical_roll, "quarter": quarter_roll}

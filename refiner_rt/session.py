@@ -59,7 +59,7 @@ from refiner_rt.geometry import (  # noqa: F401  (re-exported under their old na
     view_boxes,
     view_offsets,
 )
-from refiner_rt.preprocess import (MAX_BOX_COORDINATE, canonical_roll, crop_to_square, resize_crop, validate_boxes,
+from refiner_rt.preprocess import (MAX_BOX_COORDINATE, ROLL_TURNS, crop_to_square, resize_crop, validate_boxes,
                                    validate_image)
 from refiner_rt.distortion import crop_undistorted, undistort_boxes, validate_D
 
@@ -424,7 +424,7 @@ class RefinerSession:
         self._output_names = [OUTPUT_QUATERNION]
         self._rgb = self.contract.channel_order == "RGB"
         self._ray = self.contract.rotation_frame == "ray"
-        self._roll = self.contract.roll == "canonical"  # turn each crop before each pass (preprocess.canonical_roll)
+        self._roll = ROLL_TURNS.get(self.contract.roll)  # the turn of each crop before each pass, or None
         self._trial_run()
         self._local = threading.local()  # per-thread reusable buffers (see _buffers)
         if object_id is not None:
@@ -732,8 +732,8 @@ class RefinerSession:
             return RefineResult(q_refined=empty, q_out=empty.copy(), q_in=empty.copy())
         if self._rgb:
             crops = np.ascontiguousarray(crops[..., ::-1])
-        turned = np.empty_like(crops) if self._roll else None  # each pass turns the crops by its rotations' roll
-        feed = {INPUT_IMAGE: turned if self._roll else crops, INPUT_QUATERNION: q_net}
+        turned = np.empty_like(crops) if self._roll is not None else None  # each pass turns them by their roll
+        feed = {INPUT_IMAGE: crops if turned is None else turned, INPUT_QUATERNION: q_net}
         # The network sees rotations in its own frame; for "ray" models q_net = q_ray^-1 * q.
         # q_refined = q_prev * q_out holds in either frame (q_ray * (q_ray^-1 q) * q_out = q * q_out).
         q = q_in if q_rows is None else q_rows
@@ -750,8 +750,8 @@ class RefinerSession:
             else:
                 q_cur = rq.multiply(frame_inv, q) if q_rows is None else _multiply_rows(frame_inv, q)
             q_net[...] = q_cur if views == 1 else np.repeat(q_cur, views, axis=0)
-            if self._roll:
-                q_net[...] = canonical_roll(crops, q_net, out=turned)[1]
+            if turned is not None:
+                q_net[...] = self._roll(crops, q_net, out=turned)[1]
             try:
                 out = self._session.run(self._output_names, feed)[0]
             except Exception as exc:  # onnxruntime's own types: the inputs were checked, so the model failed

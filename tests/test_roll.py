@@ -180,6 +180,45 @@ def test_a_roll_export_recovers_and_quantises_with_the_turn(tmp_path):
     assert RefinerSession(int8).contract.roll == "canonical"
 
 
+def test_the_quarter_roll_turns_by_the_nearest_quarter_and_the_runtime_moves_the_same_pixels(tmp_path):
+    """models.fusion.quarter_roll turns each crop by the multiple of 90 degrees nearest the canonical turn (so the
+    axis then points within 45 degrees of up; views already there are left alone), as the continuous turn would at
+    those angles; refiner_rt.preprocess.quarter_roll gives the same pixels and rotations, and a quarter-roll network
+    runs through the runtime as in PyTorch."""
+    from models.fusion import quarter_roll, turn_grid
+    from refiner_rt import RefinerSession
+    from refiner_rt.preprocess import quarter_roll as runtime_quarter
+
+    q = _wxyz(Rotation.random(200, random_state=7)).double()
+    crops = _smooth_crops(200, 16, 4)
+    images = torch.tensor(crops).permute(0, 3, 1, 2).double()
+    turned, q_turned = quarter_roll(images, q)
+    assert np.degrees(roll_angle(q_turned).abs().max().item()) <= 45.0 + 1e-6
+    k = torch.round(roll_angle(q) / (np.pi / 2)).remainder(4)
+    assert set(k.tolist()) == {0.0, 1.0, 2.0, 3.0}
+    assert torch.equal(turned[k == 0], images[k == 0])  # no turn, no resampling
+    ref = torch.nn.functional.grid_sample(images, turn_grid(-k * np.pi / 2, 16), mode="bilinear",
+                                          padding_mode="reflection", align_corners=False)
+    assert (turned - ref).abs().max() < 1e-5
+    turn = Rotation.from_quat(np.c_[q_turned[:, 1:], q_turned[:, :1]]) * Rotation.from_quat(np.c_[q[:, 1:], q[:, :1]]).inv()
+    expected = Rotation.from_rotvec(np.c_[np.zeros((200, 2)), -k.numpy() * np.pi / 2])  # about the ray
+    assert (turn * expected.inv()).magnitude().max() < 1e-9
+    got, q_got = runtime_quarter(crops, q.numpy())
+    assert np.array_equal(got, turned.permute(0, 2, 3, 1).numpy().astype(np.uint8))
+    np.testing.assert_allclose(q_got, q_turned.numpy(), atol=1e-12)
+
+    torch.manual_seed(2)
+    model = models.build_refiner("fusion", input_size=32, roll="quarter", **SMALL).eval()
+    path = export.export_model(model, tmp_path / "quarter.onnx", info={"rotation_frame": "ray"}).path
+    sess = RefinerSession(path)
+    assert sess.contract.roll == "quarter"
+    crops32, q_in = _smooth_crops(40, 32, 5), _wxyz(Rotation.random(40, random_state=6))
+    with torch.no_grad():
+        ref_out = model(torch.tensor(crops32), q_in).double().numpy()
+    out = sess.refine_crops(crops32, q_in.numpy().astype(np.float64)).q_out
+    assert np.abs(np.abs((out * ref_out).sum(axis=1)) / np.linalg.norm(ref_out, axis=1) - 1).max() < 1e-6
+
+
 def test_roll_must_be_none_or_canonical():
     with pytest.raises(ValueError, match="roll"):
         models.build_refiner("fusion", roll="sideways", **SMALL)

@@ -29,6 +29,9 @@ lever                  training data, augmentation
 ``tabletop+roll``      ``tabletop`` with the network's canonical roll (``models.fusion.canonical_roll``): every crop
                        is turned, inside the network, so that the coarse pose's object z axis points up in it, so the
                        network sees each viewing direction at one roll (``robot+roll``, ``mix-long+roll`` likewise)
+``tabletop+quarter``   ``tabletop`` with the canonical roll in quarter turns (``models.fusion.quarter_roll``): a crop
+                       whose axis points within 45 degrees of up is left as it is, the others are turned by 90, 180
+                       or 270 degrees (``mix-long+quarter`` likewise)
 =====================  ========================================================================================
 
 The ``tabletop`` row is the control: the same amount of further training on the kind of scenes the model already saw.
@@ -62,7 +65,7 @@ from benchmarks.study_cli import write_json  # noqa: E402
 
 LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long", "cycles",
           "robot-same-scenes", "tabletop+inplane", "robot+inplane", "robot-long+inplane", "mix-long+inplane",
-          "tabletop+roll", "robot+roll", "mix-long+roll")
+          "tabletop+roll", "robot+roll", "mix-long+roll", "tabletop+quarter", "mix-long+quarter")
 
 
 def photometric() -> dict:
@@ -118,7 +121,8 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
     from export.onnx_export import export_checkpoint
 
-    turns, roll = lever.endswith("+inplane"), lever.endswith("+roll")
+    turns = lever.endswith("+inplane")
+    roll = {"+roll": "canonical", "+quarter": "quarter"}.get(lever[lever.rfind("+"):]) if "+" in lever else None
     folder = row_folder(run, lever, seed, inplane if turns else None)
     folder.mkdir(parents=True, exist_ok=True)
     cache = run / "cache"
@@ -127,7 +131,7 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     # The split's validation and test parts are small: the rows are scored on the real frames and fresh renders.
     cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init, extra_train=extra_train,
                         photometric=photometric() if lever.endswith("+photo") else {}, seed=seed,
-                        inplane=inplane if turns else 0.0, roll="canonical" if roll else None)
+                        inplane=inplane if turns else 0.0, roll=roll)
     t0 = time.perf_counter()
     ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
     train_s = time.perf_counter() - t0
@@ -138,7 +142,7 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     from benchmarks.pretrained import RECIPE_NAME
 
     return onnx, {"recipe": RECIPE_NAME, **({} if seed is None else {"seed": seed}),
-                  **({"inplane_deg": inplane} if turns else {}), **({"roll": "canonical"} if roll else {}),
+                  **({"inplane_deg": inplane} if turns else {}), **({"roll": roll} if roll else {}),
                   "command": _card_command(cmd),
                   "train_s": round(train_s, 1),
                   **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "mean_deg", "wall_s")}}
