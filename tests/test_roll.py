@@ -262,3 +262,16 @@ def test_refiner_rt_train_init_goes_on_with_the_roll_and_keeps_every_weight(tmp_
                                    "rotation_frame": "ray", "init": str(ckpt)})
     with pytest.raises(Exception, match="differs from the --init checkpoint's config"):
         load_init(other)
+
+
+def test_roll_bins_measures_the_roll_and_the_axis_to_the_ray_as_scipy_does():
+    """benchmarks/studies/real_levers/roll_bins.py's bins: the angle of the object's z axis to the viewing ray (from
+    SciPy's matrix) and the magnitude of the turn's roll angle."""
+    from bench_scripts import load_benchmark
+
+    study = load_benchmark("studies/real_levers/roll_bins")
+    r = Rotation.random(100, random_state=8)
+    got = study.bins(_wxyz(r).double().numpy())
+    z = r.as_matrix()[:, :, 2]
+    np.testing.assert_allclose(got["axis"], np.degrees(np.arccos(np.abs(z[:, 2]))), atol=1e-3)  # float32 rows
+    np.testing.assert_allclose(got["roll"], np.degrees(roll_angle(_wxyz(r).double()).abs().numpy()), atol=1e-4)
