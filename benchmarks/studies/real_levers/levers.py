@@ -201,10 +201,11 @@ def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
 
 
 def _label(row: dict) -> str:
-    """A row's lever, with its largest in-plane turn and its training seed where they were given (``cycles seed 1``,
-    ``tabletop+inplane 180``)."""
+    """A row's lever, with its largest in-plane turn, its training seed and a budget other than the study's where they
+    were given (``cycles seed 1``, ``tabletop+inplane 180``, ``mix-long+roll (450k samples)``)."""
     return (row["lever"] + (f" {row['inplane_deg']:g}" if "inplane_deg" in row else "")
-            + (f" seed {row['seed']}" if "seed" in row else ""))
+            + (f" seed {row['seed']}" if "seed" in row else "")
+            + (f" ({row['long_samples'] // 1000}k samples)" if "long_samples" in row else ""))
 
 
 def table(docs: list[dict]) -> str:
