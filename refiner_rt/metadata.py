@@ -12,6 +12,8 @@ import json
 import math
 from dataclasses import dataclass, field
 
+from refiner_rt.preprocess import ROLL_TURNS
+
 __all__ = [
     "file_sha256",
     "FORMAT",
@@ -34,7 +36,7 @@ FORMAT = "refiner-rt/onnx/1"
 # before the graph (refiner_rt.preprocess.canonical_roll). A file that needs it says format 2, so that a runtime
 # which knows only format 1 refuses it instead of feeding it unturned crops.
 FORMAT_ROLL = "refiner-rt/onnx/2"
-ROLLS = ("none", "canonical", "quarter")
+ROLLS = ("none", *ROLL_TURNS)
 INPUT_IMAGE = "image"          # (batch, S, S, 3) uint8, channel order from the metadata
 INPUT_QUATERNION = "q_in"      # (batch, 4) float32, wxyz, object-to-camera (or ray frame, see rotation_frame)
 OUTPUT_QUATERNION = "q_out"    # (batch, 4) float32, wxyz, unit norm: correction, q_refined = q_in * q_out

@@ -219,6 +219,14 @@ def test_the_quarter_roll_turns_by_the_nearest_quarter_and_the_runtime_moves_the
     assert np.abs(np.abs((out * ref_out).sum(axis=1)) / np.linalg.norm(ref_out, axis=1) - 1).max() < 1e-6
 
 
+def test_training_and_runtime_know_the_same_rolls():
+    from models.fusion import ROLLS
+    from refiner_rt.metadata import ROLLS as CONTRACT_ROLLS
+    from refiner_rt.preprocess import ROLL_TURNS
+
+    assert set(ROLLS) == set(ROLL_TURNS) and CONTRACT_ROLLS == ("none", *ROLL_TURNS)
+
+
 def test_roll_must_be_none_or_canonical():
     with pytest.raises(ValueError, match="roll"):
         models.build_refiner("fusion", roll="sideways", **SMALL)
