@@ -135,6 +135,36 @@ def _augment_label(row: dict) -> str:
     return " + ".join((["jitter"] if row["augment"] else []) + extra)
 
 
+def checkpoint_path(args, row: dict, n: int, train_scenes) -> Path:
+    """Where ``--save`` keeps a run's checkpoint: named by the object, mode, training crops (and scenes) and
+    augmentation, so a rerun of the same command finds it (``--resume``)."""
+    slug = re.sub(r"[^A-Za-z0-9.]+", "-", _augment_label(row))
+    scenes_tag = f"_s{train_scenes}" if train_scenes else ""
+    return args.save / f"{args.object}_{row['mode']}_n{n}{scenes_tag}_{slug}.pt"
+
+
+def resumed_checkpoint(path: Path, obj: str, n: int, train_config: dict):
+    """The model and info of a checkpoint this command saved earlier, checked to be this run's: the same object,
+    training crops and training configuration (a run killed while scoring resumes at the scoring)."""
+    import models
+
+    model, info = models.load_checkpoint(path)
+    saved = info.get("train_config")
+    saved = json.loads(saved) if isinstance(saved, str) else json.loads(json.dumps(saved))
+    found = {"objects": info.get("objects"), "train_crops": info.get("train_crops"),
+             "train_config": saved}
+    wanted = {"objects": [obj], "train_crops": n, "train_config": json.loads(json.dumps(train_config))}
+    for key in wanted:
+        if found[key] != wanted[key]:
+            raise SystemExit(f"--resume: {path} was not saved by this run: its {key} is {found[key]!r}, this run's is "
+                             f"{wanted[key]!r}; remove it or drop --resume")
+    return model, info
+
+
+def _wall(row: dict) -> str:
+    return "training time not recorded (resumed)" if row.get("wall_s") is None else f"{row['wall_s']:.0f} s"
+
+
 def _crops_label(row: dict) -> str:
     """A row's training crops, and the training scenes they came from when the run took whole scenes."""
     crops = str(row["train_crops"])
@@ -300,39 +330,43 @@ def run(args) -> dict:
                                        relight=r.relight)
             cfg = run_recipe.stage_config("base", n)
             epochs = cfg.epochs
-            torch.manual_seed(args.seed)
-            model = (_initial_model(args, spec, probe.config) if args.init
-                     else models.build_refiner(args.arch, **args.config))
-            t0 = time.perf_counter()
-            res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
-            wall = round(time.perf_counter() - t0, 1)
             row = {"mode": mode, "train_crops": n, **({"train_scenes": r.train_scenes} if r.train_scenes else {}),
                    **({"init": str(args.init)} if args.init else {}),
                    "augment": r.augment, "background": r.background, "occlude": r.occlude,
                    **({"relight": r.relight} if r.relight else {}),
                    **({"photometric": cfg.photometric} if cfg.photometric else {}), "epochs": epochs,
-                   "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size, "best_epoch": res.best_epoch,
-                   "val_mean_deg": res.best_val_deg,
-                   "scenes": scenes, "wall_s": wall}
-            # Saved before the test split is scored: hours of training must not hang on the evaluation after it.
-            if args.save:
-                slug = re.sub(r"[^A-Za-z0-9.]+", "-", _augment_label(row))
-                scenes_tag = f"_s{r.train_scenes}" if r.train_scenes else ""
-                path = args.save / f"{args.object}_{mode}_n{n}{scenes_tag}_{slug}.pt"
-                models.save_checkpoint(res.model, path, objects=[args.object], stage="data_scaling",
-                                       train_config=vars(cfg), best_epoch=res.best_epoch,
-                                       val_mean_deg=res.best_val_deg, train_noise=cfg.noise,
-                                       rotation_frame=args.rotation_frame, data=spec.as_dict(),
-                                       split=splits.summary(), train_crops=n,
-                                       **({"init": str(args.init)} if args.init else {}),
-                                       **({"train_scene_ids": sorted(set(train.scene_ids.astype(str).tolist()))}
-                                          if r.train_scenes else {}))
+                   "samples": epochs * cfg.max_steps_per_epoch * cfg.batch_size}
+            path = checkpoint_path(args, row, n, r.train_scenes) if args.save else None
+            if args.resume and path.is_file():
+                model, info = resumed_checkpoint(path, args.object, n, vars(cfg))
+                row.update(best_epoch=info["best_epoch"], val_mean_deg=info["val_mean_deg"], scenes=scenes,
+                           wall_s=info.get("wall_s"), resumed=True)
+                print(f"--resume: scoring the checkpoint {path} (not trained again)", file=sys.stderr)
+            else:
+                torch.manual_seed(args.seed)
+                model = (_initial_model(args, spec, probe.config) if args.init
+                         else models.build_refiner(args.arch, **args.config))
+                t0 = time.perf_counter()
+                res = train_refiner(model, train, val, cfg, progress=not args.quiet, desc=f"{mode} n={n}")
+                model, wall = res.model, round(time.perf_counter() - t0, 1)
+                row.update(best_epoch=res.best_epoch, val_mean_deg=res.best_val_deg, scenes=scenes, wall_s=wall)
+                # Saved before the test split is scored: hours of training must not hang on the evaluation after it.
+                if path is not None:
+                    models.save_checkpoint(model, path, objects=[args.object], stage="data_scaling",
+                                           train_config=vars(cfg), best_epoch=res.best_epoch,
+                                           val_mean_deg=res.best_val_deg, train_noise=cfg.noise,
+                                           rotation_frame=args.rotation_frame, data=spec.as_dict(),
+                                           split=splits.summary(), train_crops=n, wall_s=wall,
+                                           **({"init": str(args.init)} if args.init else {}),
+                                           **({"train_scene_ids": sorted(set(train.scene_ids.astype(str).tolist()))}
+                                              if r.train_scenes else {}))
+            if path is not None:
                 row["checkpoint"] = str(path)
-            predictor = torch_predictor(res.model.eval())
+            predictor = torch_predictor(model.eval())
             errors = evaluate_errors(predictor, test, rotation_frame=args.rotation_frame)
             pooled = errors.summary()["pooled"]
-            row = {**{k: v for k, v in row.items() if k not in ("scenes", "wall_s", "checkpoint")}, **pooled,
-                   **{k: row[k] for k in ("scenes", "wall_s", "checkpoint") if k in row}}
+            tail = ("scenes", "wall_s", "resumed", "checkpoint")
+            row = {**{k: v for k, v in row.items() if k not in tail}, **pooled, **{k: row[k] for k in tail if k in row}}
             if args.iterations > 1:
                 # The same test crops and coarse poses, refined again from each pass's output (RefinerSession's
                 # ``iterations``); one pass is the row's own error.
@@ -347,7 +381,7 @@ def run(args) -> dict:
                   f"{' photometric' if cfg.photometric else ''}: "
                   f"test {row['mean_deg']:.2f} deg "
                   f"(median {row['median_deg']:.2f}, input {row['input_mean_deg']:.2f}), val {row['val_mean_deg']:.2f}, "
-                  f"{row['wall_s']:.0f} s", file=sys.stderr)
+                  f"{_wall(row)}", file=sys.stderr)
     return {
         "study": "held-out error vs training crops, frames and scenes splits",
         "object": args.object, "arch": args.arch, "config": args.config,
@@ -556,6 +590,10 @@ def main(argv: list[str] | None = None) -> int:
                         "--data's scenes were in its training (e.g. --data grown with render --first-scene)")
     p.add_argument("--save", type=Path, metavar="DIR",
                    help="write each run's model here as a checkpoint (`refiner-rt eval` and `export` take it)")
+    p.add_argument("--resume", action="store_true",
+                   help="score a run's checkpoint that --save already holds instead of training it again (e.g. "
+                        "after a run killed while scoring); it must be this command's run (object, crops, "
+                        "configuration)")
     p.add_argument("--json", type=Path, help="write the rows and the command here")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -584,6 +622,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--init-other-set needs --init CKPT")
     if args.iterations < 1:
         p.error(f"--iterations: expected a number of refinement passes >= 1; got {args.iterations}")
+    if args.resume and not args.save:
+        p.error("--resume needs --save DIR (the folder that holds the checkpoints)")
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
     if args.split_objects and args.object not in args.split_objects:

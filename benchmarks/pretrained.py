@@ -897,7 +897,10 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
                   + (f"from scratch: a first stage of {d['first_stage']['samples']:,} samples whose coarse inputs are "
                      f"turns about the object's axis alone (`{d['first_stage']['noise']}`, lr {d['first_stage']['lr']:g}, "
                      "the first command), then these samples from it, " if d.get("first_stage") else "")
-                  + f"training {t['wall_s']:,.0f} s on one thread of {d['machine']['cpu']} "
+                  + (f"training {t['wall_s']:,.0f} s" if t.get("wall_s") is not None
+                     else "training time not recorded (its run was killed after saving the checkpoint and scored "
+                          "again with `--resume`)")
+                  + f" on one thread of {d['machine']['cpu']} "
                   f"({', '.join(d['machine']['isa_flags']) or 'no AVX flags read'}); "
                   + (f"{d['eval_training_split']['int8']['all']['n']} test crops from "
                      f"{d['eval_training_split']['test_scenes']} held-out scenes of its training set; "

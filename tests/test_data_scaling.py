@@ -341,3 +341,30 @@ def test_the_network_is_saved_before_the_test_split_is_scored(cubes, tmp_path, m
     assert len(saved) == 1
     model, info = models.load_checkpoint(saved[0])
     assert info["objects"] == ["003_cracker_box"]
+    assert info["wall_s"] > 0  # the training time travels with the checkpoint, for a --resume
+
+    # The rerun with --resume scores that network without training it again: the same weights, the same row.
+    monkeypatch.undo()
+    trained = []
+    monkeypatch.setattr("models.train.train_refiner", lambda *a, **k: trained.append(1))  # imported when it runs
+    before = saved[0].stat().st_mtime_ns
+    assert study.main([*argv, "--resume"]) == 0
+    assert not trained and saved[0].stat().st_mtime_ns == before
+    row = json.loads((tmp_path / "a.json").read_text())["rows"][0]
+    assert row["resumed"] is True and row["wall_s"] == info["wall_s"]
+    assert row["best_epoch"] == info["best_epoch"] and row["val_mean_deg"] == info["val_mean_deg"]
+    assert row["checkpoint"] == str(saved[0]) and row["n"] > 0
+
+
+def test_resume_refuses_a_checkpoint_of_another_run(cubes, tmp_path, capsys):
+    """--resume scores only this command's own checkpoint: another configuration's file under the same name is named,
+    not silently scored; and --resume without --save is refused."""
+    study = _load()
+    argv = [*_common(cubes, tmp_path, tmp_path / "a.json"), "--modes", "scenes", "--sizes", "10", "--samples", "32",
+            "--epoch-samples", "32", "--save", str(tmp_path / "models")]
+    assert study.main(argv) == 0
+    with pytest.raises(SystemExit, match="was not saved by this run: its train_config"):
+        study.main([*argv, "--samples", "64", "--resume"])
+    with pytest.raises(SystemExit):
+        study.main([a for a in argv if a not in ("--save", str(tmp_path / "models"))] + ["--resume"])
+    assert "--resume needs --save DIR" in capsys.readouterr().err
