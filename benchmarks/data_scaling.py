@@ -36,6 +36,8 @@ files of different studies (architecture, config, rotation frame, split) get a t
 them object by object, and ``--plot PNG`` draws that comparison (per-object mean and standard deviation).
 ``--iterations N`` also measures each model after 2..N refinement passes (the same test crops and coarse poses);
 ``--save DIR`` keeps each run's model as a checkpoint that ``refiner-rt eval`` and ``refiner-rt export`` take.
+The checkpoint is written before the test split is scored; ``--resume`` scores a checkpoint that ``--save`` already
+holds instead of training that run again (a run killed while scoring loses only the scoring).
 """
 
 from __future__ import annotations
