@@ -240,3 +240,17 @@ def test_shipped_models_name_no_machine_folder():
                                                        load_external_data=False).metadata_props}
             for key, value in props.items():
                 assert "/work/" not in value and "/home/" not in value and "/tmp/" not in value, (m.object_id, key)
+
+
+def test_model_card_says_when_a_training_time_was_not_recorded():
+    """A model whose training run was scored again with ``data_scaling --resume`` has no training time: the card says
+    so instead of failing or printing a made-up one."""
+    import copy
+
+    build, docs = _card_docs()
+    docs = copy.deepcopy(docs)
+    docs[0]["train"]["wall_s"] = None
+    card = build.card_markdown(docs, {})
+    assert "training time not recorded (its run was killed after saving the checkpoint" in card
+    docs[0]["train"]["wall_s"] = 1234.0
+    assert "training 1,234 s on one thread" in build.card_markdown(docs, {})
