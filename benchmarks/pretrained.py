@@ -11,6 +11,9 @@ was on (an object's training itself restarts from scratch).
         --objects 003_cracker_box,004_sugar_box --commit        # two such commands side by side, one core each
     python benchmarks/pretrained.py build --data data/ycb9_v5 --extra-train data/ycb9_v3 --extra-train data/ycb9_v4 \\
         --run runs/v5 --objects ... --commit --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22  # version 5
+    python benchmarks/pretrained.py build --data data/ycb9_robot --extra-train data/ycb9_tabletop_s32_next \\
+        --run runs/v6 --cache CACHE --objects ... --commit --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
+        --real REAL                                              # version 6 (each object's real-frame column too)
     python benchmarks/pretrained.py speed                        # INT8/fp32 speed of every shipped model
     python benchmarks/pretrained.py card                         # models.json and MODELS.md from the JSON
     python benchmarks/pretrained.py requantize --data data/ycb9_v1 --run runs/v1   # INT8 again from the shipped fp32
