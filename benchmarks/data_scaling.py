@@ -278,6 +278,8 @@ def _initial_model(args, spec, config: dict):
         print(f"--init {args.init}: trained on the set {theirs_name!r}, not on {mine_name!r} (--init-other-set: "
               "this set's scenes are new to it)", file=sys.stderr)
         return model.train()
+    # The same set: by its folder's name, as a shipped model records it (no build machine's folder), the rest exactly.
+    mine, theirs = {**mine, "data": mine_name}, {**theirs, "data": theirs_name}
     differ = [k for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
     if differ:
         raise SystemExit(f"--init {args.init}: trained on another split ({', '.join(f'{k} {theirs.get(k)!r}' for k in differ)}"

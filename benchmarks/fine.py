@@ -68,7 +68,7 @@ def objects_with_fine(objects: str | None, error) -> list[str]:
 def train_object(obj: str, data: Path, run: Path, cache: Path, samples: int, extra_train: list[Path]) -> dict:
     """Train ``obj``'s fine refiner from its shipped coarse model through :data:`FINE_STAGES` (a stage whose
     checkpoint exists is reused; ``samples`` replaces the first stage's budget): the record of the last stage."""
-    init, init_record = recover_shipped(obj, data, run / "init", cache)
+    init, init_record = recover_shipped(obj, data, run / "init", cache, any_version=True)
     commands, stages, t0 = [], [], time.perf_counter()
     for k, (noise, lr, budget) in enumerate(FINE_STAGES):
         name = obj if k == 0 else f"{obj}.stage{k + 1}"

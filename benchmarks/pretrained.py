@@ -175,11 +175,14 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
             "--save", str(run / name), "--json", str(run / f"{name}.train.json")]
 
 
-def recover_shipped(obj: str, data: Path, run: Path, cache: Path, weights: Path | None = None) -> tuple[Path, dict]:
+def recover_shipped(obj: str, data: Path, run: Path, cache: Path, weights: Path | None = None,
+                    any_version: bool = False) -> tuple[Path, dict]:
     """``(checkpoint, its recovered_from record)``: the shipped fp32 model of ``obj`` as a trainable checkpoint
     (``RUN/<obj>.init.pt``, :func:`export.recover.checkpoint_from_onnx`), its BatchNorm statistics rebuilt from 320 of
     ``data``'s training crops (the split the model recorded, drawn on ``data``). Reused when it exists. ``weights``:
-    a folder holding the fp32 file to start from instead of the package's (a copy of an earlier version)."""
+    a folder holding the fp32 file to start from instead of the package's (a copy of an earlier version).
+    ``any_version``: start from the shipped model whatever its version (the fine refiners start from the coarse model
+    that ships now; a coarse build starts from the version before its own)."""
     import models
     from export.quantize import dataset_calibration
     from export.recover import RecoverError, checkpoint_from_onnx
@@ -191,7 +194,7 @@ def recover_shipped(obj: str, data: Path, run: Path, cache: Path, weights: Path 
         if not src.is_file():
             raise SystemExit(f"[{obj}] no shipped fp32 model to start from ({src})")
         props = _metadata(src)
-        if weights is None and props.get("model_version") == MODEL_VERSION:
+        if weights is None and not any_version and props.get("model_version") == MODEL_VERSION:
             raise SystemExit(f"[{obj}] the shipped model is already version {MODEL_VERSION}; version {MODEL_VERSION} "
                              "starts from the version before it")
         try:

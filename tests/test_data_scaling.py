@@ -310,6 +310,12 @@ def test_extra_train_adds_new_scenes_and_init_starts_from_a_trained_model(tmp_pa
                            (["--split-seed", "3"], r"trained on another split \(split_seed 0; here 3\)")):
         with pytest.raises(SystemExit, match=message):
             study.main([*argv, *extra])
+    # A shipped model records its set by the folder's name alone (no build machine's folder): the same split matches.
+    model0, info0 = models.load_checkpoint(plain["checkpoint"])
+    data0 = info0["data"] if isinstance(info0["data"], dict) else json.loads(info0["data"])
+    named = tmp_path / "named.pt"
+    models.save_checkpoint(model0, named, **{**info0, "data": {**data0, "data": first.name}})
+    assert study.main([str(named) if a == plain["checkpoint"] else a for a in argv]) == 0
     capsys.readouterr()
     # A model trained on another set is refused (its training scenes may be this set's test scenes: here they are,
     # a copy under another name), unless the caller vouches with --init-other-set; the run then says so.
