@@ -7,14 +7,16 @@ errors the coarse refiner leaves, and the motion between video frames), so its c
 It ships as ``<id>.fine.onnx`` / ``<id>.fine.int8.onnx`` (``refiner_rt.pretrained.model_file_name(..., stage="fine")``)
 and :class:`refiner_rt.RefinerCascade` runs it with the coarse one.
 
-    python benchmarks/fine.py train --data data/ycb9_tabletop_s32 --extra-train data/ycb9_tabletop_s32_next \\
-        --run runs/fine --objects 003_cracker_box,...          # resumable: a trained object is skipped
-    python benchmarks/fine.py ship --run runs/fine --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
+    python benchmarks/fine.py train --data data/ycb9_robot --extra-train data/ycb9_tabletop_s32_next \\
+        --run runs/fine_v2 --objects 003_cracker_box,...       # resumable: a trained object is skipped
+    python benchmarks/fine.py ship --run runs/fine_v2 --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
         --objects ... [--commit]                               # export, INT8, evaluate, copy into the package
 
-Training data: rendered scenes (``refiner-rt render --layout tabletop``, the layout of the coarse models' sets;
-``benchmarks/DATA.md``), the held-out-scenes split of the coarse build (``benchmarks/pretrained.py``'s recipe, whose
-network, ray frame, box and colour jitter and new backgrounds it keeps), float32, one thread.
+Training data: the coarse models' own (fine version 2, beside coarse version 6: the robot layout ``ycb9_robot`` with
+every crop of ``ycb9_tabletop_s32_next`` joining; ``benchmarks/DATA.md``), the held-out-scenes split of the coarse build
+(``benchmarks/pretrained.py``'s recipe, whose network, ray frame, canonical roll, box and colour jitter and new
+backgrounds it keeps), float32, one thread. Fine version 1 trained from the version-5 coarse models on their tabletop
+sets (``--data data/ycb9_tabletop_s32``).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ FINE_STAGES = (("uniform:0:6", 3e-4, 80_000), ("normal:0:3", 1e-4, 60_000))  # (
 FINE_NOISE = FINE_STAGES[0][0]   # the widest inputs a fine refiner trained on: what its INT8 model is scored on
 FINE_SAMPLES = FINE_STAGES[0][2]
 RUN_SIZES = 16_000           # at most this many training crops (every crop of the sets, with --extra-train)
-FINE_VERSION = "1"
+FINE_VERSION = "2"
 RESULTS_DIR = ROOT / "benchmarks" / "results" / "fine"
 SCHEMA = "refiner-rt/fine-eval/1"
 FLOOR_BINS = 30              # the floor curve: output error in 1-degree bins of input error, 0 to 30
