@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 
 from benchmarks.fine import objects_with_fine, runtime_errors, with_gate  # noqa: E402
+from benchmarks.real import _data_name  # noqa: E402
 from benchmarks.study_cli import write_json  # noqa: E402
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name  # noqa: E402
 
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
                                        f"drift {row[n]['drift_mean_deg']:.2f} 0-3 {row[n]['input_0_3_mean_deg']:.2f}"
                                        for n in sets), flush=True)
     write_json(args.json, {"objects": objects, "fine_gates": list(FINE_GATES), "coarse_gates": list(COARSE_GATES),
-                           "sets": {n: f.resolve().name for n, (f, _) in sets.items()}, "rows": rows})
+                           "sets": {n: _data_name(f) for n, (f, _) in sets.items()}, "rows": rows})
     return 0
 
 
