@@ -22,7 +22,8 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
 
 * ``per_frame_cascade`` and ``track_cascade`` (``--methods``; they need every object's fine refiner): ``per_frame``
   and ``track`` with :class:`refiner_rt.RefinerCascade` in place of the coarse refiner (the tracker runs the coarse
-  refiner, then the fine one, on every update).
+  refiner, then the fine one, on every update); ``--settle-deg`` gives their cascades ``settle_deg`` (a second coarse
+  pass on the rows that go the long way, kept where it turns the result by more than that).
 
 Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
@@ -346,6 +347,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="track_fuse: the tracker's detector_weight (the refined detection's share; default 0.5)")
     p.add_argument("--fuse-every", type=int, default=1,
                    help="track_fuse: updates between a detector's poses (default 1: every update)")
+    p.add_argument("--settle-deg", type=float, default=None, metavar="DEG",
+                   help="the cascade methods: RefinerCascade(settle_deg=DEG), a second coarse pass on the rows that go "
+                        "the long way, kept where it turns the result by more than DEG (default: off)")
     p.add_argument("--json", type=Path, help="write the results here")
     p.add_argument("--plot", type=Path, help="write the error-vs-frame plot here (PNG)")
     p.add_argument("--detections-out", type=Path, metavar="DIR",
@@ -390,7 +394,8 @@ def main(argv: list[str] | None = None) -> int:
         no_fine = [o for o in objects if o not in shipped or "fine" not in shipped[o].stages]
         if no_fine:
             p.error(f"{', '.join(CASCADE_METHODS)} need each object's fine refiner; none ships for {no_fine}")
-        cascades = {o: RefinerCascade.pretrained(o, int8=not args.fp32, threads=1) for o in objects}
+        cascades = {o: RefinerCascade.pretrained(o, int8=not args.fp32, threads=1, settle_deg=args.settle_deg)
+                    for o in objects}
     sessions, model_record = {}, {}
     for o in objects:
         if o in files:
@@ -484,6 +489,7 @@ def main(argv: list[str] | None = None) -> int:
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
         "lost_deg": args.lost_deg, "detector_weight": args.detector_weight, "fuse_every": args.fuse_every,
+        "settle_deg": args.settle_deg,
         "summary": summary, "per_object": objects_table, "per_sequence_first_step": per_sequence,
         "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
         "curves_median": {m: {str(st): curve(errors[m][st], np.median) for st in steps} for m in methods},

@@ -566,6 +566,35 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     assert np.ptp(held) < 1e-6 and held[0] <= 30.0 + 1e-6
 
 
+def test_tracking_benchmark_runs_the_shipped_cascade_with_settle_deg(tmp_path):
+    """--settle-deg reaches the cascades of the cascade methods (their second coarse pass) and is recorded."""
+    import json
+
+    from bench_scripts import load_benchmark
+    from data_fixtures import bop_instance, write_bop_scene
+    from refiner_rt import pretrained_models
+
+    if not any(m.object_id == "003_cracker_box" and "fine" in m.stages for m in pretrained_models()):
+        pytest.skip("no cracker-box fine refiner ships in this checkout")
+    bench = load_benchmark("tracking")
+    data = tmp_path / "data"
+    frames = {f: [bop_instance(2, rq.to_matrix(Q0[0]), [0.0, 0.0, 800.0], [20, 10, 40, 40], visib_fract=0.9)]
+              for f in range(6)}
+    write_bop_scene(data, 0, frames, K * 10 * np.array([[1, 1, 1], [1, 1, 1], [0, 0, 0.1]]), size=(96, 64), seed=0)
+    runs = {}
+    for settle in (None, 2.0):
+        out = tmp_path / f"tracking_{settle}.json"
+        args = ["--data", str(data), "--objects", "003_cracker_box", "--methods", "hold,per_frame_cascade,track_cascade",
+                "--steps", "1", "--min-frames", "5", "--json", str(out)]
+        assert bench.main(args + (["--settle-deg", str(settle)] if settle else [])) == 0
+        runs[settle] = json.loads(out.read_text())
+    assert runs[None]["settle_deg"] is None and runs[2.0]["settle_deg"] == 2.0
+    for doc in runs.values():
+        assert np.isfinite(doc["summary"]["track_cascade"]["1"]["mean_deg"])
+    # The held pose does not depend on the cascade's settings.
+    assert runs[None]["summary"]["hold"] == runs[2.0]["summary"]["hold"]
+
+
 # ------------------------------------------------------------------------------ the models that really ship
 def _shipped():
     from refiner_rt import pretrained_models
