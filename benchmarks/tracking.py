@@ -394,8 +394,13 @@ def main(argv: list[str] | None = None) -> int:
         no_fine = [o for o in objects if o not in shipped or "fine" not in shipped[o].stages]
         if no_fine:
             p.error(f"{', '.join(CASCADE_METHODS)} need each object's fine refiner; none ships for {no_fine}")
-        cascades = {o: RefinerCascade.pretrained(o, int8=not args.fp32, threads=1, settle_deg=args.settle_deg)
-                    for o in objects}
+        try:
+            cascades = {o: RefinerCascade.pretrained(o, int8=not args.fp32, threads=1, settle_deg=args.settle_deg)
+                        for o in objects}
+        except ValueError as e:  # a bad --settle-deg, as RefinerCascade words it
+            p.error(f"--settle-deg: {e}")
+    elif args.settle_deg is not None:
+        p.error(f"--settle-deg applies to {', '.join(CASCADE_METHODS)} only; --methods has neither")
     sessions, model_record = {}, {}
     for o in objects:
         if o in files:

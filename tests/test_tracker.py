@@ -566,7 +566,7 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     assert np.ptp(held) < 1e-6 and held[0] <= 30.0 + 1e-6
 
 
-def test_tracking_benchmark_runs_the_shipped_cascade_with_settle_deg(tmp_path):
+def test_tracking_benchmark_runs_the_shipped_cascade_with_settle_deg(tmp_path, capsys):
     """--settle-deg reaches the cascades of the cascade methods (their second coarse pass) and is recorded."""
     import json
 
@@ -593,6 +593,13 @@ def test_tracking_benchmark_runs_the_shipped_cascade_with_settle_deg(tmp_path):
         assert np.isfinite(doc["summary"]["track_cascade"]["1"]["mean_deg"])
     # The held pose does not depend on the cascade's settings.
     assert runs[None]["summary"]["hold"] == runs[2.0]["summary"]["hold"]
+    # A bad value, or one no method uses, is refused with the option's name.
+    base = ["--data", str(data), "--objects", "003_cracker_box", "--steps", "1", "--min-frames", "5"]
+    for extra, words in ((["--methods", "hold,track_cascade", "--settle-deg", "-1"], "--settle-deg: "),
+                         (["--methods", "hold,track", "--settle-deg", "2"], "applies to")):
+        with pytest.raises(SystemExit):
+            bench.main(base + extra)
+        assert words in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------ the models that really ship

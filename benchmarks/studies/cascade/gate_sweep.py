@@ -46,12 +46,17 @@ def arrays(obj: str, fine: Path, data: Path, cache: Path, tag: str, **kw) -> dic
 
 
 def score(e: dict, gate: tuple) -> dict:
+    """The cascade's and the coarse refiner's means with ``gate`` (inputs 0-3: NaN where no draw was that close)."""
     c = with_gate(e, gate)
     small = c["input"] < 3.0
+
+    def under_3(a):
+        return float(a[small].mean()) if small.any() else float("nan")
+
     return {"mean_deg": float(c["cascade"].mean()), "drift_mean_deg": float(c["cascade@0"].mean()),
-            "input_0_3_mean_deg": float(c["cascade"][small].mean()),
+            "input_0_3_mean_deg": under_3(c["cascade"]),
             "coarse_mean_deg": float(c["coarse"].mean()), "coarse_drift_mean_deg": float(c["coarse@0"].mean()),
-            "coarse_input_0_3_mean_deg": float(c["coarse"][small].mean())}
+            "coarse_input_0_3_mean_deg": under_3(c["coarse"])}
 
 
 def main(argv=None) -> int:
@@ -73,12 +78,11 @@ def main(argv=None) -> int:
     for obj in objects:
         fine = (args.fine_dir or WEIGHTS_DIR) / model_file_name(obj, int8=True, stage="fine")
         data[obj] = {name: arrays(obj, fine, folder, args.cache, name, **kw) for name, (folder, kw) in sets.items()}
+    cal = {obj: {g: score(data[obj]["calibration"], g) for g in gates} for obj in objects}  # once, for every W
     rows = []
     for w in WEIGHTS:
-        chosen = {}
-        for obj in objects:
-            cal = {g: score(data[obj]["calibration"], g) for g in gates}
-            chosen[obj] = min(gates, key=lambda g: cal[g]["mean_deg"] + w * cal[g]["drift_mean_deg"])
+        chosen = {obj: min(gates, key=lambda g: cal[obj][g]["mean_deg"] + w * cal[obj][g]["drift_mean_deg"])
+                  for obj in objects}
         row = {"weight": w, "gates": {o: list(g) for o, g in chosen.items()}}
         for name in sets:
             per = [score(data[o][name], chosen[o]) for o in objects]
