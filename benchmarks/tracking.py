@@ -24,6 +24,10 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
   and ``track`` with :class:`refiner_rt.RefinerCascade` in place of the coarse refiner (the tracker runs the coarse
   refiner, then the fine one, on every update); ``--settle-deg`` gives their cascades ``settle_deg`` (a second coarse
   pass on the rows that go the long way, kept where it turns the result by more than that).
+* ``track_scene`` and ``track_cascade_scene``: ``track`` and ``track_cascade`` with the scene's motion
+  (``RefinerTracker(predict="scene")``, its defaults or ``--motion-window``, ``--prediction-weight`` and
+  ``--max-correction-deg``): the camera's turn, estimated from every tracked object of the scene (they stand still),
+  turns each track before its update and carries hidden objects through their occlusions.
 
 Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
@@ -64,19 +68,26 @@ if str(REPO) not in sys.path:
 from refiner_rt import quaternion as rq  # noqa: E402
 from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
-from refiner_rt.tracker import RefinerTracker  # noqa: E402
+from refiner_rt.tracker import (  # noqa: E402
+    DEFAULT_SCENE_MAX_CORRECTION_DEG,
+    DEFAULT_SCENE_PREDICTION_WEIGHT,
+    RefinerTracker,
+)
 
 METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect", "track_lost", "track_fuse",
-           "per_frame_cascade", "track_cascade")
-TRACKERS = ("track", "track_predict", "track_redetect", "track_lost", "track_fuse", "track_cascade")
-CASCADE_METHODS = ("per_frame_cascade", "track_cascade")  # need every object's fine refiner
+           "track_scene", "per_frame_cascade", "track_cascade", "track_cascade_scene")
+TRACKERS = ("track", "track_predict", "track_redetect", "track_lost", "track_fuse", "track_scene", "track_cascade",
+            "track_cascade_scene")
+CASCADE_METHODS = ("per_frame_cascade", "track_cascade", "track_cascade_scene")  # need every object's fine refiner
 LABELS = {"hold": "(a) hold the initial coarse pose", "per_frame": "(b) refine each frame from U(0, 30)",
           "track": "(c) track from an initial U(0, 30)", "track_predict": "(c) + constant-velocity prediction",
           "track_redetect": "(c) + a detector's U(0, 30) pose every N frames",
           "track_lost": "(c) + loss-of-track check, detector only when lost",
           "track_fuse": "(c) + a detector's pose fused every N frames",
+          "track_scene": "(c) + the scene's motion (a still scene, a moving camera)",
           "per_frame_cascade": "(b) with the cascade (coarse and fine refiners)",
-          "track_cascade": "(c) with the cascade: coarse then fine on every update"}
+          "track_cascade": "(c) with the cascade: coarse then fine on every update",
+          "track_cascade_scene": "(c) with the cascade and the scene's motion"}
 DIVERGED_DEG = 30.0
 
 
@@ -119,7 +130,8 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
               n_frames: int, timing: dict, methods=METHODS, redetect: int = 10, lost_deg: float = 1.5,
               detections: dict | None = None, detector_weight: float = 0.5, fuse_every: int = 1,
-              cascades: dict | None = None) -> dict:
+              cascades: dict | None = None, motion_window: int = 4, prediction_weight: float | None = None,
+              max_correction_deg: float | None = None) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
     start_noise = {s.object_id: rq.sample_rotation_noise(1, "uniform", 0, 30, rng[s.object_id])[0] for s in seqs}
@@ -169,9 +181,12 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
                         if name in methods:
                             out[name][step][s.object_id][f - f0] = per_frame[name, s.object_id][f]
         for method in [m for m in TRACKERS if m in methods]:
-            refiners = cascades if method == "track_cascade" else sessions
+            refiners = cascades if method in CASCADE_METHODS else sessions
+            scene = method.endswith("_scene")
             tracker = RefinerTracker({s.object_id: refiners[s.object_id] for s in live}, K, {},
-                                     predict=method == "track_predict",
+                                     predict="scene" if scene else method == "track_predict",
+                                     motion_window=motion_window, prediction_weight=prediction_weight if scene else None,
+                                     max_correction_deg=max_correction_deg if scene else None,
                                      lost_deg=lost_deg if method == "track_lost" else None,
                                      detector_weight=detector_weight if method == "track_fuse" else None)
             key = f"{method}_step{step}"
@@ -270,7 +285,8 @@ def plot(doc: dict, path: Path) -> None:
     fig, axes = plt.subplots(2, len(steps), figsize=(4.6 * len(steps), 6.6), sharey="row", squeeze=False)
     colours = {"hold": "0.6", "per_frame": "tab:blue", "track": "tab:red", "track_predict": "tab:orange",
                "track_redetect": "tab:green", "track_lost": "tab:purple", "track_fuse": "tab:brown",
-               "per_frame_cascade": "tab:cyan", "track_cascade": "black"}
+               "track_scene": "tab:pink", "per_frame_cascade": "tab:cyan", "track_cascade": "black",
+               "track_cascade_scene": "tab:olive"}
     for row, (key, stat) in enumerate((("curves", "mean"), ("curves_median", "median"))):
         for ax, step in zip(axes[row], steps):
             for m in [m for m in METHODS if m in doc[key]]:
@@ -299,13 +315,17 @@ def plot(doc: dict, path: Path) -> None:
 
 def report(doc: dict) -> str:
     """The Markdown table of a results file: one row per frame step and method."""
+    scene = (f"window {doc.get('motion_window')}, weight {doc.get('prediction_weight')}, at most "
+             f"{doc.get('max_correction_deg')} deg")
     short = {"hold": "(a) hold initial pose", "per_frame": "(b) refine each frame from U(0, 30)",
              "track": "(c) track", "track_predict": "(c) track + constant velocity",
              "track_redetect": f"(c) track + detector every {doc['redetect']} frames",
              "track_lost": f"(c) track + loss check ({doc.get('lost_deg')} deg), detector when lost",
              "track_fuse": f"(c) track + detector fused (weight {doc.get('detector_weight')}) every "
                            + ("frame" if doc.get("fuse_every", 1) == 1 else f"{doc.get('fuse_every')} frames"),
-             "per_frame_cascade": "(b) with the cascade", "track_cascade": "(c) track with the cascade"}
+             "track_scene": f"(c) track + the scene's motion ({scene})",
+             "per_frame_cascade": "(b) with the cascade", "track_cascade": "(c) track with the cascade",
+             "track_cascade_scene": f"(c) track with the cascade + the scene's motion ({scene})"}
     lines = ["| step | method | mean | median | last frame | diverged (> 30 deg) | beats (b) per sequence "
              "| detector poses per frame | CPU ms per update |",
              "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -350,6 +370,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--settle-deg", type=float, default=None, metavar="DEG",
                    help="the cascade methods: RefinerCascade(settle_deg=DEG), a second coarse pass on the rows that go "
                         "the long way, kept where it turns the result by more than DEG (default: off)")
+    p.add_argument("--motion-window", type=int, default=4, metavar="N",
+                   help="the _scene methods: RefinerTracker(motion_window=N), updates over which each track's change is "
+                        "measured (default 4, the tracker's)")
+    p.add_argument("--prediction-weight", type=float, default=None, metavar="W",
+                   help="the _scene methods: RefinerTracker(prediction_weight=W), the prediction's share kept in each "
+                        "new rotation, in [0, 1) (default: the tracker's, 0.3 with the scene's motion)")
+    p.add_argument("--max-correction-deg", type=float, default=None, metavar="DEG",
+                   help="the _scene methods: RefinerTracker(max_correction_deg=DEG), the most a new rotation may differ "
+                        "from the scene's prediction, in (0, 180] (default: the tracker's, 2)")
     p.add_argument("--json", type=Path, help="write the results here")
     p.add_argument("--plot", type=Path, help="write the error-vs-frame plot here (PNG)")
     p.add_argument("--detections-out", type=Path, metavar="DIR",
@@ -371,6 +400,12 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--detector-weight must be in (0, 1]; got {args.detector_weight}")
     if args.fuse_every < 1:
         p.error(f"--fuse-every must be a positive integer; got {args.fuse_every}")
+    if args.motion_window < 2:
+        p.error(f"--motion-window must be an integer >= 2 (updates); got {args.motion_window}")
+    if args.max_correction_deg is not None and not 0 < args.max_correction_deg <= 180:
+        p.error(f"--max-correction-deg must be in (0, 180] degrees; got {args.max_correction_deg}")
+    if args.prediction_weight is not None and not 0 <= args.prediction_weight < 1:
+        p.error(f"--prediction-weight must be in [0, 1); got {args.prediction_weight}")
     if any(s < 1 for s in steps):
         p.error(f"--steps must be positive integers; got {args.steps!r}")
 
@@ -433,7 +468,8 @@ def main(argv: list[str] | None = None) -> int:
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
         res = run_scene(scene_seqs, sessions, steps, args.seed, n_frames, timing, methods, args.redetect,
-                        args.lost_deg, detections, args.detector_weight, args.fuse_every, cascades)
+                        args.lost_deg, detections, args.detector_weight, args.fuse_every, cascades,
+                        args.motion_window, args.prediction_weight, args.max_correction_deg)
         for s in scene_seqs:
             if s.object_id in res["hold"][steps[0]]:
                 row = {"scene": scene, "object": s.object_id, "frames": len(s.images)}
@@ -494,7 +530,11 @@ def main(argv: list[str] | None = None) -> int:
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
         "lost_deg": args.lost_deg, "detector_weight": args.detector_weight, "fuse_every": args.fuse_every,
-        "settle_deg": args.settle_deg,
+        "settle_deg": args.settle_deg, "motion_window": args.motion_window,
+        "prediction_weight": (DEFAULT_SCENE_PREDICTION_WEIGHT if args.prediction_weight is None
+                              else args.prediction_weight),
+        "max_correction_deg": (DEFAULT_SCENE_MAX_CORRECTION_DEG if args.max_correction_deg is None
+                               else args.max_correction_deg),
         "summary": summary, "per_object": objects_table, "per_sequence_first_step": per_sequence,
         "curves": {m: {str(st): curve(errors[m][st]) for st in steps} for m in methods},
         "curves_median": {m: {str(st): curve(errors[m][st], np.median) for st in steps} for m in methods},

@@ -240,6 +240,10 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
 @click.option("--fp32", is_flag=True, help="Use the shipped fp32 models instead of INT8.")
 @click.option("--K", "K_text", metavar="FX,FY,CX,CY", help="Camera intrinsics in pixels (instead of the file's \"K\").")
 @click.option("--predict", is_flag=True, help="Predict each rotation with a constant angular velocity first.")
+@click.option("--scene-motion", is_flag=True,
+              help="The objects stand still and the camera moves (a camera on a robot's arm or head): predict every "
+                   "rotation with the camera's turn, measured from all tracked objects, and carry hidden objects "
+                   "with it (RefinerTracker(predict=\"scene\")). Not with --predict.")
 @click.option("--lost-deg", type=click.FloatRange(0.0, 180.0, min_open=True), default=None,
               help="Loss-of-track check: flag an object lost when a second refinement moves its rotation by more "
                    "than this many degrees (one more pass per object and frame); the output's \"lost\" lists "
@@ -264,8 +268,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Frames in a --video image strip, evenly spaced.")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
 def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-              class_map, models, fp32, K_text, predict, lost_deg, detector_weight, iterations, settle_deg, threads,
-              video_path, strip_frames, fps):
+              class_map, models, fp32, K_text, predict, scene_motion, lost_deg, detector_weight, iterations, settle_deg,
+              threads, video_path, strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
     DETECTIONS is JSON: {"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "frames": {"<image file>": {"<object id>": [x1,y1,x2,y2]
@@ -274,6 +278,11 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     Quaternions wxyz object-to-camera, boxes in pixels.
     """
     from refiner_rt.tracker import RefinerTracker
+
+    if predict and scene_motion:
+        raise click.UsageError("--predict (each object's own velocity) and --scene-motion (the camera's turn, shared by "
+                               "still objects) are two predictions; choose one")
+    predict = "scene" if scene_motion else predict
 
     bag_only = {"--mode": mode != "track", "--rectified": rectified,
                 "--image-topic": image_topic, "--info-topic": info_topic, "--detections-topic": detections_topic,
@@ -395,7 +404,9 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
                 raise ValueError(f"{class_map}: expected a JSON object {{detector class id: YCB id}}")
         extra = {k: v for k, v in {"predict": predict, "lost_deg": lost_deg}.items() if v}
         if extra and mode != "track":
-            raise click.UsageError(f"{', '.join('--' + k.replace('_', '-') for k in extra)} apply to --mode track")
+            flags = ["--scene-motion" if k == "predict" and v == "scene" else "--" + k.replace("_", "-")
+                     for k, v in extra.items()]
+            raise click.UsageError(f"{', '.join(flags)} apply to --mode track")
         refiner = RosRefiner(mode, cascade=cascade, rectified=rectified, class_map=mapping, int8=not fp32,
                              settle_deg=settle_deg,
                              threads=threads, **extra)

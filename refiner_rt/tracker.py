@@ -19,6 +19,24 @@ rotations, taken in the camera frame, ``dq = q_t * q_{t-1}^-1`` per update, is a
 ``q_in = dq * q_t`` (a camera turning steadily around a still object turns it at a constant rate in the camera
 frame). Only refined rotations enter ``dq``: the correction of a coarse initial pose is not motion.
 
+Scene-motion prediction (``predict="scene"``): for a camera moving over objects that stand still (a camera on a
+robot's arm or head looking over a table). Every still object turns in the camera frame by the same rotation, the
+camera's own turn inverted, so the tracker estimates that one turn from all its tracks at once: for each track, the
+change between its refined rotations across the last ``motion_window`` updates, per update; their mean (without the
+tracks far from the others: one drifting off, or an object that moved) is the scene's turn per update. Before each update every refined track is turned by it, those without a box too: an object hidden
+for a while comes back where the camera's motion took it, not where it was last seen (with ``predict=True`` or
+without prediction, a track held through a long occlusion while the camera moves is far off when it returns). The
+mean over objects and updates is much steadier than one object's last change. Objects that move by themselves (one
+being carried) break the assumption: use ``predict=True`` or no prediction there.
+
+Prediction weight (``prediction_weight``): with a prediction, the new rotation may keep a share of it: ``q`` is taken
+that fraction of the way from the refined rotation back to the predicted one (``0``: the refined rotation as is). A
+refinement's noise is then damped while the prediction carries the motion. With the scene's motion, once its turn is
+measured, the new rotation also stays within ``max_correction_deg`` of the prediction: the camera's motion is
+carried by the prediction, so a refinement that pulls further (a view the refiner misreads, frame after frame) is
+followed only that far per update. Defaults with ``predict="scene"``: weight 0.3, 2 degrees, window 4 updates, chosen
+on rendered video the tracking benchmark does not score (``benchmarks/studies/cascade``).
+
 Loss-of-track check (``lost_deg``): a tracker that loses an object rarely finds it again, since the refiner is
 trained on coarse poses within 30 degrees of the truth. The check needs no ground truth: the refined rotation is
 refined once more (a second network pass in the same batched call per session), and an object whose rotation that
@@ -44,6 +62,7 @@ tracking.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -67,6 +86,12 @@ __all__ = ["RefinerTracker", "INSTANCE_SEPARATOR"]
 
 log = logging.getLogger(__name__)
 
+PREDICTIONS = ("object", "scene")
+# chosen on rendered video the benchmark does not score (benchmarks/studies/cascade, "Tracking with the scene's motion")
+DEFAULT_MOTION_WINDOW = 4  # updates
+DEFAULT_SCENE_PREDICTION_WEIGHT = 0.3
+DEFAULT_SCENE_MAX_CORRECTION_DEG = 2.0
+TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the mean than this and twice the median is left out
 INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
 
 
@@ -78,7 +103,7 @@ def _object_name(object_id: str) -> str:
 class _Track:
     """One tracked object: its session, current rotation and (for prediction) its last rotation change."""
 
-    __slots__ = ("session", "q", "refined", "velocity", "missed")
+    __slots__ = ("session", "q", "refined", "velocity", "missed", "history")
 
     def __init__(self, session: RefinerSession, q: np.ndarray):
         self.session = session
@@ -86,6 +111,7 @@ class _Track:
         self.refined = False  # whether q came from the refiner (only then does it count for the velocity)
         self.velocity = None  # [w, x, y, z]: rotation change per update in the camera frame, or None
         self.missed = 0  # updates since this object was last refined (it had no box)
+        self.history: list[tuple[int, list]] = []  # (update index, refined rotation): the scene motion's source
 
 
 class RefinerTracker:
@@ -105,7 +131,15 @@ class RefinerTracker:
             need it: they work in the viewing-ray frame).
         q0: ``{object id: (4,) coarse rotation}``, object-to-camera, ``wxyz`` (e.g. a detector's pose); finite and
             non-zero, normalised here. May be empty (add objects later with :meth:`add`).
-        predict: apply the constant-angular-velocity prediction (module docstring) before each refinement.
+        predict: the prediction made before each refinement (module docstring): ``False`` (default) none, ``True``
+            or ``"object"`` each object's constant angular velocity, ``"scene"`` the camera's turn shared by still
+            objects (estimated from every track; hidden objects are carried with it).
+        motion_window: with ``predict="scene"``, the updates over which each track's change is measured (an int
+            ``>= 2``; default 4).
+        prediction_weight: the share of the prediction kept in each new rotation, in ``[0, 1)``; needs a
+            prediction. None (default): 0.3 with ``predict="scene"``, else 0 (the refined rotation as is).
+        max_correction_deg: with ``predict="scene"``, once the scene's turn is measured: the most degrees a new
+            rotation may differ from its prediction, in ``(0, 180]`` (180: no limit). None (default): 2.
         iterations: refinement passes per update (``>= 1``), as :meth:`RefinerSession.refine`.
         views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`.
         lost_deg: the loss-of-track check (module docstring): flag an object lost when a second refinement of its
@@ -135,16 +169,41 @@ class RefinerTracker:
         ...     q = tracker.update(image, {"003_cracker_box": box})["003_cracker_box"]   # (4,) wxyz
     """
 
-    def __init__(self, session, K, q0: Mapping, *, predict: bool = False, iterations: int = 1, views: int = 1,
+    def __init__(self, session, K, q0: Mapping, *, predict: bool | str = False, iterations: int = 1, views: int = 1,
                  lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz",
-                 D=None, settle_deg: float | None = None):
+                 D=None, settle_deg: float | None = None, motion_window: int = DEFAULT_MOTION_WINDOW,
+                 prediction_weight: float | None = None, max_correction_deg: float | None = None):
         self.K = _validate_K(K).copy()
         self.D = validate_D(D)
         _as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
         self.q_order = q_order
-        if not isinstance(predict, bool):
-            raise TypeError(f"predict must be True or False; got {predict!r}")
-        self.predict = predict
+        if predict is True:
+            predict = "object"
+        if predict is not False and predict not in PREDICTIONS:
+            raise ValueError(f"predict must be False, True, 'object' or 'scene'; got {predict!r}")
+        self.predict = predict or None  # None, "object" or "scene"
+        if isinstance(motion_window, bool) or not isinstance(motion_window, (int, np.integer)) or motion_window < 2:
+            raise ValueError(f"motion_window must be an int >= 2 (updates); got {motion_window!r}")
+        self.motion_window = int(motion_window)
+        if prediction_weight is None:
+            prediction_weight = DEFAULT_SCENE_PREDICTION_WEIGHT if self.predict == "scene" else 0.0
+        if (isinstance(prediction_weight, bool) or not isinstance(prediction_weight, (int, float, np.integer,
+                                                                                     np.floating))
+                or not 0.0 <= float(prediction_weight) < 1.0):
+            raise ValueError(f"prediction_weight must be a number in [0, 1) (the prediction's share); got "
+                             f"{prediction_weight!r}")
+        if prediction_weight and self.predict is None:
+            raise ValueError(f"prediction_weight={prediction_weight!r} keeps a share of a prediction, and predict is "
+                             "False; pass predict='scene' (or True), or leave prediction_weight at 0")
+        self.prediction_weight = float(prediction_weight)
+        if max_correction_deg is not None and self.predict != "scene":
+            raise ValueError(f"max_correction_deg={max_correction_deg!r} limits a track's step from the scene's "
+                             "prediction; it needs predict='scene'")
+        if max_correction_deg is None and self.predict == "scene":
+            max_correction_deg = DEFAULT_SCENE_MAX_CORRECTION_DEG
+        self.max_correction_deg = _optional_in_range(max_correction_deg, "max_correction_deg", 180.0,
+                                                     "a number of degrees", " degrees (180: no limit)")
+        self._updates = 0  # update() calls so far: the clock of the scene motion
         self.lost_deg = _check_lost_deg(lost_deg)
         self.detector_weight = _check_detector_weight(detector_weight)
         if self.lost_deg is not None and self.detector_weight is not None:
@@ -252,7 +311,7 @@ class RefinerTracker:
         """
         track = self._track(object_id)
         track.q = self._check_q(q, "q")
-        track.refined, track.velocity, track.missed = False, None, 0
+        track.refined, track.velocity, track.missed, track.history = False, None, 0, []
 
     # ------------------------------------------------------------------ tracking
     def update(self, image, boxes: Mapping, detector=None) -> dict[str, np.ndarray]:
@@ -306,8 +365,9 @@ class RefinerTracker:
         # Refine (and check) every group first, then ask the detector, and change the tracks only once nothing
         # can fail any more: a bad pose from the detector leaves the tracker as it was.
         results = []
+        turn = self._scene_turn() if self.predict == "scene" else None
         for sess, ids, rows in groups.values():
-            q_in = [self._prediction(self._tracks[i]) for i in ids]
+            q_in = [self._prediction(self._tracks[i], turn) for i in ids]
             fused = []  # (index into ids, the detector's pose) to refine and fuse
             if self.detector_weight is not None and detector is not None:
                 for i, object_id in enumerate(ids):
@@ -320,6 +380,12 @@ class RefinerTracker:
             both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
                                 np.array(q_in + [q for _, q in fused]), coarse).tolist()
             tracked = both[: len(ids)]  # the refined tracks: what the refiner saw move (the velocity's source)
+            if self.prediction_weight:  # keep a share of the prediction (not of a coarse start)
+                tracked = [_blend(q, p, self.prediction_weight) if self._tracks[i].refined else q
+                           for i, q, p in zip(ids, tracked, q_in)]
+            if turn is not None and self.max_correction_deg is not None:  # within reach of the scene's prediction
+                tracked = [_within(q, p, self.max_correction_deg) if self._tracks[i].refined else q
+                           for i, q, p in zip(ids, tracked, q_in)]
             refined = list(tracked)
             for (i, _), q_det in zip(fused, both[len(ids):]):
                 refined[i] = _blend(tracked[i], q_det, self.detector_weight)
@@ -344,15 +410,24 @@ class RefinerTracker:
                 track = self._tracks[object_id]
                 if object_id in redetected:  # a detector's pose, refined: a new start, not motion
                     track.q, track.refined, track.velocity, track.missed = redetected[object_id], True, None, 0
+                    track.history = []
                     out[object_id] = np.array(track.q)
                     continue
-                if self.predict and track.refined:
+                if self.predict == "scene":  # the refined track (not a detection's pull) measures the motion
+                    track.history = [(t, h) for t, h in track.history if self._updates - t < self.motion_window]
+                    track.history.append((self._updates, q_tracked))
+                elif self.predict and track.refined:
                     # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py),
                     # from the refined track alone: a fused detection's pull is a correction, not motion
                     step = _unit_rows(_multiply_rows([q_tracked], _conjugate_rows([track.q])))[0]
                     track.velocity = step if track.missed == 0 else _fraction(step, 1.0 / (track.missed + 1))
                 track.q, track.refined, track.missed = q, True, 0
                 out[object_id] = np.array(q)
+        if turn is not None:  # the objects not seen in this frame turn with the camera too
+            for object_id, track in self._tracks.items():
+                if object_id not in seen and track.refined:
+                    track.q = _unit_rows(_multiply_rows([turn], [track.q]))[0]
+        self._updates += 1
         self.lost = lost
         self.redetections += len(redetected)
         return out
@@ -388,8 +463,35 @@ class RefinerTracker:
         return None if q is None else self._check_q(q, f"detector pose for {object_id!r}")
 
     # ------------------------------------------------------------------ internals
-    def _prediction(self, track: _Track) -> list:
-        """The coarse rotation for this update: the last one, turned on by the velocity when predicting."""
+    def _scene_turn(self) -> list | None:
+        """The rotation per update that every still object shares in the camera frame (module docstring,
+        ``predict="scene"``): the mean over the tracks of each one's change per update across its refined rotations
+        of the last ``motion_window`` updates (those measured over at least half of it); with three or more, those
+        further from the mean than :data:`TURN_OUTLIER_DEG` and twice the median distance are left out and the
+        mean taken again. None before any track is measured."""
+        rates = []
+        for track in self._tracks.values():
+            h = [(t, q) for t, q in track.history if self._updates - t <= self.motion_window]
+            if len(h) < 2 or h[-1][0] - h[0][0] < max(1, self.motion_window // 2):
+                continue
+            change = _unit_rows(_multiply_rows([h[-1][1]], _conjugate_rows([h[0][1]])))[0]
+            rates.append(_fraction(change, 1.0 / (h[-1][0] - h[0][0])))
+        if not rates:
+            return None
+        rates = np.array(rates)
+        turn = rq.mean(rates)
+        if len(rates) >= 3:  # leave out a track whose change is far from the others' (one drifting off, or moved)
+            off = rq.geodesic_angle(rates, turn)
+            turn = rq.mean(rates[off <= max(TURN_OUTLIER_DEG, 2.0 * float(np.median(off)))])
+        return turn.tolist()
+
+    def _prediction(self, track: _Track, turn: list | None = None) -> list:
+        """The coarse rotation for this update: the last one, turned on by the velocity (``predict="object"``) or
+        by the scene's turn (``predict="scene"``) when predicting."""
+        if self.predict == "scene":
+            if turn is None or not track.refined:
+                return track.q
+            return _unit_rows(_multiply_rows([turn], [track.q]))[0]
         if not self.predict or track.velocity is None:
             return track.q
         step = track.velocity if track.missed == 0 else _fraction(track.velocity, track.missed + 1.0)
@@ -437,7 +539,10 @@ class RefinerTracker:
         return rq.normalize(arr).tolist()
 
     def __repr__(self) -> str:
-        return (f"RefinerTracker(objects={self.object_ids}, predict={self.predict}, iterations={self.iterations}, "
+        return (f"RefinerTracker(objects={self.object_ids}, predict={self.predict or False!r}, "
+                f"motion_window={self.motion_window}, prediction_weight={self.prediction_weight}, "
+                f"max_correction_deg={self.max_correction_deg}, "
+                f"iterations={self.iterations}, "
                 f"lost_deg={self.lost_deg}, detector_weight={self.detector_weight}, settle_deg={self.settle_deg})")
 
 
@@ -465,13 +570,32 @@ def _blend(q_track: list, q_det: list, w: float) -> list:
     """The rotation ``w`` of the way from ``q_track`` to ``q_det`` along the shortest arc, ``w >= 0`` canonical:
     ``(q_det * q_track^-1) ** w * q_track`` (unit ``[w, x, y, z]`` lists)."""
     step = _unit_rows(_multiply_rows([q_det], _conjugate_rows([q_track])))[0]
-    return rq.canonical(rq.multiply(_fraction(step, w), q_track)).tolist()
+    return _unit_rows(_multiply_rows([_fraction(step, w)], [q_track]))[0]
+
+
+def _within(q: list, p: list, max_deg: float) -> list:
+    """``q``, or the rotation ``max_deg`` degrees from ``p`` toward it along the shortest arc where ``q`` is further
+    (unit ``[w, x, y, z]`` lists, ``w >= 0``)."""
+    step = _unit_rows(_multiply_rows([q], _conjugate_rows([p])))[0]
+    angle = math.degrees(2.0 * math.atan2(math.sqrt(step[1] ** 2 + step[2] ** 2 + step[3] ** 2), abs(step[0])))
+    if angle <= max_deg:
+        return q
+    return _unit_rows(_multiply_rows([_fraction(step, max_deg / angle)], [p]))[0]
 
 
 def _fraction(q: list, power: float) -> list:
-    """``q ** power`` for a unit quaternion ``[w, x, y, z]``: the same axis, ``power`` times the angle."""
-    axis, angle = rq.to_axis_angle(np.array(q))
-    return rq.from_axis_angle(axis, angle * power).tolist()
+    """``q ** power`` for a unit quaternion ``[w, x, y, z]``: the same axis, ``power`` times the angle (of the
+    shortest arc), ``w >= 0``. Python floats: called per track and update, where NumPy's per-call cost dominates."""
+    w, x, y, z = q
+    if w < 0:
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    if s < 1e-15:
+        return [1.0, 0.0, 0.0, 0.0]
+    half = math.atan2(s, w) * power
+    k = math.sin(half) / s
+    out = [math.cos(half), x * k, y * k, z * k]
+    return out if out[0] >= 0 else [-v for v in out]
 
 
 def _check_box(box, image_shape, name: str) -> list:

@@ -157,9 +157,10 @@ def test_cascade_in_a_bag_refines_as_the_cascade_does(tmp_path):
     assert checked
 
 
-def test_track_mode_follows_the_objects_from_the_first_pose(tmp_path):
+@pytest.mark.parametrize("extra", [[], ["--scene-motion"]])
+def test_track_mode_follows_the_objects_from_the_first_pose(tmp_path, extra):
     """Tracking: only the first frame's detections carry poses; every frame is the same image, so the tracker's
-    rotations stay close to the truth."""
+    rotations stay close to the truth (with the scene's motion as well: a still camera turns nothing)."""
     bag = tmp_path / "in"
     image, K, objects = _frames()[0]
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -173,7 +174,7 @@ def test_track_mode_follows_the_objects_from_the_first_pose(tmp_path):
             det = _detections(i, objects, with_pose=(i == 0))
             w.write(c_det, t, STORE.serialize_cdr(det, "vision_msgs/msg/Detection2DArray"))
     out = tmp_path / "out"
-    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out)])
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), *extra])
     assert res.exit_code == 0, res.output
     got = read_bag(out)
     for o in objects:
@@ -242,6 +243,9 @@ def test_bag_errors_are_one_line(tmp_path):
     assert res.exit_code == 2 and "not both" in res.output
     res = CliRunner().invoke(main, ["track", "-o", str(tmp_path / "o3.json")])
     assert res.exit_code == 2 and "--bag" in res.output
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "o4"), "--mode", "refine",
+                                    "--scene-motion"])
+    assert res.exit_code == 2 and "--scene-motion apply to --mode track" in res.output
 
 
 def test_the_node_example_is_built_on_the_bag_function():

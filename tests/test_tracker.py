@@ -2,6 +2,8 @@
 refined rotation as the next coarse pose, batching per session, the constant-velocity prediction, objects coming
 and going, and the errors."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -105,6 +107,103 @@ def test_constant_velocity_prediction_matches_a_scipy_reference(seen):
     assert_same_rotation(tracker.rotations["003_cracker_box"], prediction_reference(scipy_q(Q0[0]), scipy_q(c), seen))
 
 
+def scene_reference(q0: dict, c: Rotation, seen: list[set], window: int, weight: float, max_deg: float = 2.0,
+                    trimmed=None) -> dict:
+    """The scene-motion tracker written out with SciPy: the turn per update is the mean over tracks of each one's
+    change across its refined rotations of the last ``window`` updates (spans of at least half of it; with three or
+    more, those off the mean by more than 0.2 degrees and twice the median left out); every refined track is turned
+    by it before the update, and a refined one keeps ``weight`` of the prediction and, once a turn is measured, stays
+    within ``max_deg`` of it."""
+    q, refined, hist = dict(q0), {k: False for k in q0}, {k: [] for k in q0}
+    trimmed = [] if trimmed is None else trimmed  # how many tracks each turn left out
+    for t, objs in enumerate(seen):
+        rates = []
+        for h in hist.values():
+            h = [(u, r) for u, r in h if t - u <= window]
+            if len(h) >= 2 and h[-1][0] - h[0][0] >= max(1, window // 2):
+                rates.append(Rotation.from_rotvec((h[-1][1] * h[0][1].inv()).as_rotvec() / (h[-1][0] - h[0][0])))
+        turn = Rotation.concatenate(rates).mean() if rates else None
+        if len(rates) >= 3:  # tracks far from the others left out
+            off = np.degrees([(r * turn.inv()).magnitude() for r in rates])
+            kept = [r for r, o in zip(rates, off) if o <= max(0.2, 2 * np.median(off))]
+            trimmed.append(len(rates) - len(kept))
+            turn = Rotation.concatenate(kept).mean()
+        for k in q:
+            p = turn * q[k] if turn is not None and refined[k] else q[k]
+            if k not in objs:
+                q[k] = p
+                continue
+            r = p * c
+            new = Rotation.from_rotvec((p * r.inv()).as_rotvec() * weight) * r if refined[k] else r
+            step = new * p.inv()
+            if turn is not None and refined[k] and np.degrees(step.magnitude()) > max_deg:
+                new = Rotation.from_rotvec(step.as_rotvec() * max_deg / np.degrees(step.magnitude())) * p
+            hist[k] = [(u, x) for u, x in hist[k] if t - u < window] + [(t, new)]
+            q[k], refined[k] = new, True
+    return q
+
+
+@pytest.mark.parametrize("window,weight,max_deg,four", [(4, 0.0, 180.0, False), (4, 0.3, None, False),
+                                                         (6, 0.5, 1.0, False), (4, 0.3, None, True)])
+def test_scene_prediction_matches_a_scipy_reference(window, weight, max_deg, four):
+    c = rq.from_axis_angle([0.0, 0.3, 1.0], 4.0)
+    shared = session(q_out=c, objects=("003_cracker_box", "011_banana"))
+    q0 = {"003_cracker_box": Q0[0], "011_banana": Q0[1]}
+    both = {"003_cracker_box", "011_banana"}
+    if four:  # three tracks that turn alike and one that does not: the turn leaves that one out
+        q0 = {"003_cracker_box": Q0[0], "011_banana": rq.multiply(rq.from_axis_angle([1.0, 0.0, 0.0], 2.0), Q0[0]),
+              "011_banana#2": rq.multiply(rq.from_axis_angle([0.0, 1.0, 0.0], 3.0), Q0[0]), "011_banana#3": Q0[1]}
+        both = set(q0)
+    seen = [both] * 5 + [{"011_banana"}] * 4 + [{"003_cracker_box"}, set()] + [both] * 3
+    tracker = RefinerTracker(shared, K, q0, predict="scene", motion_window=window, prediction_weight=weight,
+                             max_correction_deg=max_deg)
+    boxes = {"003_cracker_box": BOX_A, "011_banana": BOX_B, "011_banana#2": BOX_B, "011_banana#3": BOX_A}
+    for objs in seen:
+        tracker.update(IMG, {k: boxes[k] for k in objs})
+    trimmed = []
+    ref = scene_reference({k: scipy_q(v) for k, v in q0.items()}, scipy_q(c), seen, window, weight,
+                          2.0 if max_deg is None else max_deg, trimmed)
+    assert (max(trimmed, default=0) > 0) == four  # the four-track case does leave one out
+    for k in q0:
+        assert_same_rotation(tracker.rotations[k], ref[k])
+
+
+def test_scene_prediction_carries_a_hidden_object_with_the_camera(monkeypatch):
+    """A camera turning 3 degrees per update over two still objects and a refiner that returns the truth: with the
+    scene's motion the object hidden for ten updates comes back where the camera took it; without, 30 degrees off."""
+    turn = rq.from_axis_angle([0.3, 1.0, -0.2], 3.0)
+
+    def truth(q0, t):
+        return rq.multiply(rq.from_axis_angle([0.3, 1.0, -0.2], 3.0 * t), q0) if t else q0
+
+    shared = session(objects=("003_cracker_box", "011_banana"))
+    clock, inputs = {"t": 0}, {}
+
+    def perfect(image, boxes, q_in, **kw):
+        a = [np.allclose(b, BOX_A) for b in np.asarray(boxes)]
+        for is_a, q in zip(a, q_in):
+            inputs[clock["t"], is_a] = np.array(q)
+        return SimpleNamespace(q_refined=np.array([truth(Q0[0] if is_a else Q0[1], clock["t"]) for is_a in a]))
+
+    monkeypatch.setattr(shared, "refine", perfect)
+    assert rq.geodesic_angle(turn, rq.identity()) == pytest.approx(3.0)
+    for predict in ("scene", False):
+        tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0], "011_banana": Q0[1]}, predict=predict,
+                                 prediction_weight=0.0)
+        inputs.clear()
+        for t in range(18):
+            clock["t"] = t
+            hidden = 5 <= t < 15
+            tracker.update(IMG, {"011_banana": BOX_B} if hidden else {"003_cracker_box": BOX_A, "011_banana": BOX_B})
+            if predict == "scene" and hidden and t >= 7:  # once the turn is measured, the hidden track follows it
+                assert rq.geodesic_angle(tracker.rotations["003_cracker_box"], truth(Q0[0], t)) < 1e-6
+        back = rq.geodesic_angle(inputs[15, True], truth(Q0[0], 15))
+        if predict == "scene":
+            assert back < 1e-6
+        else:
+            assert back == pytest.approx(33.0, abs=1e-6)  # held since update 4: 11 turns of 3 degrees
+
+
 def test_reset_forgets_the_motion():
     """A detector's pose after a reset is coarse: the jump to it is not motion, so nothing is predicted from it."""
     tracker = RefinerTracker(session(q_out=rq.identity()), K, {"003_cracker_box": Q0[0]}, predict=True)
@@ -157,7 +256,12 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
      r"object_id '011_banana' is not an object its session's model was trained for \(metadata objects: \['003_cracker_box'\]\)"),
     (dict(q0={3: [1, 0, 0, 0]}), TypeError, "object ids must be non-empty strings"),
     (dict(session=3), TypeError, "session must be a RefinerSession, a RefinerCascade or a pretrained model name"),
-    (dict(predict="yes"), TypeError, "predict must be True or False"),
+    (dict(predict="yes"), ValueError, "predict must be False, True, .object. or .scene."),
+    (dict(predict="scene", motion_window=1), ValueError, "motion_window must be an int >= 2"),
+    (dict(predict="scene", prediction_weight=1.0), ValueError, "prediction_weight must be a number in \\[0, 1\\)"),
+    (dict(prediction_weight=0.3), ValueError, "keeps a share of a prediction, and predict is False"),
+    (dict(max_correction_deg=2.0, predict=True), ValueError, "max_correction_deg=2.0 limits .* needs predict='scene'"),
+    (dict(predict="scene", max_correction_deg=0), ValueError, r"max_correction_deg must be in \(0, 180\] degrees"),
     (dict(iterations=0), ValueError, "iterations must be an integer from 1 to"),
     (dict(views=99), ValueError, "views must be an integer from 1 to"),
     (dict(lost_deg=0), ValueError, r"lost_deg must be in \(0, 180\] degrees"),
@@ -383,6 +487,30 @@ def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
     assert json.loads(out.read_text())["lost"] == {}
 
 
+def test_track_command_scene_motion(tmp_path):
+    """--scene-motion is RefinerTracker(predict="scene") with its defaults (window 4, prediction weight 0.3), recorded
+    in the output; with --predict it is a usage error that names both."""
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=6)
+    out = tmp_path / "rot.json"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--scene-motion"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["predict"] == "scene"
+    ref = scene_reference({"003_cracker_box": scipy_q(Q0[0])}, scipy_q(Q_OUT), [{"003_cracker_box"}] * 6, 4, 0.3)
+    assert_same_rotation(np.array(doc["frames"]["000005.png"]["003_cracker_box"]), ref["003_cracker_box"])
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--scene-motion", "--predict"])
+    assert res.exit_code == 2 and "--predict" in res.output and "--scene-motion" in res.output
+    assert "Traceback" not in res.output
+
+
 def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path):
     """A "q" on the third frame: without --detector-weight it restarts the track (q_det * c); with 0.5 it is refined
     beside the track and the rotation is half way between the two (SciPy's Slerp)."""
@@ -534,6 +662,8 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     for step in ("1", "2", "4"):
         assert s["track"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
         assert s["track_predict"][step]["mean_deg"] == s["hold"][step]["mean_deg"]
+        # nor does the scene's motion: the refined rotations never change, so the estimated turn is none
+        assert s["track_scene"][step]["mean_deg"] == pytest.approx(s["hold"][step]["mean_deg"], abs=1e-3)
         assert s["track_redetect"][step]["mean_deg"] < s["hold"][step]["mean_deg"]  # reset to fresh draws
         assert 5 < s["per_frame"][step]["mean_deg"] < 25
         # A model that never corrects agrees with itself: the loss check never fires, no detector is asked.
@@ -550,7 +680,8 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     assert doc["cost"]["track_step1"]["refinements"] == 23 and doc["machine"]["cpu"]
     assert png.stat().st_size > 10_000
     table = bench.report(doc)
-    assert len(table.splitlines()) == 2 + 3 * 7 and "| 1 | (c) track |" in table
+    assert len(table.splitlines()) == 2 + 3 * 8 and "| 1 | (c) track |" in table
+    assert "| 1 | (c) track + the scene's motion (window 4, weight 0.3, at most 2.0 deg) |" in table
     # The detections it writes run through `refiner-rt track`: with this model the rotation stays the initial pose.
     from click.testing import CliRunner
 
