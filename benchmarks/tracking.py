@@ -69,6 +69,7 @@ from refiner_rt import quaternion as rq  # noqa: E402
 from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
 from refiner_rt.tracker import (  # noqa: E402
+    DEFAULT_MOTION_WINDOW,
     DEFAULT_SCENE_MAX_CORRECTION_DEG,
     DEFAULT_SCENE_PREDICTION_WEIGHT,
     RefinerTracker,
@@ -130,7 +131,7 @@ def sequence_rng(seed: int, seq: Sequence) -> np.random.Generator:
 def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: list[int], seed: int,
               n_frames: int, timing: dict, methods=METHODS, redetect: int = 10, lost_deg: float = 1.5,
               detections: dict | None = None, detector_weight: float = 0.5, fuse_every: int = 1,
-              cascades: dict | None = None, motion_window: int = 4, prediction_weight: float | None = None,
+              cascades: dict | None = None, motion_window: int | None = None, prediction_weight: float | None = None,
               max_correction_deg: float | None = None) -> dict:
     """Errors (degrees, NaN where not scored) per method, step and sequence, indexed by frames since the start."""
     rng = {s.object_id: sequence_rng(seed, s) for s in seqs}
@@ -185,7 +186,8 @@ def run_scene(seqs: list[Sequence], sessions: dict[str, RefinerSession], steps: 
             scene = method.endswith("_scene")
             tracker = RefinerTracker({s.object_id: refiners[s.object_id] for s in live}, K, {},
                                      predict="scene" if scene else method == "track_predict",
-                                     motion_window=motion_window, prediction_weight=prediction_weight if scene else None,
+                                     motion_window=motion_window if scene else None,
+                                     prediction_weight=prediction_weight if scene else None,
                                      max_correction_deg=max_correction_deg if scene else None,
                                      lost_deg=lost_deg if method == "track_lost" else None,
                                      detector_weight=detector_weight if method == "track_fuse" else None)
@@ -370,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--settle-deg", type=float, default=None, metavar="DEG",
                    help="the cascade methods: RefinerCascade(settle_deg=DEG), a second coarse pass on the rows that go "
                         "the long way, kept where it turns the result by more than DEG (default: off)")
-    p.add_argument("--motion-window", type=int, default=4, metavar="N",
+    p.add_argument("--motion-window", type=int, default=None, metavar="N",
                    help="the _scene methods: RefinerTracker(motion_window=N), updates over which each track's change is "
                         "measured (default 4, the tracker's)")
     p.add_argument("--prediction-weight", type=float, default=None, metavar="W",
@@ -400,8 +402,13 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--detector-weight must be in (0, 1]; got {args.detector_weight}")
     if args.fuse_every < 1:
         p.error(f"--fuse-every must be a positive integer; got {args.fuse_every}")
-    if args.motion_window < 2:
+    if args.motion_window is not None and args.motion_window < 2:
         p.error(f"--motion-window must be an integer >= 2 (updates); got {args.motion_window}")
+    scene_options = [f"--{k.replace('_', '-')}" for k in ("motion_window", "prediction_weight", "max_correction_deg")
+                     if getattr(args, k) is not None]
+    if scene_options and not any(m.endswith("_scene") for m in methods):
+        p.error(f"{', '.join(scene_options)} apply to the _scene methods (track_scene, track_cascade_scene); "
+                "--methods has neither")
     if args.max_correction_deg is not None and not 0 < args.max_correction_deg <= 180:
         p.error(f"--max-correction-deg must be in (0, 180] degrees; got {args.max_correction_deg}")
     if args.prediction_weight is not None and not 0 <= args.prediction_weight < 1:
@@ -530,7 +537,8 @@ def main(argv: list[str] | None = None) -> int:
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,
         "min_visib": args.min_visib, "diverged_above_deg": DIVERGED_DEG, "seed": args.seed, "redetect": args.redetect,
         "lost_deg": args.lost_deg, "detector_weight": args.detector_weight, "fuse_every": args.fuse_every,
-        "settle_deg": args.settle_deg, "motion_window": args.motion_window,
+        "settle_deg": args.settle_deg,
+        "motion_window": DEFAULT_MOTION_WINDOW if args.motion_window is None else args.motion_window,
         "prediction_weight": (DEFAULT_SCENE_PREDICTION_WEIGHT if args.prediction_weight is None
                               else args.prediction_weight),
         "max_correction_deg": (DEFAULT_SCENE_MAX_CORRECTION_DEG if args.max_correction_deg is None

@@ -282,7 +282,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     if predict and scene_motion:
         raise click.UsageError("--predict (each object's own velocity) and --scene-motion (the camera's turn, shared by "
                                "still objects) are two predictions; choose one")
-    predict = "scene" if scene_motion else predict
+    prediction = "scene" if scene_motion else predict  # RefinerTracker(predict=...)
 
     bag_only = {"--mode": mode != "track", "--rectified": rectified,
                 "--image-topic": image_topic, "--info-topic": info_topic, "--detections-topic": detections_topic,
@@ -296,7 +296,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
             raise click.UsageError(f"{', '.join(unused)} apply to FRAMES DETECTIONS, not to --bag (a bag's "
                                    "CameraInfo gives the camera)")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-                          class_map, fp32, predict, lost_deg, threads, settle_deg)
+                          class_map, fp32, prediction, lost_deg, threads, settle_deg)
     if frames is None or detections is None:
         raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
     used = [flag for flag, value in bag_only.items() if value]
@@ -332,7 +332,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         refiners = _cascades(sessions, int8=not fp32, threads=threads, settle_deg=settle_deg) if cascade else sessions
         if settle_deg is not None:
             iterations = max(iterations, 2)
-        tracker = RefinerTracker(refiners, K, {}, predict=predict, iterations=iterations, lost_deg=lost_deg,
+        tracker = RefinerTracker(refiners, K, {}, predict=prediction, iterations=iterations, lost_deg=lost_deg,
                                  detector_weight=detector_weight, settle_deg=settle_deg)
     except (ValueError, TypeError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
@@ -375,7 +375,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     out_path.write_text(json.dumps({
         "format": OUTPUT_FORMAT,
         "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",
-        "K": K.tolist(), "predict": predict, "iterations": iterations, "settle_deg": settle_deg, "lost_deg": lost_deg,
+        "K": K.tolist(), "predict": predict, "scene_motion": scene_motion, "iterations": iterations, "settle_deg": settle_deg, "lost_deg": lost_deg,
         "detector_weight": detector_weight,
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
         "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},

@@ -22,14 +22,16 @@ frame). Only refined rotations enter ``dq``: the correction of a coarse initial 
 Scene-motion prediction (``predict="scene"``): for a camera moving over objects that stand still (a camera on a
 robot's arm or head looking over a table). Every still object turns in the camera frame by the same rotation, the
 camera's own turn inverted, so the tracker estimates that one turn from all its tracks at once: for each track, the
-change between its refined rotations across the last ``motion_window`` updates, per update; their mean (without the
-tracks far from the others: one drifting off, or an object that moved) is the scene's turn per update. Before each update every refined track is turned by it, those without a box too: an object hidden
-for a while comes back where the camera's motion took it, not where it was last seen (with ``predict=True`` or
-without prediction, a track held through a long occlusion while the camera moves is far off when it returns). The
-mean over objects and updates is much steadier than one object's last change. Objects that move by themselves (one
-being carried) break the assumption: use ``predict=True`` or no prediction there.
+change between the refiner's results across the last ``motion_window`` updates, per update; their mean (without the
+tracks far from the others: one drifting off, or an object that moved) is the scene's turn per update. Before each
+update every refined track is turned by it, those without a box too: an object hidden for a while comes back where
+the camera's motion took it, not where it was last seen (with ``predict=True`` or without prediction, a track held
+through a long occlusion while the camera moves is far off when it returns). The mean over objects and updates is
+much steadier than one object's last change. Objects that move by themselves (one being carried) break the
+assumption: use ``predict=True`` or no prediction there.
 
-Prediction weight (``prediction_weight``): with a prediction, the new rotation may keep a share of it: ``q`` is taken
+Prediction weight (``prediction_weight``): once a prediction is made (the motion measured), the new rotation may
+keep a share of it: ``q`` is taken
 that fraction of the way from the refined rotation back to the predicted one (``0``: the refined rotation as is). A
 refinement's noise is then damped while the prediction carries the motion. With the scene's motion, once its turn is
 measured, the new rotation also stays within ``max_correction_deg`` of the prediction: the camera's motion is
@@ -120,7 +122,8 @@ class RefinerTracker:
     Each :meth:`update` refines every object that has a box in the frame, starting from its previous refined
     rotation (or, right after construction, :meth:`add` or :meth:`reset`, from the coarse rotation given there).
     Objects that share a session are refined in one batched :meth:`RefinerSession.refine` call. An object without
-    a box in a frame (not detected, hidden) keeps its rotation until it is seen again.
+    a box in a frame (not detected, hidden) keeps its rotation until it is seen again; with ``predict="scene"`` it
+    turns with the camera.
 
     Args:
         session: the refiner(s). A :class:`RefinerSession` refines every object (each object id must be one of its
@@ -135,7 +138,7 @@ class RefinerTracker:
             or ``"object"`` each object's constant angular velocity, ``"scene"`` the camera's turn shared by still
             objects (estimated from every track; hidden objects are carried with it).
         motion_window: with ``predict="scene"``, the updates over which each track's change is measured (an int
-            ``>= 2``; default 4).
+            ``>= 2``); None (default): 4.
         prediction_weight: the share of the prediction kept in each new rotation, in ``[0, 1)``; needs a
             prediction. None (default): 0.3 with ``predict="scene"``, else 0 (the refined rotation as is).
         max_correction_deg: with ``predict="scene"``, once the scene's turn is measured: the most degrees a new
@@ -171,25 +174,36 @@ class RefinerTracker:
 
     def __init__(self, session, K, q0: Mapping, *, predict: bool | str = False, iterations: int = 1, views: int = 1,
                  lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz",
-                 D=None, settle_deg: float | None = None, motion_window: int = DEFAULT_MOTION_WINDOW,
+                 D=None, settle_deg: float | None = None, motion_window: int | None = None,
                  prediction_weight: float | None = None, max_correction_deg: float | None = None):
         self.K = _validate_K(K).copy()
         self.D = validate_D(D)
         _as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
         self.q_order = q_order
+        if not isinstance(predict, (bool, str)):
+            raise TypeError(f"predict must be False, True, 'object' or 'scene'; got {predict!r}")
         if predict is True:
             predict = "object"
         if predict is not False and predict not in PREDICTIONS:
             raise ValueError(f"predict must be False, True, 'object' or 'scene'; got {predict!r}")
         self.predict = predict or None  # None, "object" or "scene"
-        if isinstance(motion_window, bool) or not isinstance(motion_window, (int, np.integer)) or motion_window < 2:
+        if motion_window is not None and self.predict != "scene":
+            raise ValueError(f"motion_window={motion_window!r} is the window of the scene's turn; it needs "
+                             "predict='scene'")
+        if motion_window is None:
+            motion_window = DEFAULT_MOTION_WINDOW
+        if isinstance(motion_window, bool) or not isinstance(motion_window, (int, np.integer)):
+            raise TypeError(f"motion_window must be an int >= 2 (updates); got {motion_window!r}")
+        if motion_window < 2:
             raise ValueError(f"motion_window must be an int >= 2 (updates); got {motion_window!r}")
         self.motion_window = int(motion_window)
         if prediction_weight is None:
             prediction_weight = DEFAULT_SCENE_PREDICTION_WEIGHT if self.predict == "scene" else 0.0
-        if (isinstance(prediction_weight, bool) or not isinstance(prediction_weight, (int, float, np.integer,
-                                                                                     np.floating))
-                or not 0.0 <= float(prediction_weight) < 1.0):
+        if isinstance(prediction_weight, bool) or not isinstance(prediction_weight, (int, float, np.integer,
+                                                                                    np.floating)):
+            raise TypeError(f"prediction_weight must be a number in [0, 1) (the prediction's share) or None; got "
+                            f"{prediction_weight!r}")
+        if not 0.0 <= float(prediction_weight) < 1.0:
             raise ValueError(f"prediction_weight must be a number in [0, 1) (the prediction's share); got "
                              f"{prediction_weight!r}")
         if prediction_weight and self.predict is None:
@@ -321,7 +335,8 @@ class RefinerTracker:
             image: ``H x W x 3`` ``uint8`` image, **BGR** channel order.
             boxes: ``{object id: (4,) box (x1, y1, x2, y2)}`` in pixels (continuous coordinates), one per tracked
                 object seen in this frame; each non-empty and overlapping the image. Tracked objects without a box
-                keep their rotation; an id that is not tracked is an error.
+                keep their rotation (with ``predict="scene"``, turned with the camera); an id that is not tracked is
+                an error.
             detector: a detector's coarse poses: a callable ``detector(object_id) -> (4,)`` or a mapping
                 ``{object id: (4,)}``, object-to-camera ``wxyz`` rotations (e.g. your pose detector's); ``None`` or
                 missing for an object it has no pose for. With ``lost_deg``, asked only for the objects this update
@@ -359,9 +374,6 @@ class RefinerTracker:
             group[1].append(object_id)
             group[2].append(row)
         seen = set(boxes)
-        for object_id, track in self._tracks.items():
-            if object_id not in seen:
-                track.missed += 1
         # Refine (and check) every group first, then ask the detector, and change the tracks only once nothing
         # can fail any more: a bad pose from the detector leaves the tracker as it was.
         results = []
@@ -379,19 +391,22 @@ class RefinerTracker:
             coarse = [True] * (len(ids) + len(fused))
             both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
                                 np.array(q_in + [q for _, q in fused]), coarse).tolist()
-            tracked = both[: len(ids)]  # the refined tracks: what the refiner saw move (the velocity's source)
-            if self.prediction_weight:  # keep a share of the prediction (not of a coarse start)
-                tracked = [_blend(q, p, self.prediction_weight) if self._tracks[i].refined else q
-                           for i, q, p in zip(ids, tracked, q_in)]
+            raw = both[: len(ids)]  # the refiner's own results: what it saw move (the scene's turn's source)
+            tracked = list(raw)  # the refined tracks (the object velocity's source)
+            predicted = [self._predicted(self._tracks[i], turn) for i in ids]
+            if self.prediction_weight:  # keep a share of the prediction (not of a coarse start or the last rotation)
+                tracked = [_blend(q, p, self.prediction_weight) if made else q
+                           for q, p, made in zip(tracked, q_in, predicted)]
             if turn is not None and self.max_correction_deg is not None:  # within reach of the scene's prediction
-                tracked = [_within(q, p, self.max_correction_deg) if self._tracks[i].refined else q
-                           for i, q, p in zip(ids, tracked, q_in)]
+                tracked = [_within(q, p, self.max_correction_deg) if made else q
+                           for q, p, made in zip(tracked, q_in, predicted)]
             refined = list(tracked)
             for (i, _), q_det in zip(fused, both[len(ids):]):
                 refined[i] = _blend(tracked[i], q_det, self.detector_weight)
-            results.append((sess, ids, rows, refined, tracked, self._flag_lost(sess, image, ids, rows, refined)))
+            results.append((sess, ids, rows, refined, tracked, raw,
+                            self._flag_lost(sess, image, ids, rows, refined)))
         redetected, lost = {}, []
-        for sess, ids, rows, refined, tracked, flagged in results:
+        for sess, ids, rows, refined, tracked, raw, flagged in results:
             found, poses = [], []
             for i in flagged:
                 q = self._ask(detector, ids[i])
@@ -405,17 +420,18 @@ class RefinerTracker:
                                      [True] * len(found)).tolist()
                 redetected.update({ids[i]: q for i, q in zip(found, again)})
         out = {}
-        for sess, ids, rows, refined, tracked, flagged in results:
-            for object_id, q, q_tracked in zip(ids, refined, tracked):
+        for sess, ids, rows, refined, tracked, raw, flagged in results:
+            for object_id, q, q_tracked, q_raw in zip(ids, refined, tracked, raw):
                 track = self._tracks[object_id]
                 if object_id in redetected:  # a detector's pose, refined: a new start, not motion
                     track.q, track.refined, track.velocity, track.missed = redetected[object_id], True, None, 0
                     track.history = []
                     out[object_id] = np.array(track.q)
                     continue
-                if self.predict == "scene":  # the refined track (not a detection's pull) measures the motion
+                if self.predict == "scene":  # the refiner's result (not the prediction's share, nor a detection's
+                    # pull) measures the motion: a turn measured from damped rotations would lag behind itself
                     track.history = [(t, h) for t, h in track.history if self._updates - t < self.motion_window]
-                    track.history.append((self._updates, q_tracked))
+                    track.history.append((self._updates, q_raw))
                 elif self.predict and track.refined:
                     # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py),
                     # from the refined track alone: a fused detection's pull is a correction, not motion
@@ -423,9 +439,10 @@ class RefinerTracker:
                     track.velocity = step if track.missed == 0 else _fraction(step, 1.0 / (track.missed + 1))
                 track.q, track.refined, track.missed = q, True, 0
                 out[object_id] = np.array(q)
-        if turn is not None:  # the objects not seen in this frame turn with the camera too
-            for object_id, track in self._tracks.items():
-                if object_id not in seen and track.refined:
+        for object_id, track in self._tracks.items():
+            if object_id not in seen:
+                track.missed += 1
+                if turn is not None and track.refined:  # the objects not seen in this frame turn with the camera
                     track.q = _unit_rows(_multiply_rows([turn], [track.q]))[0]
         self._updates += 1
         self.lost = lost
@@ -466,9 +483,10 @@ class RefinerTracker:
     def _scene_turn(self) -> list | None:
         """The rotation per update that every still object shares in the camera frame (module docstring,
         ``predict="scene"``): the mean over the tracks of each one's change per update across its refined rotations
-        of the last ``motion_window`` updates (those measured over at least half of it); with three or more, those
-        further from the mean than :data:`TURN_OUTLIER_DEG` and twice the median distance are left out and the
-        mean taken again. None before any track is measured."""
+        of the last ``motion_window`` updates (those measured over at least ``motion_window // 2`` updates); with
+        three or more, those further from the medoid (the rate closest to all the others) than
+        :data:`TURN_OUTLIER_DEG` and twice the median distance are left out first. None before any track is
+        measured."""
         rates = []
         for track in self._tracks.values():
             h = [(t, q) for t, q in track.history if self._updates - t <= self.motion_window]
@@ -479,11 +497,17 @@ class RefinerTracker:
         if not rates:
             return None
         rates = np.array(rates)
-        turn = rq.mean(rates)
         if len(rates) >= 3:  # leave out a track whose change is far from the others' (one drifting off, or moved)
-            off = rq.geodesic_angle(rates, turn)
-            turn = rq.mean(rates[off <= max(TURN_OUTLIER_DEG, 2.0 * float(np.median(off)))])
-        return turn.tolist()
+            apart = np.degrees(2.0 * np.arccos(np.clip(np.abs(rates @ rates.T), 0.0, 1.0)))
+            off = apart[np.argmin(apart.sum(axis=1))]  # from the medoid, which an outlier does not pull
+            rates = rates[off <= max(TURN_OUTLIER_DEG, 2.0 * float(np.median(off)))]
+        return rq.mean(rates).tolist()
+
+    def _predicted(self, track: _Track, turn: list | None) -> bool:
+        """Whether this update's coarse rotation for ``track`` is a prediction (motion measured, a refined track)."""
+        if not track.refined or self.predict is None:
+            return False
+        return turn is not None if self.predict == "scene" else track.velocity is not None
 
     def _prediction(self, track: _Track, turn: list | None = None) -> list:
         """The coarse rotation for this update: the last one, turned on by the velocity (``predict="object"``) or
