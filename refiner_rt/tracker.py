@@ -31,9 +31,8 @@ much steadier than one object's last change. Objects that move by themselves (on
 assumption: use ``predict=True`` or no prediction there.
 
 Prediction weight (``prediction_weight``): once a prediction is made (the motion measured), the new rotation may
-keep a share of it: ``q`` is taken
-that fraction of the way from the refined rotation back to the predicted one (``0``: the refined rotation as is). A
-refinement's noise is then damped while the prediction carries the motion. With the scene's motion, once its turn is
+keep a share of it: ``q`` is taken that fraction of the way from the refined rotation back to the predicted one
+(``0``: the refined rotation as is). A refinement's noise is then damped while the prediction carries the motion. With the scene's motion, once its turn is
 measured, the new rotation also stays within ``max_correction_deg`` of the prediction: the camera's motion is
 carried by the prediction, so a refinement that pulls further (a view the refiner misreads, frame after frame) is
 followed only that far per update. Defaults with ``predict="scene"``: weight 0.3, 2 degrees, window 4 updates, chosen
@@ -93,7 +92,7 @@ PREDICTIONS = ("object", "scene")
 DEFAULT_MOTION_WINDOW = 4  # updates
 DEFAULT_SCENE_PREDICTION_WEIGHT = 0.3
 DEFAULT_SCENE_MAX_CORRECTION_DEG = 2.0
-TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the mean than this and twice the median is left out
+TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the medoid than this and twice the median is left out
 INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
 
 
@@ -113,7 +112,7 @@ class _Track:
         self.refined = False  # whether q came from the refiner (only then does it count for the velocity)
         self.velocity = None  # [w, x, y, z]: rotation change per update in the camera frame, or None
         self.missed = 0  # updates since this object was last refined (it had no box)
-        self.history: list[tuple[int, list]] = []  # (update index, refined rotation): the scene motion's source
+        self.history: list[tuple[int, list]] = []  # (update index, the refiner's result): the scene turn's source
 
 
 class RefinerTracker:
@@ -482,7 +481,7 @@ class RefinerTracker:
     # ------------------------------------------------------------------ internals
     def _scene_turn(self) -> list | None:
         """The rotation per update that every still object shares in the camera frame (module docstring,
-        ``predict="scene"``): the mean over the tracks of each one's change per update across its refined rotations
+        ``predict="scene"``): the mean over the tracks of each one's change per update across the refiner's results
         of the last ``motion_window`` updates (those measured over at least ``motion_window // 2`` updates); with
         three or more, those further from the medoid (the rate closest to all the others) than
         :data:`TURN_OUTLIER_DEG` and twice the median distance are left out first. None before any track is

@@ -13,9 +13,14 @@ Rules (``q``: the track's estimate, ``r``: the refined rotation for this update)
 * ``ab<a>``: an alpha-beta filter: the constant-velocity prediction ``p``, ``r`` from ``p``, ``q`` moves ``a`` of the
   way from ``p`` to ``r``, and the velocity is smoothed toward the change.
 
+``--ego``: the scene's motion (what became ``RefinerTracker(predict="scene")``), per scene, all objects at once; the
+variants in ``EGO`` (window in updates, share of the prediction kept, a limit from it, outliers left out). This is a
+re-implementation for speed, close to but not the tracker itself: ``benchmarks/tracking.py`` measures the tracker.
+
 Usage::
 
-    python benchmarks/studies/cascade/track_probe.py --data data/tracking_calib_s556 --json OUT.json [--scenes N]
+    python benchmarks/studies/cascade/track_probe.py [--ego] --data data/tracking_calib_s556 --json OUT.json \
+        [--scenes A:B] [--steps 1,2,4] [--rules R | --variants V]
 """
 
 from __future__ import annotations
@@ -146,6 +151,15 @@ def run_sequence(seq, cascade: RefinerCascade, images: dict, step: int, seed: in
     return err
 
 
+def scene_images(scene_seqs) -> dict:
+    """Every frame of one scene's path, from its first scored frame to its last (frame id -> BGR image)."""
+    any_path = Path(next(iter(scene_seqs[0].images.values())))
+    lo = min(min(s.images) for s in scene_seqs)
+    hi = max(max(s.images) for s in scene_seqs)
+    return {f: cv2.imread(str(any_path.with_name(f"{f:06d}{any_path.suffix}")), cv2.IMREAD_COLOR)
+            for f in range(lo, hi + 1)}
+
+
 def per_frame(seq, coarse, images: dict, seed: int, n_frames: int) -> dict[int, float]:
     rng = sequence_rng(seed, seq)
     rq.sample_rotation_noise(1, "uniform", 0, 30, rng)
@@ -183,11 +197,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
-        any_path = Path(next(iter(scene_seqs[0].images.values())))
-        lo = min(min(s.images) for s in scene_seqs)
-        hi = max(max(s.images) for s in scene_seqs)
-        images = {f: cv2.imread(str(any_path.with_name(f"{f:06d}{any_path.suffix}")), cv2.IMREAD_COLOR)
-                  for f in range(lo, hi + 1)}
+        images = scene_images(scene_seqs)
         for s in scene_seqs:
             pf = per_frame(s, cascades[s.object_id].coarse, images, args.seed, n_frames)
             row = {"scene": scene, "object": s.object_id, "per_frame": pf, "steps": {}}
@@ -341,11 +351,7 @@ def main_ego(argv=None) -> int:
     t0 = time.perf_counter()
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
-        any_path = Path(next(iter(scene_seqs[0].images.values())))
-        lo = min(min(s.images) for s in scene_seqs)
-        hi = max(max(s.images) for s in scene_seqs)
-        images = {f: cv2.imread(str(any_path.with_name(f"{f:06d}{any_path.suffix}")), cv2.IMREAD_COLOR)
-                  for f in range(lo, hi + 1)}
+        images = scene_images(scene_seqs)
         res = {st: run_scene_ego(scene_seqs, cascades, settled, images, st, args.seed, n_frames, variants)
                for st in steps}
         for s in scene_seqs:
