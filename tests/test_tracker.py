@@ -235,6 +235,43 @@ def test_scene_prediction_follows_a_camera_that_starts_to_turn(monkeypatch):
     assert max(errors[-5:]) < 1e-3
 
 
+def test_scene_prediction_starts_reset_and_added_tracks_from_the_pose_given(monkeypatch):
+    """A reset or newly added track is a coarse start: its first update refines the pose given, not that pose turned
+    by the scene's turn; its next update is predicted from the refiner's result like the others."""
+    axis = [0.0, 0.6, 0.8]
+
+    def truth(q0, t):  # the camera turns 3 degrees per update
+        return rq.multiply(rq.from_axis_angle(axis, 3.0 * t), q0) if t else q0
+
+    shared = session(objects=("003_cracker_box", "011_banana"))
+    clock, inputs = {"t": 0}, {}
+    start = {"003_cracker_box": Q0[0], "011_banana": Q0[1]}
+
+    def perfect(image, boxes, q_in, **kw):
+        ids = ["003_cracker_box" if np.allclose(b, BOX_A) else "011_banana" for b in np.asarray(boxes)]
+        inputs.update({(clock["t"], i): np.array(q) for i, q in zip(ids, q_in)})
+        return SimpleNamespace(q_refined=np.array([truth(start[i], clock["t"]) for i in ids]))
+
+    monkeypatch.setattr(shared, "refine", perfect)
+    tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0]}, predict="scene", prediction_weight=0.0)
+    both = {"003_cracker_box": BOX_A, "011_banana": BOX_B}
+    coarse = rq.from_axis_angle([1.0, 0.0, 0.0], 20.0)
+    for t in range(12):
+        clock["t"] = t
+        if t == 4:
+            tracker.add("011_banana", coarse)
+        if t == 8:
+            tracker.reset("003_cracker_box", coarse)
+        tracker.update(IMG, both if t >= 4 else {"003_cracker_box": BOX_A})
+    for t, object_id in ((4, "011_banana"), (8, "003_cracker_box")):
+        np.testing.assert_allclose(inputs[t, object_id], coarse, atol=1e-12)  # the pose given, as given
+        assert rq.geodesic_angle(inputs[t + 1, object_id], truth(start[object_id], t + 1)) < 1e-6  # then predicted
+    tracker.drop("011_banana")
+    clock["t"] = 12
+    tracker.update(IMG, {"003_cracker_box": BOX_A})
+    assert rq.geodesic_angle(inputs[12, "003_cracker_box"], truth(Q0[0], 12)) < 1e-6
+
+
 def test_reset_forgets_the_motion():
     """A detector's pose after a reset is coarse: the jump to it is not motion, so nothing is predicted from it."""
     tracker = RefinerTracker(session(q_out=rq.identity()), K, {"003_cracker_box": Q0[0]}, predict=True)
