@@ -172,66 +172,6 @@ def per_frame(seq, coarse, images: dict, seed: int, n_frames: int) -> dict[int, 
     return out
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--json", type=Path, required=True)
-    ap.add_argument("--scenes", default="", help="first:last scene index slice, e.g. 0:15")
-    ap.add_argument("--steps", default="1,2,4")
-    ap.add_argument("--rules", default=",".join(RULES))
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    rules = {k: RULES[k] for k in args.rules.split(",")}
-    steps = [int(s) for s in args.steps.split(",")]
-    from refiner_rt.pretrained import pretrained_models
-
-    objects = sorted(m.object_id for m in pretrained_models())
-    seqs, _ = load_sequences(args.data, set(objects), 0.3, 20)
-    scenes = sorted({s.scene for s in seqs})
-    if args.scenes:
-        a, b = (int(v) for v in args.scenes.split(":"))
-        scenes = scenes[a:b]
-    cascades = {o: RefinerCascade.pretrained(o, int8=True, threads=1) for o in objects}
-    n_frames = max(max(s.images) for s in seqs) + 1
-    rows = []
-    t0 = time.perf_counter()
-    for i, scene in enumerate(scenes):
-        scene_seqs = [s for s in seqs if s.scene == scene]
-        images = scene_images(scene_seqs)
-        for s in scene_seqs:
-            pf = per_frame(s, cascades[s.object_id].coarse, images, args.seed, n_frames)
-            row = {"scene": scene, "object": s.object_id, "per_frame": pf, "steps": {}}
-            for st in steps:
-                c = cascades[s.object_id]
-                settled = RefinerCascade(c.coarse, c.fine, gate_deg=c.gate_deg, coarse_gate_deg=c.coarse_gate_deg,
-                                         settle_deg=2.0)
-                row["steps"][st] = run_sequence(s, c, images, st, args.seed, n_frames, rules, settled)
-            rows.append(row)
-        print(f"scene {i + 1}/{len(scenes)} {time.perf_counter() - t0:.0f}s", flush=True)
-    args.json.write_text(json.dumps({"rules": rules, "steps": steps, "rows": rows}))
-    summarise(rows, steps, list(rules))
-    return 0
-
-
-def summarise(rows, steps, rules) -> None:
-    for st in steps:
-        st_key = st if st in rows[0]["steps"] else str(st)
-        pf_all = []
-        for row in rows:
-            frames = sorted(int(f) for f in row["per_frame"])
-            grid = [f for f in frames if f % st == 0]
-            pf_all += [row["per_frame"][f if f in row["per_frame"] else str(f)] for f in grid]
-        print(f"step {st}: per_frame {np.mean(pf_all):.2f} ({len(pf_all)} frames)")
-        for k in rules:
-            e = [row["steps"][st_key][k] for row in rows]
-            flat = np.concatenate([np.asarray(x) for x in e])
-            div = np.mean([max(x) > DIVERGED_DEG for x in e])
-            print(f"  {k:10s} mean {flat.mean():5.2f}  median {np.median(flat):5.2f}  diverged {100 * div:4.1f}% "
-                  f"({len(e)})")
-
-
-
-
 # --------------------------------------------------------------------- a still scene, a moving camera: shared motion
 EGO = {
     "ego1.0": dict(frac=1.0, window=12),
@@ -324,16 +264,39 @@ def run_scene_ego(seqs, cascades: dict, settled: dict, images: dict, step: int, 
     return err
 
 
-def main_ego(argv=None) -> int:
-    ap = argparse.ArgumentParser()
+def summarise(rows, steps, names) -> None:
+    """Print, per step, per-frame refinement's mean (where measured) and each rule's mean, median and lost share."""
+    for st in steps:
+        line = f"step {st}"
+        if "per_frame" in rows[0]:
+            pf = [row["per_frame"][f] for row in rows for f in sorted(row["per_frame"]) if f % st == 0]
+            line += f": per_frame {np.mean(pf):.2f} ({len(pf)} frames)"
+        print(line)
+        for k in names:
+            e = [np.asarray(row["steps"][st][k]) for row in rows]
+            flat = np.concatenate(e)
+            lost = sum(int(x.max() > DIVERGED_DEG) for x in e)
+            print(f"  {k:14s} mean {flat.mean():5.2f}  median {np.median(flat):5.2f}  diverged "
+                  f"{100 * lost / len(e):4.1f}% ({lost}/{len(e)})")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--json", type=Path, required=True)
-    ap.add_argument("--scenes", default="")
+    ap.add_argument("--ego", action="store_true", help="the scene's motion (EGO variants), all objects of a scene at once")
+    ap.add_argument("--scenes", default="", help="first:last scene index slice, e.g. 0:15")
     ap.add_argument("--steps", default="1,2,4")
-    ap.add_argument("--variants", default=",".join(EGO))
+    ap.add_argument("--rules", default=",".join(RULES), help="per-object rules (without --ego)")
+    ap.add_argument("--variants", default=",".join(EGO), help="scene-motion variants (with --ego)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    variants = {k: EGO[k] for k in args.variants.split(",")}
+    names = args.variants.split(",") if args.ego else args.rules.split(",")
+    table = EGO if args.ego else RULES
+    unknown = [k for k in names if k not in table]
+    if unknown:
+        ap.error(f"unknown {'variants' if args.ego else 'rules'} {unknown}; choose from {sorted(table)}")
+    chosen = {k: table[k] for k in names}
     steps = [int(s) for s in args.steps.split(",")]
     from refiner_rt.pretrained import pretrained_models
 
@@ -352,26 +315,24 @@ def main_ego(argv=None) -> int:
     for i, scene in enumerate(scenes):
         scene_seqs = [s for s in seqs if s.scene == scene]
         images = scene_images(scene_seqs)
-        res = {st: run_scene_ego(scene_seqs, cascades, settled, images, st, args.seed, n_frames, variants)
-               for st in steps}
-        for s in scene_seqs:
-            rows.append({"scene": scene, "object": s.object_id,
-                         "steps": {st: {k: res[st][k][s.object_id] for k in variants} for st in steps}})
+        if args.ego:
+            res = {st: run_scene_ego(scene_seqs, cascades, settled, images, st, args.seed, n_frames, chosen)
+                   for st in steps}
+            rows += [{"scene": scene, "object": s.object_id,
+                      "steps": {st: {k: res[st][k][s.object_id] for k in chosen} for st in steps}}
+                     for s in scene_seqs]
+        else:
+            for s in scene_seqs:
+                o = s.object_id
+                rows.append({"scene": scene, "object": o,
+                             "per_frame": per_frame(s, cascades[o].coarse, images, args.seed, n_frames),
+                             "steps": {st: run_sequence(s, cascades[o], images, st, args.seed, n_frames, chosen,
+                                                        settled[o]) for st in steps}})
         print(f"scene {i + 1}/{len(scenes)} {time.perf_counter() - t0:.0f}s", flush=True)
-    args.json.write_text(json.dumps({"variants": variants, "steps": steps, "rows": rows}))
-    for st in steps:
-        print(f"step {st}")
-        for k in variants:
-            e = [row["steps"][st][k] for row in rows]
-            flat = np.concatenate([np.asarray(x) for x in e])
-            div = np.mean([max(x) > DIVERGED_DEG for x in e])
-            print(f"  {k:14s} mean {flat.mean():5.2f}  median {np.median(flat):5.2f}  diverged {100 * div:4.1f}% "
-                  f"({int(round(div * len(e)))}/{len(e)})")
+    args.json.write_text(json.dumps({"variants" if args.ego else "rules": chosen, "steps": steps, "rows": rows}))
+    summarise(rows, steps, list(chosen))
     return 0
 
 
 if __name__ == "__main__":
-    if "--ego" in sys.argv:
-        sys.argv.remove("--ego")
-        sys.exit(main_ego())
     sys.exit(main())
