@@ -90,18 +90,22 @@ def train_object(obj: str, data: Path, run: Path, cache: Path, samples: int, ext
 
 
 def runtime_errors(obj: str, coarse: Path, fine: Path, data: Path, seed: int = 2024, symmetric: bool = False,
-                   draws: int = 1, gate: tuple | None = None) -> dict:
+                   draws: int = 1, gate: tuple | None = None, coarse_views: int | None = None,
+                   fine_views: int | None = None) -> dict:
     """Per instance of ``obj`` in ``data`` (every one: ``visib_fract >= 0.3``, the box of the loader), through the
-    runtime on the full frames: the coarse refiner alone, the fine refiner alone (the cascade's views), the coarse
-    refiner then the fine one, and :class:`refiner_rt.RefinerCascade` with gates ``gate`` (``(gate_deg,
+    runtime on the full frames: the coarse refiner alone (``coarse``: one pass, as ``RefinerSession.refine`` runs it
+    by default; ``coarse_cascade``: the cascade's views), the fine refiner alone (the cascade's views), the cascade's
+    coarse pass then the fine refiner, and :class:`refiner_rt.RefinerCascade` with gates ``gate`` (``(gate_deg,
     coarse_gate_deg)``; default: the object's shipped gates), from U(0, 30) inputs and from the true pose
     (the drift). The cascade's two paths are each run for every instance, so :func:`with_gate` gives the cascade of
     any other gates from the same arrays; ``cascade`` here is the one of ``gate`` (exactly what
     ``RefinerCascade.refine`` returns: the same calls). ``draws``: U(0, 30) inputs per instance (seeds ``seed``,
     ``seed + 1``...; the arrays hold them one draw after the other). ``symmetric``: errors to the closest symmetric
     pose of ``models.data.objects``' symmetries (the can's turns), as ``refiner-rt eval --all`` scores real frames.
-    Returns the error arrays (degrees) by key, and ``fine_move`` and ``coarse_move`` (``@0``): each refiner's
-    correction, degrees."""
+    ``coarse_views`` / ``fine_views``: box-jittered views each refiner averages (default ``RefinerCascade``'s,
+    ``DEFAULT_COARSE_VIEWS`` and ``DEFAULT_FINE_VIEWS``). Returns the error arrays (degrees) by key, and
+    ``fine_move`` and ``coarse_move`` (``@0``): the corrections of the fine refiner and of the cascade's coarse pass,
+    degrees."""
     import cv2
 
     from models.noise import NoiseSpec, perturb
@@ -110,19 +114,20 @@ def runtime_errors(obj: str, coarse: Path, fine: Path, data: Path, seed: int = 2
     from benchmarks.pretrained import SYMMETRIES
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
-    from refiner_rt.cascade import DEFAULT_FINE_VIEWS, shipped_gate
+    from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS, shipped_gate
 
     samples = list(load_splits(whole_folder_spec(data, obj, "test")).test)
     q_gt = np.array([rq.from_matrix(s.R) for s in samples])
     q_ins = [perturb(q_gt, NoiseSpec.parse("uniform:0:30"), np.random.default_rng(seed + k))[0] for k in range(draws)]
     c_sess, f_sess = RefinerSession(coarse, threads=1), RefinerSession(fine, threads=1)
-    views = DEFAULT_FINE_VIEWS
+    views = DEFAULT_FINE_VIEWS if fine_views is None else fine_views
+    coarse_views = DEFAULT_COARSE_VIEWS if coarse_views is None else coarse_views
     by_image = defaultdict(list)
     for i, s in enumerate(samples):
         by_image[s.image_path].append(i)
     n = len(samples)
     out = {k + suffix: np.zeros((n * (draws if not suffix else 1), 4))
-           for k in ("coarse", "fine", "coarse_fine") for suffix in ("", "@0")}
+           for k in ("coarse", "coarse_cascade", "fine", "coarse_fine") for suffix in ("", "@0")}
     for path, idx in by_image.items():
         image = cv2.imread(path, cv2.IMREAD_COLOR)
         if image is None:
@@ -131,8 +136,10 @@ def runtime_errors(obj: str, coarse: Path, fine: Path, data: Path, seed: int = 2
         K = samples[idx[0]].K
         starts = [("", [i + k * n for i in idx], q_in[idx]) for k, q_in in enumerate(q_ins)] + [("@0", idx, q_gt[idx])]
         for suffix, rows, start in starts:
-            mid = c_sess.refine(image, boxes, start, K=K).q_refined
-            out["coarse" + suffix][rows] = mid
+            mid = c_sess.refine(image, boxes, start, K=K, views=coarse_views).q_refined
+            out["coarse_cascade" + suffix][rows] = mid
+            out["coarse" + suffix][rows] = mid if coarse_views == 1 else c_sess.refine(image, boxes, start,
+                                                                                       K=K).q_refined
             out["fine" + suffix][rows] = f_sess.refine(image, boxes, start, K=K, views=views).q_refined
             out["coarse_fine" + suffix][rows] = f_sess.refine(image, boxes, mid, K=K, views=views).q_refined
     truth = {"": np.tile(q_gt, (draws, 1)), "@0": q_gt}
@@ -144,8 +151,8 @@ def runtime_errors(obj: str, coarse: Path, fine: Path, data: Path, seed: int = 2
         return symmetric_error(q, t, ids, SYMMETRIES) if symmetric and obj in SYMMETRIES else rq.geodesic_angle(q, t)
 
     e = {"input": err(starts[""], ""), **{k: err(v, k) for k, v in out.items()},
-         **{f"{k}_move{suffix}": rq.geodesic_angle(starts[suffix], out[k + suffix])
-            for k in ("fine", "coarse") for suffix in ("", "@0")}}
+         **{f"{k}_move{suffix}": rq.geodesic_angle(starts[suffix], out[k2 + suffix])
+            for k, k2 in (("fine", "fine"), ("coarse", "coarse_cascade")) for suffix in ("", "@0")}}
     return with_gate(e, shipped_gate(obj) if gate is None else gate)
 
 
@@ -185,7 +192,7 @@ def summarise(e: dict) -> dict:
     small = e["input"] < 3.0
     bins = np.minimum((e["input"]).astype(int), FLOOR_BINS - 1)
     out = {"n": int(len(e["input"])), "input_mean_deg": float(e["input"].mean()), "input_0_3_n": int(small.sum())}
-    for k in ("coarse", "fine", "cascade"):
+    for k in ("coarse", "coarse_cascade", "fine", "cascade"):
         out[k] = {"mean_deg": float(e[k].mean()), "median_deg": float(np.median(e[k])),
                   "drift_mean_deg": float(e[k + "@0"].mean()), "drift_median_deg": float(np.median(e[k + "@0"])),
                   "input_0_3_mean_deg": float(e[k][small].mean()) if small.any() else None,
@@ -202,7 +209,10 @@ def measure_cascade(obj: str, coarse: Path, fine: Path, heldout: Path, calibrati
     """The object's gate, chosen on ``calibration`` (:func:`choose_gate`: rendered scenes the card does not score),
     and the cascade with it on ``heldout`` (:func:`summarise`): ``(gate record, summary)``."""
     gate, scores = choose_gate(runtime_errors(obj, coarse, fine, calibration, seed=7))
+    from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS
+
     record = {"deg": gate[0], "coarse_deg": gate[1], "chosen_on": calibration.resolve().name, "seed": 7,
+              "coarse_views": DEFAULT_COARSE_VIEWS, "fine_views": DEFAULT_FINE_VIEWS,
               "scores": {f"{g[0]:g}/{g[1]:g}": {"mean_deg": round(v[0], 3), "drift_mean_deg": round(v[1], 3)}
                          for g, v in scores.items()},
               "rule": "the smallest mean of the cascade's U(0, 30) mean and its drift"}

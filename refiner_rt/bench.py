@@ -513,8 +513,8 @@ class BenchModel:
     torch_model: object = None
     config: dict = field(default_factory=dict)
     weights: str = "random"
-    # a RefinerCascade row: the fine refiner's file and the path timed, "fine" (the gate holds: 1 + fine_views
-    # passes) or "coarse" (coarse then fine: 1 + 2 * fine_views passes)
+    # a RefinerCascade row: the fine refiner's file and the path timed, "fine" (the gate holds: coarse_views +
+    # fine_views passes) or "coarse" (coarse then fine: coarse_views + 2 * fine_views passes)
     fine_path: Path | None = None
     cascade_path: str | None = None
 
@@ -616,8 +616,9 @@ def run_bench(
 
 def _cascade(coarse, m: BenchModel, threads: int):
     """The :class:`refiner_rt.RefinerCascade` a cascade row times: with the widest gates (30 degrees) the fine
-    refiner's first result stands, the path of inputs already close (1 + fine_views passes); with a gate no correction
-    fits under, every input takes the long way (the fine refiner again from the coarse result: 1 + 2 * fine_views)."""
+    refiner's first result stands, the path of inputs already close (coarse_views + fine_views passes); with a gate
+    no correction fits under, every input takes the long way (the fine refiner again from the coarse result:
+    coarse_views + 2 * fine_views), both with the cascade's default view counts."""
     from refiner_rt.cascade import RefinerCascade
     from refiner_rt.session import RefinerSession
 
@@ -932,9 +933,9 @@ def _shipped_models(selection) -> tuple[list, str]:
                 path = m.path(int8=int8)  # labelled by file stem: 003_cracker_box.int8 and 003_cracker_box
                 out.append(BenchModel(path.stem, path, config=dict(m.config), weights="trained"))
         if "fine" in m.stages and m.fine["files"].get("int8"):  # the cascade of the INT8 files, both of its paths
-            from refiner_rt.cascade import DEFAULT_FINE_VIEWS as v
+            from refiner_rt.cascade import DEFAULT_COARSE_VIEWS as c, DEFAULT_FINE_VIEWS as v
 
-            for way, passes in (("fine", f"{1 + v} passes"), ("coarse", f"{1 + 2 * v} passes")):
+            for way, passes in (("fine", f"{c + v} passes"), ("coarse", f"{c + 2 * v} passes")):
                 out.append(BenchModel(f"{m.object_id}.cascade.{way} ({passes})", m.path(int8=True), config=dict(m.config),
                                       weights="trained", fine_path=m.path(int8=True, stage="fine"), cascade_path=way))
     if not chosen:

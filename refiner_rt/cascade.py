@@ -6,8 +6,8 @@ stage="fine")``, ``benchmarks/fine.py``) is the same network trained further on 
 sharper there and blind far away (from an input 25 degrees off it may move by a degree or two). The cascade uses
 each where it is good:
 
-1. both refiners look at every input: the coarse one (one pass) and the fine one (``fine_views`` averaged
-   box-jittered views, ``RefinerSession.refine(views=...)``);
+1. both refiners look at every input, each averaging box-jittered views (``RefinerSession.refine(views=...)``):
+   the coarse one ``coarse_views``, the fine one ``fine_views``;
 2. where the fine correction is at most ``gate_deg`` and the coarse one at most ``coarse_gate_deg``, the input was
    already close: the fine result stands (a good input is not handed to the coarse refiner's floor; the coarse
    refiner's verdict catches the far inputs the fine one cannot see);
@@ -17,8 +17,8 @@ each where it is good:
    beyond the range the coarse refiner trained on, is brought within the fine refiner's range; README, "Coarse poses
    far off").
 
-Each step is one batched call per refiner. Cost per object: ``1 + fine_views`` network passes when the gate holds,
-``1 + 2 * fine_views`` otherwise, and one more with ``settle_deg`` (``refiner-rt bench --cpu`` times both beside the
+Each step is one batched call per refiner. Cost per object: ``coarse_views + fine_views`` network passes when the
+gate holds, ``coarse_views + 2 * fine_views`` otherwise, and ``coarse_views`` more with ``settle_deg`` (``refiner-rt bench --cpu`` times both beside the
 single model). ``gate_deg=None`` always runs coarse then fine. The shipped objects' gates were chosen on rendered scenes (:func:`shipped_gate`).
 Safe across threads, as the sessions are (the cascade keeps no state).
 
@@ -38,20 +38,24 @@ from refiner_rt import quaternion as rq
 from refiner_rt.geometry import MAX_VIEWS
 from refiner_rt.session import RefineResult, RefinerSession, _validate_settle, settle_keeps
 
-__all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_FINE_VIEWS",
-           "shipped_gate", "long_way"]
+__all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_COARSE_VIEWS",
+           "DEFAULT_FINE_VIEWS", "shipped_gate", "long_way"]
 
-# The defaults (benchmarks/fine.py chooses each shipped object's gates on rendered scenes the card does not score):
-# a fine correction of at most 2 degrees, and a coarse one of at most 8, mean the input was within the fine
-# refiner's sharp range; four views took a sixth to a fifth off the fine refiner's error from the true pose.
+# The defaults (benchmarks/fine.py chooses each shipped object's gates on rendered scenes the card does not score,
+# with these view counts): a fine correction of at most 2 degrees, and a coarse one of at most 8, mean the input was
+# within the fine refiner's sharp range; four views took a sixth to a fifth off the fine refiner's error from the true
+# pose, and four for the coarse refiner took 0.29 degrees off its U(0, 30) mean on fresh renders and 0.74 on the real
+# dev frames (benchmarks/studies/cascade, "Views").
 DEFAULT_GATE_DEG = 2.0
 DEFAULT_COARSE_GATE_DEG = 8.0
+DEFAULT_COARSE_VIEWS = 4
 DEFAULT_FINE_VIEWS = 4
 
 
 def shipped_gate(object_id: str) -> tuple[float, float]:
     """``(gate_deg, coarse_gate_deg)`` shipped with an object's fine refiner (``models.json``; chosen per object on
-    rendered scenes the card does not score, ``benchmarks/fine.py gate``), else the defaults."""
+    rendered scenes the card does not score, ``benchmarks/fine.py gate``, for the default view counts), else the
+    defaults."""
     from refiner_rt.pretrained import pretrained_models
 
     m = next((m for m in pretrained_models() if m.object_id == object_id), None)
@@ -99,18 +103,19 @@ class RefinerCascade:
             at most ``coarse_gate_deg``); a number in ``(0, 30]``, or ``None``: always coarse then fine.
         coarse_gate_deg: the coarse correction above which an input counts as far whatever the fine refiner says;
             a number in ``(0, 30]``, or ``None``: no such check.
+        coarse_views: box-jittered views the coarse refiner averages (``1`` to ``MAX_VIEWS``).
         fine_views: box-jittered views the fine refiner averages (``1`` to ``MAX_VIEWS``).
         settle_deg: on the long way, a second coarse pass, kept where it turns the coarse result by more than this
             many degrees (:data:`refiner_rt.session.SETTLE_DEG` is the measured value): for coarse poses that may be
             more than 30 degrees off. A number in ``(0, 180)``, or None (default): one coarse pass.
 
     Raises:
-        TypeError / ValueError: not sessions, sessions whose crop contracts differ, or a bad gate or ``fine_views``.
+        TypeError / ValueError: not sessions, sessions whose crop contracts differ, or a bad gate or view count.
     """
 
     def __init__(self, coarse: RefinerSession, fine: RefinerSession, *, gate_deg: float | None = DEFAULT_GATE_DEG,
-                 coarse_gate_deg: float | None = DEFAULT_COARSE_GATE_DEG, fine_views: int = DEFAULT_FINE_VIEWS,
-                 settle_deg: float | None = None):
+                 coarse_gate_deg: float | None = DEFAULT_COARSE_GATE_DEG, coarse_views: int = DEFAULT_COARSE_VIEWS,
+                 fine_views: int = DEFAULT_FINE_VIEWS, settle_deg: float | None = None):
         for name, s in (("coarse", coarse), ("fine", fine)):
             if not isinstance(s, RefinerSession):
                 raise TypeError(f"{name} must be a RefinerSession; got {type(s).__name__}")
@@ -120,17 +125,19 @@ class RefinerCascade:
                              f"differ ({a.input_size}, {a.crop_context}, {a.rotation_frame!r} against "
                              f"{b.input_size}, {b.crop_context}, {b.rotation_frame!r})")
         gate_deg, coarse_gate_deg = _check_gate(gate_deg, "gate_deg"), _check_gate(coarse_gate_deg, "coarse_gate_deg")
-        if type(fine_views) is not int or not 1 <= fine_views <= MAX_VIEWS:
-            raise ValueError(f"fine_views must be an int in [1, {MAX_VIEWS}]; got {fine_views!r}")
+        for name, views in (("coarse_views", coarse_views), ("fine_views", fine_views)):
+            if type(views) is not int or not 1 <= views <= MAX_VIEWS:
+                raise ValueError(f"{name} must be an int in [1, {MAX_VIEWS}]; got {views!r}")
         self.coarse, self.fine = coarse, fine
-        self.gate_deg, self.coarse_gate_deg, self.fine_views = gate_deg, coarse_gate_deg, fine_views
+        self.gate_deg, self.coarse_gate_deg = gate_deg, coarse_gate_deg
+        self.coarse_views, self.fine_views = coarse_views, fine_views
         self.settle_deg = _validate_settle(settle_deg)  # its second coarse pass is the cascade's own
 
     @classmethod
     def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, **kwargs) -> "RefinerCascade":
         """The cascade of the refiners shipped for ``object_id`` (``refiner-rt models`` lists the objects with a
         fine refiner), with the gates chosen for that object (:func:`shipped_gate`). ``kwargs``: ``gate_deg``,
-        ``coarse_gate_deg``, ``fine_views`` and ``settle_deg``.
+        ``coarse_gate_deg``, ``coarse_views``, ``fine_views`` and ``settle_deg``.
 
         Raises:
             ValueError: no model, or no fine refiner, ships for ``object_id``.
@@ -158,7 +165,8 @@ class RefinerCascade:
         Returns:
             :class:`CascadeResult`.
         """
-        mid = self.coarse.refine(image_bgr, boxes_xyxy, q_in_wxyz, K=K, q_order=q_order, D=D)
+        mid = self.coarse.refine(image_bgr, boxes_xyxy, q_in_wxyz, K=K, q_order=q_order, D=D,
+                                 views=self.coarse_views)
         n = len(mid)
         forced = np.zeros(n, dtype=bool)
         if coarse is not None:
@@ -183,7 +191,7 @@ class RefinerCascade:
         if far.any():
             start = mid.q_refined[far]
             if self.settle_deg is not None:  # RefinerSession.refine(iterations=2, settle_deg=...) from mid's pass
-                again = self.coarse.refine(image_bgr, boxes[far], start, K=K, D=D).q_refined
+                again = self.coarse.refine(image_bgr, boxes[far], start, K=K, D=D, views=self.coarse_views).q_refined
                 moved = settle_keeps(start, again, self.settle_deg)
                 start[moved] = again[moved]
             q[far] = self.fine.refine(image_bgr, boxes[far], start, K=K, views=self.fine_views, D=D).q_refined
@@ -192,5 +200,6 @@ class RefinerCascade:
 
     def __repr__(self) -> str:
         return (f"RefinerCascade(coarse={self.coarse.model_path}, fine={self.fine.model_path}, "
-                f"gate_deg={self.gate_deg}, coarse_gate_deg={self.coarse_gate_deg}, fine_views={self.fine_views}, "
+                f"gate_deg={self.gate_deg}, coarse_gate_deg={self.coarse_gate_deg}, coarse_views={self.coarse_views}, "
+                f"fine_views={self.fine_views}, "
                 f"settle_deg={self.settle_deg})")

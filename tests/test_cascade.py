@@ -74,6 +74,25 @@ def test_settle_deg_runs_a_second_coarse_pass_on_the_long_way_kept_where_it_turn
         RefinerCascade(_session(FAR), _session(SMALL), settle_deg=0)
 
 
+def test_each_refiner_averages_its_own_views():
+    """The cascade's coarse pass is RefinerSession.refine(views=coarse_views) and its fine passes
+    refine(views=fine_views), composed as the path rule says (a crop-dependent model on a textured image, so views
+    differ)."""
+    image = np.random.default_rng(3).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    coarse = RefinerSession(fx.random_weight_model(seed=1, props=fx.contract()))
+    fine = RefinerSession(fx.random_weight_model(seed=2, props=fx.contract()))
+    q = np.array([_wxyz(r) for r in Q_IN])
+    for c_views, f_views in ((1, 4), (4, 4), (3, 2)):
+        res = RefinerCascade(coarse, fine, gate_deg=None, coarse_views=c_views, fine_views=f_views).refine(
+            image, BOXES, q)
+        mid = coarse.refine(image, BOXES, q, views=c_views).q_refined
+        want = fine.refine(image, BOXES, mid, views=f_views).q_refined
+        assert rq.geodesic_angle(res.q_refined, want).max() < 1e-6
+    one = RefinerCascade(coarse, fine, gate_deg=None, coarse_views=1).refine(image, BOXES, q).q_refined
+    four = RefinerCascade(coarse, fine, gate_deg=None, coarse_views=4).refine(image, BOXES, q).q_refined
+    assert rq.geodesic_angle(one, four).max() > 1e-3  # the views reached the coarse refiner
+
+
 def test_forced_rows_and_no_gate():
     q = np.array([_wxyz(r) for r in Q_IN])
     gated = RefinerCascade(_session(COARSE), _session(SMALL))
@@ -98,6 +117,10 @@ def test_bad_construction_and_arguments_are_named():
         RefinerCascade(coarse, fine, coarse_gate_deg=float("nan"))
     with pytest.raises(ValueError, match="fine_views must be"):
         RefinerCascade(coarse, fine, fine_views=0)
+    with pytest.raises(ValueError, match=r"coarse_views must be an int in \[1, 16\]; got 2.0"):
+        RefinerCascade(coarse, fine, coarse_views=2.0)
+    with pytest.raises(ValueError, match="coarse_views must be"):
+        RefinerCascade(coarse, fine, coarse_views=17)
     with pytest.raises(ValueError, match=r"coarse must be None or \(2,\) bools"):
         RefinerCascade(coarse, fine).refine(IMAGE, BOXES, np.array([_wxyz(r) for r in Q_IN]), coarse=[1, 0])
 
