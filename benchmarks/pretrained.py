@@ -739,8 +739,8 @@ def fine_markdown(fine: dict) -> str:
              "scale). Its INT8 file is scored on `" + f0["fine_noise"] + "` inputs. Measured through the runtime on the "
              "full frames of every instance in "
              f"`{f0['data']}` (fresh renders no model trained on; one U(0, 30) input per instance, and the true pose "
-             "for the drift), INT8, the cascade as `RefinerCascade.pretrained` runs it (the fine refiner first, four "
-             "views, and the coarse refiner; the fine result where both corrections are within the object's gates, "
+             "for the drift), INT8, the cascade as `RefinerCascade.pretrained` runs it (the fine refiner and the coarse "
+             "refiner, four box-jittered views each; the fine result where both corrections are within the object's gates, "
              "else the fine refiner from the coarse one's result; the gates chosen on other rendered scenes, `"
              + (f0.get("gate_on") or "?") + "`, for the smallest mean of the U(0, 30) mean and the drift):", "",
              *fine_table(fine)]
