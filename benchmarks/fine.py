@@ -192,7 +192,7 @@ def summarise(e: dict) -> dict:
     small = e["input"] < 3.0
     bins = np.minimum((e["input"]).astype(int), FLOOR_BINS - 1)
     out = {"n": int(len(e["input"])), "input_mean_deg": float(e["input"].mean()), "input_0_3_n": int(small.sum())}
-    for k in ("coarse", "coarse_cascade", "fine", "cascade"):
+    for k in [k for k in ("coarse", "coarse_cascade", "fine", "cascade") if k in e]:  # coarse_cascade: views > 1
         out[k] = {"mean_deg": float(e[k].mean()), "median_deg": float(np.median(e[k])),
                   "drift_mean_deg": float(e[k + "@0"].mean()), "drift_median_deg": float(np.median(e[k + "@0"])),
                   "input_0_3_mean_deg": float(e[k][small].mean()) if small.any() else None,

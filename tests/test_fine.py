@@ -34,6 +34,30 @@ def test_summarise_gives_means_drift_small_inputs_and_the_floor_curve():
     json.dumps(s)  # what the JSON stores
 
 
+def test_summarise_reports_the_cascades_coarse_pass_beside_the_one_pass_coarse_refiner():
+    e = {**_errors(), "coarse_cascade": np.full(300, 2.0), "coarse_cascade@0": np.full(100, 1.5)}
+    s = fine.summarise(e)
+    assert s["coarse"]["mean_deg"] == 3.0 and s["coarse_cascade"]["mean_deg"] == 2.0
+    assert s["coarse_cascade"]["drift_mean_deg"] == 1.5
+    assert "coarse_cascade" not in fine.summarise(_errors())
+
+
+def test_the_views_probe_reads_view_pairs_and_names_a_bad_one():
+    probe = load_benchmark("studies/cascade/views_probe")
+    assert probe.parse_views("1x4, 4x8", _raise) == [(1, 4), (4, 8)]
+    for bad in ("4x", "0x4", "4x17", "4*4", "ax4"):
+        try:
+            probe.parse_views(f"1x4,{bad}", _raise)
+        except ValueError as exc:
+            assert repr(bad) in str(exc) and "COARSExFINE" in str(exc)
+        else:
+            raise AssertionError(f"{bad!r} was accepted")
+
+
+def _raise(message):
+    raise ValueError(message)
+
+
 def test_the_study_table_has_a_row_per_object_and_the_mean():
     cascade = load_benchmark("studies/cascade/cascade")
     s = fine.summarise(_errors())
