@@ -66,6 +66,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from refiner_rt import quaternion as rq  # noqa: E402
+from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS  # noqa: E402
 from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.session import RefinerSession  # noqa: E402
 from refiner_rt.tracker import (  # noqa: E402
@@ -79,6 +80,8 @@ METHODS = ("hold", "per_frame", "track", "track_predict", "track_redetect", "tra
            "track_scene", "per_frame_cascade", "track_cascade", "track_cascade_scene")
 TRACKERS = ("track", "track_predict", "track_redetect", "track_lost", "track_fuse", "track_scene", "track_cascade",
             "track_cascade_scene")
+# the views the cascades run with (RefinerCascade's defaults), recorded with the results
+CASCADE_VIEWS = (DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS)
 CASCADE_METHODS = ("per_frame_cascade", "track_cascade", "track_cascade_scene")  # need every object's fine refiner
 LABELS = {"hold": "(a) hold the initial coarse pose", "per_frame": "(b) refine each frame from U(0, 30)",
           "track": "(c) track from an initial U(0, 30)", "track_predict": "(c) + constant-velocity prediction",
@@ -530,8 +533,10 @@ def main(argv: list[str] | None = None) -> int:
                      f"deg of azimuth per scene) of {len(objects)} object(s); frames with visib_fract >= "
                      f"{args.min_visib} scored, sequences with >= {args.min_frames} such frames; coarse poses U(0, 30) deg "
                      f"around the truth, seed {args.seed}; one network pass per object and update (track_lost: two, and one more "
-                     f"per detector pose; track_fuse: one more per detector pose; the cascade: one coarse pass and four "
-                     f"fine views, four more where it goes through the coarse refiner), threads=1"),
+                     f"per detector pose; track_fuse: one more per detector pose; the cascade: {CASCADE_VIEWS[0]} "
+                     f"coarse views and {CASCADE_VIEWS[1]} fine views, {CASCADE_VIEWS[1]} more where it goes through "
+                     f"the coarse refiner, as the trackers always do), threads=1"),
+        "cascade_views": {"coarse": CASCADE_VIEWS[0], "fine": CASCADE_VIEWS[1]},
         "data": str(args.data), "render_seed": render_record.get("seed"), "scenes": len(scenes),
         "sequences_per_object": {o: len(v) for o, v in sorted(per_object["hold"][steps[0]].items())},
         "left_out_too_short": notes["too_short"], "objects": objects, "models": model_record, "steps": steps,

@@ -36,7 +36,7 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import MAX_VIEWS
-from refiner_rt.session import RefineResult, RefinerSession, _validate_settle, settle_keeps
+from refiner_rt.session import MAX_BATCH, RefineResult, RefinerSession, _validate_settle, settle_keeps
 
 __all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_COARSE_VIEWS",
            "DEFAULT_FINE_VIEWS", "shipped_gate", "long_way"]
@@ -157,6 +157,8 @@ class RefinerCascade:
     def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, K=None, *, q_order: str = "wxyz", D=None,
                coarse=None) -> CascadeResult:
         """Refine ``N`` objects of one image, as :meth:`RefinerSession.refine` (same arguments, same checks).
+        Each refiner's call crops ``N`` times its views: ``N`` is at most ``MAX_BATCH // max(coarse_views,
+        fine_views)`` (256 with the defaults).
 
         Args:
             coarse: ``(N,)`` bools, or None: rows to send through the coarse refiner whatever the gate says (a
@@ -165,6 +167,13 @@ class RefinerCascade:
         Returns:
             :class:`CascadeResult`.
         """
+        views = max(self.coarse_views, self.fine_views)
+        shape = np.shape(boxes_xyxy)
+        if len(shape) == 2 and shape[1] == 4 and shape[0] * views > MAX_BATCH:  # other shapes: the session's checks
+            raise ValueError(f"boxes_xyxy has {shape[0]} entries: a cascade with coarse_views={self.coarse_views} and "
+                             f"fine_views={self.fine_views} takes at most MAX_BATCH // {views} = "
+                             f"{MAX_BATCH // views} boxes per call (MAX_BATCH={MAX_BATCH} crops); split them over "
+                             "several calls")
         mid = self.coarse.refine(image_bgr, boxes_xyxy, q_in_wxyz, K=K, q_order=q_order, D=D,
                                  views=self.coarse_views)
         n = len(mid)

@@ -224,7 +224,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="With --bag: track (a detection's pose starts an object, later frames refine from the previous "
                    "result) or refine (every detection with a pose refined from it).")
 @click.option("--cascade", is_flag=True, help="Each object's coarse and fine refiners in turn (RefinerCascade) where "
-              "a fine refiner ships: eight to twelve network passes per object and frame instead of one.")
+              "a fine refiner ships: eight network passes per object and frame instead of one (with --bag --mode refine, "
+              "twelve where an input goes the long way; more with --settle-deg or --lost-deg).")
 @click.option("--rectified", is_flag=True, help="With --bag: the image topic is rectified: K from CameraInfo.p, "
               "no distortion.")
 @click.option("--image-topic", help="With --bag: the image topic (default: the bag's one Image or CompressedImage "

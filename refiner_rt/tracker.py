@@ -48,7 +48,9 @@ refined from it in the same update, and :attr:`RefinerTracker.redetections` coun
 
 A :class:`refiner_rt.RefinerCascade` in place of a session runs its coarse refiner, then its fine one, on every
 update (its gate is for single refinements: from frame to frame the fine refiner alone let small errors add up on
-rendered video), and its coarse refiner is the loss check's second opinion.
+rendered video), and its coarse refiner is the loss check's second opinion. It averages its own views
+(``coarse_views`` and ``fine_views``; the tracker's ``iterations`` and ``views`` are for sessions): with the defaults
+eight network passes per object and update, and eight more for the loss check or a fused detection.
 
 Fusing a detector (``detector_weight``): when a detector gives poses in many frames (every frame, or every few), a
 track need not choose between them and its own estimate. Each update then refines both, the tracked rotation and the
@@ -142,8 +144,10 @@ class RefinerTracker:
             prediction. None (default): 0.3 with ``predict="scene"``, else 0 (the refined rotation as is).
         max_correction_deg: with ``predict="scene"``, once the scene's turn is measured: the most degrees a new
             rotation may differ from its prediction, in ``(0, 180]`` (180: no limit). None (default): 2.
-        iterations: refinement passes per update (``>= 1``), as :meth:`RefinerSession.refine`.
-        views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`.
+        iterations: refinement passes per update (``>= 1``), as :meth:`RefinerSession.refine` (sessions only: a
+            :class:`RefinerCascade` runs its own passes).
+        views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`
+            (sessions only: a :class:`RefinerCascade` averages its own ``coarse_views`` and ``fine_views``).
         lost_deg: the loss-of-track check (module docstring): flag an object lost when a second refinement of its
             refined rotation moves it by more than this many degrees; a finite number in ``(0, 180]``, or ``None``
             (default) for no check (one network pass per object and update; the check costs a second).

@@ -88,6 +88,17 @@ def test_each_refiner_averages_its_own_views():
         mid = coarse.refine(image, BOXES, q, views=c_views).q_refined
         want = fine.refine(image, BOXES, mid, views=f_views).q_refined
         assert rq.geodesic_angle(res.q_refined, want).max() < 1e-6
+    from refiner_rt.session import settle_keeps  # the second coarse pass of settle_deg averages the views too
+
+    mid = coarse.refine(image, BOXES, q, views=4).q_refined
+    again = coarse.refine(image, BOXES, mid, views=4).q_refined
+    moved = rq.geodesic_angle(mid, again)
+    settle = float(moved.mean())  # between the two rows' turns: one second pass kept, one not
+    kept = settle_keeps(mid, again, settle)
+    assert kept.sum() == 1, moved
+    res = RefinerCascade(coarse, fine, gate_deg=None, coarse_views=4, settle_deg=settle).refine(image, BOXES, q)
+    start = np.where(kept[:, None], again, mid)
+    assert rq.geodesic_angle(res.q_refined, fine.refine(image, BOXES, start, views=4).q_refined).max() < 1e-6
     one = RefinerCascade(coarse, fine, gate_deg=None, coarse_views=1).refine(image, BOXES, q).q_refined
     four = RefinerCascade(coarse, fine, gate_deg=None, coarse_views=4).refine(image, BOXES, q).q_refined
     assert rq.geodesic_angle(one, four).max() > 1e-3  # the views reached the coarse refiner
@@ -121,6 +132,10 @@ def test_bad_construction_and_arguments_are_named():
         RefinerCascade(coarse, fine, coarse_views=2.0)
     with pytest.raises(ValueError, match="coarse_views must be"):
         RefinerCascade(coarse, fine, coarse_views=17)
+    many = np.tile(BOXES[:1], (257, 1))
+    with pytest.raises(ValueError, match=r"257 entries: a cascade with coarse_views=4 and fine_views=4 takes at most "
+                                         r"MAX_BATCH // 4 = 256 boxes"):
+        RefinerCascade(coarse, fine, coarse_views=4).refine(IMAGE, many, np.tile([1.0, 0, 0, 0], (257, 1)))
     with pytest.raises(ValueError, match=r"coarse must be None or \(2,\) bools"):
         RefinerCascade(coarse, fine).refine(IMAGE, BOXES, np.array([_wxyz(r) for r in Q_IN]), coarse=[1, 0])
 

@@ -32,7 +32,10 @@ WEIGHTS = (1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 
 def arrays(obj: str, fine: Path, data: Path, cache: Path, tag: str, **kw) -> dict:
     """``runtime_errors`` of ``obj`` on ``data``, from ``cache`` when it holds them."""
-    path = cache / f"{obj}.{tag}.npz"
+    from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS
+
+    # the view counts in the name: arrays of other views (the cascade's defaults before) are not taken for these
+    path = cache / f"{obj}.{tag}.c{DEFAULT_COARSE_VIEWS}f{DEFAULT_FINE_VIEWS}.npz"
     if path.is_file():
         with np.load(path) as z:
             return {k: z[k] for k in z.files}
