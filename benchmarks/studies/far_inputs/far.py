@@ -8,9 +8,9 @@ first pass already brought close keep its result (a second pass there only adds 
 
 For every object with a shipped fine refiner, every instance of it in a folder (``visib_fract >= 0.3``) is refined
 through the runtime (INT8, full frames, ``K``) from three inputs: U(0, 30) degrees off (the paper's protocol),
-U(30, 60) off, and the true pose (the drift). Each refiner is run once per path (coarse pass 1 and 2, fine from the
-input and from each coarse pass), so every ``settle_deg`` of :data:`SETTLES` is scored from the same arrays, as
-``refine`` and ``RefinerCascade.refine`` choose; the value of ``--check`` is run through those two calls as well and
+U(30, 60) off, and the true pose (the drift). Each refiner is run once per path (coarse pass 1 and 2, one view and
+the cascade's coarse views; fine from the input and from each of the cascade's coarse passes), so every
+``settle_deg`` of :data:`SETTLES` is scored from the same arrays, as ``refine`` and ``RefinerCascade.refine`` choose; the value of ``--check`` is run through those two calls as well and
 must give the same rotations. ``--choose`` prints the value with the smallest mean of the three errors (coarse
 refiner and cascade each). Real frames (``--real``) are scored as ``refiner-rt eval --all`` scores them (the can up to
 turns about its axis) and only measure.
@@ -48,8 +48,9 @@ SEED = 7
 
 def refine_paths(obj: str, folder: Path) -> dict:
     """Every instance of ``obj`` in ``folder``, through the runtime: ``{input: {path: (N, 4) wxyz}}`` for the paths
-    ``c1`` (coarse, one pass), ``c2`` (coarse again from ``c1``), ``f0`` (fine from the input, the cascade's views),
-    ``f1`` and ``f2`` (fine from ``c1`` and ``c2``), with ``x`` the input and ``gt`` the truth."""
+    ``c1`` (coarse, one pass), ``c2`` (coarse again from ``c1``), ``k1`` and ``k2`` (the same with the cascade's
+    coarse views), ``f0`` (fine from the input, the cascade's views), ``f1`` and ``f2`` (fine from ``k1`` and ``k2``),
+    with ``x`` the input and ``gt`` the truth."""
     import cv2
 
     from benchmarks.pretrained import whole_folder_spec
@@ -57,7 +58,7 @@ def refine_paths(obj: str, folder: Path) -> dict:
     from models.pipeline import load_splits
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
-    from refiner_rt.cascade import DEFAULT_FINE_VIEWS
+    from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS
 
     samples = list(load_splits(whole_folder_spec(folder, obj, "test")).test)
     gt = np.array([rq.from_matrix(s.R) for s in samples])
@@ -65,7 +66,7 @@ def refine_paths(obj: str, folder: Path) -> dict:
     starts = {k: gt if spec is None else perturb(gt, NoiseSpec.parse(spec), rng)[0] for k, spec in INPUTS.items()}
     coarse = RefinerSession.pretrained(obj, int8=True, threads=1)
     fine = RefinerSession.pretrained(obj, int8=True, threads=1, stage="fine")
-    out = {k: {"x": x, "gt": gt, **{p: np.zeros_like(gt) for p in ("c1", "c2", "f0", "f1", "f2")}}
+    out = {k: {"x": x, "gt": gt, **{p: np.zeros_like(gt) for p in ("c1", "c2", "k1", "k2", "f0", "f1", "f2")}}
            for k, x in starts.items()}
     by_image = defaultdict(list)
     for i, s in enumerate(samples):
@@ -80,9 +81,15 @@ def refine_paths(obj: str, folder: Path) -> dict:
                 return session.refine(image, boxes, q, K=K, views=views).q_refined
             r["c1"][idx] = c1 = run(coarse, r["x"][idx])
             r["c2"][idx] = c2 = run(coarse, c1)
+            if DEFAULT_COARSE_VIEWS == 1:
+                k1, k2 = c1, c2
+            else:
+                k1 = run(coarse, r["x"][idx], DEFAULT_COARSE_VIEWS)
+                k2 = run(coarse, k1, DEFAULT_COARSE_VIEWS)
+            r["k1"][idx], r["k2"][idx] = k1, k2
             r["f0"][idx] = run(fine, r["x"][idx], DEFAULT_FINE_VIEWS)
-            r["f1"][idx] = run(fine, c1, DEFAULT_FINE_VIEWS)
-            r["f2"][idx] = run(fine, c2, DEFAULT_FINE_VIEWS)
+            r["f1"][idx] = run(fine, k1, DEFAULT_FINE_VIEWS)
+            r["f2"][idx] = run(fine, k2, DEFAULT_FINE_VIEWS)
     return out
 
 
@@ -95,10 +102,11 @@ def settled(r: dict, settle: float | None, cascade: bool, gate: tuple) -> np.nda
     from refiner_rt.session import settle_keeps
 
     ang = rq.geodesic_angle
-    again = np.zeros(len(r["x"]), dtype=bool) if settle is None else settle_keeps(r["c1"], r["c2"], settle)
+    first, second = (r["k1"], r["k2"]) if cascade else (r["c1"], r["c2"])
+    again = np.zeros(len(r["x"]), dtype=bool) if settle is None else settle_keeps(first, second, settle)
     if not cascade:
-        return np.where(again[:, None], r["c2"], r["c1"])
-    far = long_way(ang(r["x"], r["f0"]), ang(r["x"], r["c1"]), *gate)
+        return np.where(again[:, None], second, first)
+    far = long_way(ang(r["x"], r["f0"]), ang(r["x"], first), *gate)
     return np.where(far[:, None], np.where(again[:, None], r["f2"], r["f1"]), r["f0"])
 
 
