@@ -145,8 +145,8 @@ def speed_reference() -> str:
               "`refine()` path with `K` (crop from a 640x480 frame, network, composition), medians of interleaved "
               f"rounds, onnxruntime {m['onnxruntime']}. JSON `benchmarks/results/{REFERENCE_BENCH}`, written by "
               f"`{REFERENCE_COMMAND}`. The paper's networks have random weights (speed does not depend on them); "
-              "a cascade row is the path named: the coarse refiner's and the fine refiner's four views each (the gates "
-              "hold), or the fine refiner's views again from the coarse result."]
+              "a cascade row is the path named, its network passes in brackets: the coarse refiner's and the fine "
+              "refiner's views (the gates hold), or the fine refiner's views again from the coarse result."]
     return "\n".join(lines)
 
 
