@@ -208,9 +208,9 @@ def summarise(e: dict) -> dict:
 def measure_cascade(obj: str, coarse: Path, fine: Path, heldout: Path, calibration: Path) -> tuple[dict, dict]:
     """The object's gate, chosen on ``calibration`` (:func:`choose_gate`: rendered scenes the card does not score),
     and the cascade with it on ``heldout`` (:func:`summarise`): ``(gate record, summary)``."""
-    gate, scores = choose_gate(runtime_errors(obj, coarse, fine, calibration, seed=7))
     from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS
 
+    gate, scores = choose_gate(runtime_errors(obj, coarse, fine, calibration, seed=7))
     record = {"deg": gate[0], "coarse_deg": gate[1], "chosen_on": calibration.resolve().name, "seed": 7,
               "coarse_views": DEFAULT_COARSE_VIEWS, "fine_views": DEFAULT_FINE_VIEWS,
               "scores": {f"{g[0]:g}/{g[1]:g}": {"mean_deg": round(v[0], 3), "drift_mean_deg": round(v[1], 3)}

@@ -18,9 +18,10 @@ each where it is good:
    far off").
 
 Each step is one batched call per refiner. Cost per object: ``coarse_views + fine_views`` network passes when the
-gate holds, ``coarse_views + 2 * fine_views`` otherwise, and ``coarse_views`` more with ``settle_deg`` (``refiner-rt bench --cpu`` times both beside the
-single model). ``gate_deg=None`` always runs coarse then fine. The shipped objects' gates were chosen on rendered scenes (:func:`shipped_gate`).
-Safe across threads, as the sessions are (the cascade keeps no state).
+gate holds, ``coarse_views + 2 * fine_views`` otherwise, and ``coarse_views`` more with ``settle_deg`` (``refiner-rt
+bench --cpu`` times both beside the single model). ``gate_deg=None`` always runs coarse then fine. The shipped
+objects' gates were chosen on rendered scenes (:func:`shipped_gate`). Safe across threads, as the sessions are (the
+cascade keeps no state).
 
 Example:
     >>> cascade = RefinerCascade.pretrained("003_cracker_box")
@@ -210,5 +211,4 @@ class RefinerCascade:
     def __repr__(self) -> str:
         return (f"RefinerCascade(coarse={self.coarse.model_path}, fine={self.fine.model_path}, "
                 f"gate_deg={self.gate_deg}, coarse_gate_deg={self.coarse_gate_deg}, coarse_views={self.coarse_views}, "
-                f"fine_views={self.fine_views}, "
-                f"settle_deg={self.settle_deg})")
+                f"fine_views={self.fine_views}, settle_deg={self.settle_deg})")
