@@ -231,6 +231,22 @@ def test_settle_deg_refines_as_the_session_and_the_cascade_do():
         RosRefiner("refine", settle_deg=0)
 
 
+def test_views_refine_as_the_session_does_and_reach_the_tracker():
+    """RosRefiner(views=N) in refine mode: each shipped refiner's refine(views=N); in track mode the tracker gets
+    views=N; refused with cascade=True (a cascade averages its own) and out of range, by name."""
+    image, K, objects = _frames()[0]
+    r = RosRefiner("refine", views=4)
+    poses = {p.object_id: p for p in r.process(_image(image, 0), _info(K, 0), _detections(0, objects))}
+    for o in objects:
+        want = r._model(o["object_id"]).refine(image, np.array([o["box_xyxy"]]), _q_in(o, 0)[None], K=K, views=4)
+        assert rq.geodesic_angle(poses[o["object_id"]].q_wxyz, want.q_refined[0]) < 1e-9
+    assert RosRefiner("track", views=4).tracker_kwargs == {"views": 4}
+    with pytest.raises(ValueError, match="views=4 is for single refiners; a cascade averages its own"):
+        RosRefiner("refine", cascade=True, views=4)
+    with pytest.raises(ValueError, match="views must be an integer from 1 to 16; got 0"):
+        RosRefiner("refine", views=0)
+
+
 def test_bag_errors_are_one_line(tmp_path):
     bag = tmp_path / "in"
     write_bag(bag)

@@ -583,6 +583,38 @@ def test_track_command_scene_motion(tmp_path):
     assert "Traceback" not in res.output
 
 
+def test_track_command_views_averages_box_jittered_crops(tmp_path):
+    """--views N is RefinerTracker(views=N): each update averages N box-jittered crops (a crop-dependent model, so the
+    views differ from one crop); recorded in the output; with --cascade it is a usage error naming both."""
+    import json
+
+    import cv2
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=3)
+    model.write_bytes(fx.random_weight_model(seed=5, props=fx.contract(objects=["003_cracker_box"],
+                                                                       rotation_frame="ray")))
+    out = tmp_path / "rot.json"
+    got = {}
+    for views in (1, 4):
+        res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                        "--views", str(views)])
+        assert res.exit_code == 0, res.output
+        doc = json.loads(out.read_text())
+        assert doc["views"] == views
+        tracker = RefinerTracker(RefinerSession(str(model)), K, {"003_cracker_box": Q0[0]}, views=views)
+        for name in sorted(doc["frames"]):
+            want = tracker.update(cv2.imread(str(frames / name)), {"003_cracker_box": BOX_A})["003_cracker_box"]
+            assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]), scipy_q(want))
+        got[views] = np.array(doc["frames"]["000002.png"]["003_cracker_box"])
+    assert rq.geodesic_angle(got[1], got[4]) > 1e-3  # the views reached the network
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--views", "4", "--cascade"])
+    assert res.exit_code == 2 and "--views" in res.output and "--cascade" in res.output
+    assert "Traceback" not in res.output
+
+
 def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path):
     """A "q" on the third frame: without --detector-weight it restarts the track (q_det * c); with 0.5 it is refined
     beside the track and the rotation is half way between the two (SciPy's Slerp)."""
