@@ -46,12 +46,17 @@ def _numbers(count: int, names: str, positive: tuple[int, ...] = ()):
 @click.option("--K", "K", callback=_numbers(4, "fx,fy,cx,cy", positive=(0, 1)), metavar="FX,FY,CX,CY",
               help="With --image: the camera intrinsics in pixels.")
 @click.option("--object", "object_id", metavar="YCB_ID", help="With --image: the object, e.g. 003_cracker_box.")
-def demo_cmd(out, seed, threads, image_path, box, q, K, object_id):
+@click.option("--cascade", is_flag=True,
+              help="Each object's coarse and fine refiners in turn (RefinerCascade) where a fine refiner ships: "
+                   "results below the coarse refiner's 2-3 degree floor, for eight to twelve network passes instead "
+                   "of one.")
+def demo_cmd(out, seed, threads, image_path, box, q, K, object_id, cascade):
     """Refine coarse rotations with the shipped models and draw the result.
 
     Without --image: the sample frames in the package (rendered scenes that no shipped model trained on, with
     ground truth). Each object's coarse rotation is drawn U(0, 30) degrees around the truth, refined by the
-    object's shipped INT8 model with the camera intrinsics, and compared with the truth. Prints a table of input
+    object's shipped INT8 model (with --cascade, its coarse and fine refiners) with the camera intrinsics, and
+    compared with the truth. Prints a table of input
     and refined error (degrees) and time per refinement; the picture shows, per object, the truth (white), the
     coarse input (cyan) and the refined rotation (green) as outlines.
 
@@ -72,9 +77,9 @@ def demo_cmd(out, seed, threads, image_path, box, q, K, object_id):
         raise click.BadParameter(f"directory {out.parent} does not exist", param_hint="'--out'")
     t0 = time.perf_counter()
     if image_path is None:
-        _samples(out, seed, threads)
+        _samples(out, seed, threads, cascade)
     else:
-        _own_image(out, threads, image_path, box, q, K, object_id)
+        _own_image(out, threads, image_path, box, q, K, object_id, cascade)
     click.echo(f"Wall time {time.perf_counter() - t0:.1f} s.")
 
 
@@ -83,21 +88,38 @@ def _write(out: Path, picture: np.ndarray) -> None:
         raise click.ClickException(f"could not write {out} (a .png path in a writable folder?)")
 
 
-def _samples(out: Path, seed: int, threads: int) -> None:
+def _refiner(object_id: str, threads: int, cascade: bool, fine: set):
+    """The shipped INT8 refiner of ``object_id``: its :class:`refiner_rt.RefinerCascade` with ``cascade`` where a
+    fine refiner ships (``fine``), else its :class:`refiner_rt.RefinerSession`."""
+    if cascade and object_id in fine:
+        from refiner_rt.cascade import RefinerCascade
+
+        return RefinerCascade.pretrained(object_id, int8=True, threads=threads)
+    from refiner_rt.session import RefinerSession
+
+    return RefinerSession.pretrained(object_id, int8=True, threads=threads)
+
+
+def _samples(out: Path, seed: int, threads: int, cascade: bool = False) -> None:
     from refiner_rt import demo
     from refiner_rt.pretrained import pretrained_models
-    from refiner_rt.session import RefinerSession
 
     frames = demo.load_samples()
     shipped = {m.object_id for m in pretrained_models()}
+    fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
     if not shipped:
         raise click.ClickException("no pretrained models ship in this installation: nothing to demonstrate "
                                    "(`refiner-rt models` lists them)")
     seen = sorted({o.object_id for f in frames for o in f.objects})
-    sessions = {obj: RefinerSession.pretrained(obj, int8=True, threads=threads) for obj in seen if obj in shipped}
+    sessions = {obj: _refiner(obj, threads, cascade, fine) for obj in seen if obj in shipped}
     refinements = demo.refine_samples(frames, sessions, seed=seed)
+    models = "the shipped INT8 models"
+    if cascade:
+        with_fine = sorted(set(sessions) & fine)
+        models = (f"the shipped INT8 cascades (coarse and fine refiners) of {len(with_fine)} objects"
+                  + (", the coarse models of the rest" if len(with_fine) < len(sessions) else ""))
     click.echo(f"{len(refinements)} object instances in {len(frames)} sample frames: rendered scenes no shipped model "
-               f"trained on.\nCoarse rotations U(0, 30) deg around the truth (seed {seed}); the shipped INT8 models, "
+               f"trained on.\nCoarse rotations U(0, 30) deg around the truth (seed {seed}); {models}, "
                f"{threads or 'all'} thread{'' if threads == 1 else 's'}, with K.\n")
     head = ("object", "n", "input deg", "refined deg", "ms/refinement")
     rows = []
@@ -121,11 +143,10 @@ def _samples(out: Path, seed: int, threads: int) -> None:
     click.echo(f"Wrote {out}: per object, ground truth (white), coarse input (cyan), refined (green).")
 
 
-def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: str) -> None:
+def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: str, cascade: bool = False) -> None:
     from refiner_rt import demo
     from refiner_rt import quaternion as rq
     from refiner_rt.pretrained import pretrained_models
-    from refiner_rt.session import RefinerSession
 
     image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
     if image is None:
@@ -149,7 +170,7 @@ def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: 
     q_in = rq.canonical(q / norm)
     fx, fy, cx, cy = K
     K3 = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    sess = RefinerSession.pretrained(object_id, int8=True, threads=threads)
+    sess = _refiner(object_id, threads, cascade, {m.object_id for m in pretrained_models() if "fine" in m.stages})
     try:
         sess.refine(image, box[None], q_in[None], K=K3)  # warm-up
         t0 = time.perf_counter()

@@ -152,3 +152,31 @@ def test_demo_with_the_shipped_models_refines(tmp_path):
     rows = _table(res.output)
     assert set(rows) - {"all"} == {m.object_id for m in SHIPPED}
     assert float(rows["all"][2]) < float(rows["all"][1])
+
+
+@pytest.mark.skipif(not any("fine" in m.stages for m in SHIPPED), reason="no fine refiner ships in this checkout")
+def test_demo_with_the_cascade_refines_as_the_shipped_cascades_do(tmp_path):
+    """--cascade: each object's RefinerCascade.pretrained where a fine refiner ships, the same numbers as refining the
+    samples with those cascades; on your own image too."""
+    from refiner_rt import RefinerCascade
+
+    res = CliRunner().invoke(main, ["demo", "--cascade", "--out", str(tmp_path / "demo.png")])
+    assert res.exit_code == 0, res.output
+    assert "the shipped INT8 cascades (coarse and fine refiners)" in res.output
+    rows = _table(res.output)
+    fine = {m.object_id for m in SHIPPED if "fine" in m.stages}
+    cascades = {o: RefinerCascade.pretrained(o) for o in fine}
+    want = demo.refine_samples(FRAMES, cascades, seed=0, timed_calls=1)
+    for obj in fine & set(rows):
+        errors = [r.refined_error_deg for r in want if r.object_id == obj]
+        assert rows[obj][2] == f"{np.mean(errors):.1f}"
+    frame = next(f for f in FRAMES if any(o.object_id in fine for o in f.objects))
+    obj = next(o for o in frame.objects if o.object_id in fine)
+    fx, fy, cx, cy = frame.K[0, 0], frame.K[1, 1], frame.K[0, 2], frame.K[1, 2]
+    res = CliRunner().invoke(main, ["demo", "--cascade", "--image", str(frame.path), "--box",
+                                    ",".join(map(str, obj.box_xyxy)), "--q", ",".join(map(str, obj.q_gt)),
+                                    "--K", f"{fx},{fy},{cx},{cy}", "--object", obj.object_id,
+                                    "--out", str(tmp_path / "mine.png")])
+    assert res.exit_code == 0, res.output
+    q_ref = cascades[obj.object_id].refine(frame.image(), obj.box_xyxy[None], obj.q_gt[None], K=frame.K).q_refined[0]
+    assert f"refined q (wxyz) {np.array2string(q_ref, precision=4, separator=', ')}" in res.output
