@@ -628,6 +628,19 @@ def _plot_input_angle(doc: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def shown_command(command: str) -> str:
+    """``command`` as ``tables.md`` prints it: an absolute folder written from its ``data`` or ``runs`` component on
+    (where the runs keep their sets and models), else by its name, so the page names no machine's paths."""
+    out = []
+    for arg in shlex.split(command):
+        if arg.startswith("/"):
+            parts = Path(arg).parts
+            anchor = next((i for i, p in enumerate(parts) if p in ("data", "runs")), None)
+            arg = str(Path(*parts[anchor:])) if anchor is not None else Path(arg).name
+        out.append(arg)
+    return shlex.join(out)
+
+
 def write_report(results: Path) -> Path:
     """``results/*.json`` -> ``results/tables.md`` and PNG plots; returns the Markdown path."""
     import matplotlib
@@ -644,7 +657,7 @@ def write_report(results: Path) -> Path:
             lines += [f"{exp.description}: **not run**.", ""]
             continue
         doc = json.loads(path.read_text())
-        lines += [doc["description"], "", f"Command: `{doc['command']}`  ", f"Machine: {doc['machine']['cpu']} "
+        lines += [doc["description"], "", f"Command: `{shown_command(doc['command'])}`  ", f"Machine: {doc['machine']['cpu']} "
                   f"({doc['machine']['cores']} cores); wall time {doc['wall_s']:.0f} s", ""]
         for m, b in doc["budget"].items():
             epochs = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in b["epochs"].items())

@@ -72,9 +72,16 @@ def test_report_writes_tables_and_plots(runner, ran):
     assert runner.main(["--report", "--results", str(root / "results")]) == 0
     md = (root / "results" / "tables.md").read_text()
     assert "## baseline" in md and "| **average** | 6.67 |" in md
+    assert str(root) not in md and "Command: `python benchmarks/paper.py" in md  # no machine paths on the page
     assert "## size_5000" in md and "**not run**" in md
     for png in ("baseline.png", "input_angle.png"):
         assert (root / "results" / png).stat().st_size > 1000
+
+
+def test_the_report_shows_commands_without_machine_paths(runner):
+    shown = runner.shown_command("python benchmarks/paper.py --data /home/me/work/data/ycb9 --runs /srv/runs/paper_exp "
+                                 "--cache /mnt/x/cache --only baseline")
+    assert shown == "python benchmarks/paper.py --data data/ycb9 --runs runs/paper_exp --cache cache --only baseline"
 
 
 def test_second_invocation_skips_finished_experiments(runner, ran, capsys):
