@@ -56,9 +56,9 @@ def demo_cmd(out, seed, threads, image_path, box, q, K, object_id, cascade):
     Without --image: the sample frames in the package (rendered scenes that no shipped model trained on, with
     ground truth). Each object's coarse rotation is drawn U(0, 30) degrees around the truth, refined by the
     object's shipped INT8 model (with --cascade, its coarse and fine refiners) with the camera intrinsics, and
-    compared with the truth. Prints a table of input
-    and refined error (degrees) and time per refinement; the picture shows, per object, the truth (white), the
-    coarse input (cyan) and the refined rotation (green) as outlines.
+    compared with the truth. Prints a table of input and refined error (degrees) and time per refinement; the
+    picture shows, per object, the truth (white), the coarse input (cyan) and the refined rotation (green) as
+    outlines.
 
     With --image FILE --box X1,Y1,X2,Y2 --q W,X,Y,Z --K FX,FY,CX,CY --object ID: refines your image (BGR as read by
     OpenCV) and draws the coarse and refined outlines, placed from the box (the refiner estimates rotation only).

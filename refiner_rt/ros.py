@@ -271,10 +271,10 @@ class RosRefiner:
             by_object.setdefault(d.object_id, []).append(d)
         for object_id, group in by_object.items():
             model = self._model(object_id)
-            settle = {} if not isinstance(model, RefinerSession) else {"views": self.views, **(
+            passes = {} if not isinstance(model, RefinerSession) else {"views": self.views, **(
                 {} if self.settle_deg is None else {"iterations": 2, "settle_deg": self.settle_deg})}
             res = model.refine(image, np.array([d.box for d in group]), np.array([d.q_wxyz for d in group]), K=K,
-                               D=D, **settle)
+                               D=D, **passes)
             out += [RefinedPose(object_id, q, d.position, d.box, d.score) for d, q in zip(group, res.q_refined)]
         return out
 
