@@ -629,14 +629,19 @@ def _plot_input_angle(doc: dict, path: Path) -> None:
 
 
 def shown_command(command: str) -> str:
-    """``command`` as ``tables.md`` prints it: an absolute folder written from its ``data`` or ``runs`` component on
-    (where the runs keep their sets and models), else by its name, so the page names no machine's paths."""
+    """``command`` as ``tables.md`` prints it: an absolute folder (also in ``--opt=/folder``) written from its last
+    ``data`` or ``runs`` component on (where the runs keep their sets and models), else by its name, so the page
+    names no machine's paths."""
+    def shown(path: str) -> str:
+        parts = Path(path).parts
+        anchor = max((i for i, p in enumerate(parts) if p in ("data", "runs")), default=None)
+        return str(Path(*parts[anchor:])) if anchor is not None else Path(path).name
+
     out = []
     for arg in shlex.split(command):
-        if arg.startswith("/"):
-            parts = Path(arg).parts
-            anchor = next((i for i, p in enumerate(parts) if p in ("data", "runs")), None)
-            arg = str(Path(*parts[anchor:])) if anchor is not None else Path(arg).name
+        flag, eq, value = arg.partition("=") if arg.startswith("--") else ("", "", arg)
+        if value.startswith("/"):
+            arg = flag + eq + shown(value)
         out.append(arg)
     return shlex.join(out)
 

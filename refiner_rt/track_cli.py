@@ -247,12 +247,12 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
                    "with it (RefinerTracker(predict=\"scene\")). Not with --predict.")
 @click.option("--lost-deg", type=click.FloatRange(0.0, 180.0, min_open=True), default=None,
               help="Loss-of-track check: flag an object lost when a second refinement moves its rotation by more "
-                   "than this many degrees (one more pass per object and frame); the output's \"lost\" lists "
+                   "than this many degrees (one more pass per object and frame, N with --views N); the output's \"lost\" lists "
                    "those frames, for a detector's new \"q\". Default: no check.")
 @click.option("--detector-weight", type=click.FloatRange(0.0, 1.0, min_open=True), default=None,
               help="Fuse a tracked object's later detector poses (\"q\") instead of restarting from them: refine each "
                    "beside the track and keep the rotation this share of the way to it (0.5: the weight measured "
-                   "best on rendered video, benchmarks/RESULTS.md; one more pass per pose). Not with --lost-deg. "
+                   "best on rendered video, benchmarks/RESULTS.md; one more pass per pose, N with --views N). Not with --lost-deg. "
                    "Default: a \"q\" re-initialises the object.")
 @click.option("--iterations", type=click.IntRange(1, MAX_ITERATIONS), default=1, show_default=True,
               help="Refinement passes per object and frame.")
@@ -383,7 +383,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     out_path.write_text(json.dumps({
         "format": OUTPUT_FORMAT,
         "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",
-        "K": K.tolist(), "predict": predict, "scene_motion": scene_motion, "iterations": iterations, "views": views, "settle_deg": settle_deg, "lost_deg": lost_deg,
+        "K": K.tolist(), "predict": predict, "scene_motion": scene_motion, "iterations": iterations, "views": None if cascade else views, "settle_deg": settle_deg, "lost_deg": lost_deg,
         "detector_weight": detector_weight,
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
         "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},

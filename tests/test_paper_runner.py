@@ -82,6 +82,8 @@ def test_the_report_shows_commands_without_machine_paths(runner):
     shown = runner.shown_command("python benchmarks/paper.py --data /home/me/work/data/ycb9 --runs /srv/runs/paper_exp "
                                  "--cache /mnt/x/cache --only baseline")
     assert shown == "python benchmarks/paper.py --data data/ycb9 --runs runs/paper_exp --cache cache --only baseline"
+    assert runner.shown_command("x --data=/data/alice/proj/data/ycb9 --runs=/home/a/runs/x --n=3") == (
+        "x --data=data/ycb9 --runs=runs/x --n=3")
 
 
 def test_second_invocation_skips_finished_experiments(runner, ran, capsys):
