@@ -79,10 +79,10 @@ def test_report_writes_tables_and_plots(runner, ran):
 
 
 def test_the_report_shows_commands_without_machine_paths(runner):
-    shown = runner.shown_command("python benchmarks/paper.py --data /home/me/work/data/ycb9 --runs /srv/runs/paper_exp "
+    shown = runner.shown_command("python benchmarks/paper.py --data /mnt/me/proj/data/ycb9 --runs /srv/runs/paper_exp "
                                  "--cache /mnt/x/cache --only baseline")
     assert shown == "python benchmarks/paper.py --data data/ycb9 --runs runs/paper_exp --cache cache --only baseline"
-    assert runner.shown_command("x --data=/data/alice/proj/data/ycb9 --runs=/home/a/runs/x --n=3") == (
+    assert runner.shown_command("x --data=/data/alice/proj/data/ycb9 --runs=/opt/a/runs/x --n=3") == (
         "x --data=data/ycb9 --runs=runs/x --n=3")
 
 
