@@ -2,17 +2,19 @@
 and GDRNPP's image augmentations): what a real camera does to the object's pixels that a renderer does not.
 
 Each operation is applied to a crop with its own probability (a recipe field ``aug_<name>``, 0 = off) and a strength
-drawn per crop from a fixed range, in a camera's order: the optics blur, then the sensor's noise, then the camera's
-processing (white balance, exposure, contrast, saturation, sharpening) and the JPEG encoder.
+drawn per crop from a fixed range, in a camera's order: the sensor's resolution and the optics blur, then the
+sensor's noise, then the camera's processing (white balance, exposure, tone curve, contrast, saturation, sharpening) and the JPEG encoder.
 
 =================  =====================================================================================
 operation          per crop, when picked
 =================  =====================================================================================
+``downscale``      a lower resolution: down to [0.35, 0.9] of the size (area), back up bilinearly
 ``motion_blur``    a line kernel of 3 to 9 px at a random angle (a moving camera or object)
 ``blur``           Gaussian blur, sigma in [0.3, 1.5] px (defocus)
 ``sensor_noise``   Gaussian noise, std in [2, 12] grey levels, half the time per channel, else the same on all
 ``white_balance``  per-channel gains in [0.75, 1.25] (a camera's colour temperature)
 ``brightness``     a gain in [0.5, 1.6]
+``gamma``          a tone curve, gamma in [0.7, 1.4] on [0, 1] values
 ``contrast``       a contrast factor in [0.5, 1.6] about the crop's mean
 ``colour``         saturation factor in [0.3, 2.0] (towards grey, or more vivid)
 ``sharpness``      an unsharp mask of amount [0.5, 2.5] (a camera's sharpening halo)
@@ -34,15 +36,17 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["PHOTOMETRIC_OPS", "photometric", "validate_probabilities"]
+__all__ = ["PHOTOMETRIC_OPS", "apply_op", "draw_strength", "motion_kernel", "photometric", "validate_probabilities"]
 
 # The operations in the order they are applied, with what each does (the recipe's help text).
 PHOTOMETRIC_OPS: dict[str, str] = {
+    "downscale": "a lower resolution: down to 0.35-0.9 of the size and back",
     "motion_blur": "line-kernel motion blur of 3-9 px at a random angle",
     "blur": "Gaussian blur, sigma 0.3-1.5 px",
     "sensor_noise": "Gaussian sensor noise, std 2-12 grey levels",
     "white_balance": "per-channel gains 0.75-1.25",
     "brightness": "a gain of 0.5-1.6",
+    "gamma": "a tone curve: gamma 0.7-1.4",
     "contrast": "a contrast factor of 0.5-1.6",
     "colour": "a saturation factor of 0.3-2.0",
     "sharpness": "an unsharp mask of amount 0.5-2.5",
@@ -64,48 +68,105 @@ def validate_probabilities(probs: dict[str, float]) -> dict[str, float]:
     return probs
 
 
-def _motion_kernel(rng: np.random.Generator, size: int = 9) -> np.ndarray:
-    """A normalised ``size x size`` line kernel: length 3-9 px, angle uniform (a pixel's weight falls linearly with
-    its distance from the segment, to zero at one pixel)."""
-    length, angle = rng.uniform(3.0, 9.0), rng.uniform(0.0, np.pi)
+def motion_kernel(length: float, angle_rad: float, size: int = 9) -> np.ndarray:
+    """A normalised ``size x size`` line kernel of ``length`` px at ``angle_rad`` (a pixel's weight falls linearly
+    with its distance from the segment, to zero at one pixel)."""
     r = np.arange(size, dtype=np.float32) - size // 2
     yy, xx = np.meshgrid(r, r, indexing="ij")
-    along = xx * np.cos(angle) + yy * np.sin(angle)
-    across = -xx * np.sin(angle) + yy * np.cos(angle)
+    along = xx * np.cos(angle_rad) + yy * np.sin(angle_rad)
+    across = -xx * np.sin(angle_rad) + yy * np.cos(angle_rad)
     beyond = np.maximum(np.abs(along) - length / 2, 0.0)
     w = np.maximum(1.0 - np.sqrt(across**2 + beyond**2), 0.0).astype(np.float32)
     return w / w.sum()
 
 
-def _apply(name: str, crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Operation ``name`` on one ``S x S x 3`` float32 BGR crop (values may leave [0, 255] until the end)."""
+def _motion_kernel(rng: np.random.Generator, size: int = 9) -> np.ndarray:
+    """:func:`motion_kernel` with a random length of 3-9 px and a uniform angle."""
+    length, angle = rng.uniform(3.0, 9.0), rng.uniform(0.0, np.pi)
+    return motion_kernel(length, angle, size)
+
+
+def draw_strength(name: str, rng: np.random.Generator):
+    """The strength of operation ``name`` drawn from its training range (the table above); the argument
+    :func:`apply_op` takes as ``strength``."""
+    if name == "downscale":
+        return float(rng.uniform(0.35, 0.9))
     if name == "motion_blur":
-        return cv2.filter2D(crop, -1, _motion_kernel(rng), borderType=cv2.BORDER_REPLICATE)
+        return float(rng.uniform(3.0, 9.0)), float(rng.uniform(0.0, np.pi))
     if name == "blur":
-        return cv2.GaussianBlur(crop, (0, 0), rng.uniform(0.3, 1.5), borderType=cv2.BORDER_REPLICATE)
+        return float(rng.uniform(0.3, 1.5))
     if name == "sensor_noise":
-        std = rng.uniform(2.0, 12.0)
-        if rng.uniform() < 0.5:  # the same noise on the three channels (a grey sensor pattern)
-            return crop + std * rng.standard_normal(crop.shape[:2], dtype=np.float32)[..., None]
-        return crop + std * rng.standard_normal(crop.shape, dtype=np.float32)
+        std = float(rng.uniform(2.0, 12.0))
+        return std, bool(rng.uniform() >= 0.5)  # (std, per channel); else the same noise on the three channels
     if name == "white_balance":
-        return crop * rng.uniform(0.75, 1.25, 3).astype(np.float32)
+        return tuple(float(g) for g in rng.uniform(0.75, 1.25, 3))
     if name == "brightness":
-        return crop * np.float32(rng.uniform(0.5, 1.6))
+        return float(rng.uniform(0.5, 1.6))
+    if name == "gamma":
+        return float(rng.uniform(0.7, 1.4))
     if name == "contrast":
-        mean = crop.mean()
-        return (crop - mean) * np.float32(rng.uniform(0.5, 1.6)) + mean
+        return float(rng.uniform(0.5, 1.6))
     if name == "colour":
-        grey = crop @ np.array([0.114, 0.587, 0.299], np.float32)  # BGR luma
-        return grey[..., None] + (crop - grey[..., None]) * np.float32(rng.uniform(0.3, 2.0))
+        return float(rng.uniform(0.3, 2.0))
     if name == "sharpness":
-        soft = cv2.GaussianBlur(crop, (0, 0), 1.0, borderType=cv2.BORDER_REPLICATE)
-        return crop + (crop - soft) * np.float32(rng.uniform(0.5, 2.5))
+        return float(rng.uniform(0.5, 2.5))
     if name == "jpeg":
-        ok, buf = cv2.imencode(".jpg", np.clip(crop, 0, 255).round().astype(np.uint8),
-                               [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(30, 91))])
-        return cv2.imdecode(buf, cv2.IMREAD_COLOR).astype(np.float32) if ok else crop
+        return int(rng.integers(30, 91))
     raise ValueError(f"unknown photometric augmentation {name!r}; expected one of {', '.join(PHOTOMETRIC_OPS)}")
+
+
+def apply_op(name: str, image: np.ndarray, strength, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Operation ``name`` at a given ``strength`` on one ``H x W x 3`` float32 BGR image (a crop in training, a
+    whole frame in ``benchmarks/appearance.py``'s stress test); values may leave [0, 255] until the caller clips.
+
+    ``strength`` per operation: ``downscale`` the resolution factor (down with area averaging, back up bilinearly);
+    ``motion_blur`` ``(length_px, angle_rad)``; ``blur`` sigma in px; ``sensor_noise`` ``(std, per_channel)`` in grey
+    levels; ``white_balance`` the ``(b, g, r)`` gains; ``brightness`` a gain; ``gamma`` the exponent on [0, 1]
+    values; ``contrast`` a factor about the image's mean; ``colour`` a saturation factor about the luma;
+    ``sharpness`` an unsharp-mask amount (sigma 1 px); ``jpeg`` the quality. ``rng`` draws the sensor noise.
+    """
+    if name == "downscale":
+        h, w = image.shape[:2]
+        small = cv2.resize(image, (max(1, round(w * strength)), max(1, round(h * strength))),
+                           interpolation=cv2.INTER_AREA)
+        return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    if name == "motion_blur":
+        size = 9 if strength[0] <= 9 else 2 * int(np.ceil(strength[0] / 2)) + 1  # 9: the training range's kernel
+        kernel = motion_kernel(*strength, size=size)
+        return cv2.filter2D(image, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+    if name == "blur":
+        return cv2.GaussianBlur(image, (0, 0), strength, borderType=cv2.BORDER_REPLICATE)
+    if name == "sensor_noise":
+        std, per_channel = strength
+        rng = rng if rng is not None else np.random.default_rng(0)
+        if not per_channel:  # the same noise on the three channels (a grey sensor pattern)
+            return image + std * rng.standard_normal(image.shape[:2], dtype=np.float32)[..., None]
+        return image + std * rng.standard_normal(image.shape, dtype=np.float32)
+    if name == "white_balance":
+        return image * np.asarray(strength, np.float32)
+    if name == "brightness":
+        return image * np.float32(strength)
+    if name == "gamma":
+        return 255.0 * (np.clip(image, 0, 255) / 255.0) ** np.float32(strength)
+    if name == "contrast":
+        mean = image.mean()
+        return (image - mean) * np.float32(strength) + mean
+    if name == "colour":
+        grey = image @ np.array([0.114, 0.587, 0.299], np.float32)  # BGR luma
+        return grey[..., None] + (image - grey[..., None]) * np.float32(strength)
+    if name == "sharpness":
+        soft = cv2.GaussianBlur(image, (0, 0), 1.0, borderType=cv2.BORDER_REPLICATE)
+        return image + (image - soft) * np.float32(strength)
+    if name == "jpeg":
+        ok, buf = cv2.imencode(".jpg", np.clip(image, 0, 255).round().astype(np.uint8),
+                               [cv2.IMWRITE_JPEG_QUALITY, int(strength)])
+        return cv2.imdecode(buf, cv2.IMREAD_COLOR).astype(np.float32) if ok else image
+    raise ValueError(f"unknown photometric augmentation {name!r}; expected one of {', '.join(PHOTOMETRIC_OPS)}")
+
+
+def _apply(name: str, crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Operation ``name`` on one ``S x S x 3`` float32 BGR crop at a strength drawn from its range."""
+    return apply_op(name, crop, draw_strength(name, rng), rng)
 
 
 def photometric(images: "torch.Tensor", probs: dict[str, float], gen: "torch.Generator") -> "torch.Tensor":

@@ -146,6 +146,8 @@ class TrainRecipe:
     aug_colour: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['colour']}.")
     aug_sharpness: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['sharpness']}.")
     aug_jpeg: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['jpeg']}.")
+    aug_downscale: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['downscale']}.")
+    aug_gamma: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['gamma']}.")
     # run (where and how; the weights do not depend on these, except through the device's arithmetic)
     device: str = _opt("auto", "run", "auto (cuda, then mps, then cpu), cpu, cuda, cuda:N or mps.")
     threads: int = _opt(0, "run", "Torch threads (0: all cores, shared between torchrun ranks).")

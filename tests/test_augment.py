@@ -71,3 +71,45 @@ def test_probabilities_are_validated_with_the_operation_named():
     r = TrainRecipe(data="x", aug_blur=0.3, aug_jpeg=0.2).validate()
     assert r.photometric == {"blur": 0.3, "jpeg": 0.2}
     assert r.stage_config("base", 100).photometric == {"blur": 0.3, "jpeg": 0.2}
+
+
+def test_gamma_and_downscale_match_their_formulas():
+    from models.augment import apply_op
+
+    crop = _batch(n=1, s=64)[0].numpy().astype(np.float32)
+    np.testing.assert_allclose(apply_op("gamma", crop, 1.25), 255.0 * (crop / 255.0) ** 1.25, rtol=1e-5, atol=1e-3)
+    small = cv2.resize(crop, (32, 32), interpolation=cv2.INTER_AREA)
+    np.testing.assert_allclose(apply_op("downscale", crop, 0.5),
+                               cv2.resize(small, (64, 64), interpolation=cv2.INTER_LINEAR), atol=1e-4)
+    assert apply_op("downscale", crop, 1.0).shape == crop.shape
+
+
+def test_fixed_strengths_are_the_drawn_ones():
+    """apply_op at the strength draw_strength gives is what the training augmentation applies (one definition)."""
+    from models.augment import apply_op, draw_strength
+
+    crop = _batch(n=1, s=32)[0].numpy().astype(np.float32)
+    for op in PHOTOMETRIC_OPS:
+        rng, ref = np.random.default_rng(11), np.random.default_rng(11)
+        expected = apply_op(op, crop, draw_strength(op, ref), ref)
+        np.testing.assert_array_equal(_apply(op, crop, rng), expected)
+
+
+def test_unknown_operations_are_refused_by_name():
+    from models.augment import apply_op, draw_strength
+
+    with pytest.raises(ValueError, match="unknown photometric augmentation 'vignette'"):
+        apply_op("vignette", np.zeros((4, 4, 3), np.float32), 1.0)
+    with pytest.raises(ValueError, match="expected one of"):
+        draw_strength("vignette", np.random.default_rng(0))
+
+
+def test_a_long_motion_blur_gets_a_kernel_that_holds_it():
+    from models.augment import apply_op, motion_kernel
+
+    k = motion_kernel(13.0, 0.0, size=15)
+    assert k.sum() == pytest.approx(1.0, abs=1e-6) and (k[7] > 0).sum() >= 13  # a horizontal line of 13 px
+    line = np.zeros((31, 31, 3), np.float32)
+    line[15, 15] = 255.0
+    spread = apply_op("motion_blur", line, (13.0, 0.0))
+    assert (spread[15, :, 0] > 0).sum() >= 13

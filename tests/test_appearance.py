@@ -1,0 +1,88 @@
+"""The appearance benchmark (benchmarks/appearance.py): the stressed copies are the frames through the training
+augmentation's own operations, reused when unchanged; a model that ignores the pixels pays nothing for any case, one
+that reads them pays for a change of its input; the gap and the rendered sets' ratio add up."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from data_fixtures import make_bop
+from onnx_fixtures import channel_mean_model, constant_model, contract
+
+
+@pytest.fixture(scope="module")
+def real_folder(tmp_path_factory):
+    split = tmp_path_factory.mktemp("real") / "test"
+    make_bop(split)
+    return split
+
+
+@pytest.fixture(scope="module")
+def appearance():
+    from benchmarks import appearance
+
+    return appearance
+
+
+def test_every_stress_case_is_an_operation_of_the_augmentation(appearance):
+    from models.augment import PHOTOMETRIC_OPS
+
+    assert {op for _, op, _ in appearance.STRESS_CASES} <= set(PHOTOMETRIC_OPS)
+    assert len({name for name, _, _ in appearance.STRESS_CASES}) == len(appearance.STRESS_CASES)
+
+
+def test_stressed_copy_is_the_operation_on_every_frame_and_is_reused(appearance, real_folder, tmp_path):
+    out = appearance.stressed_copy(real_folder, tmp_path / "dark", "brightness", 0.6)
+    originals = sorted(real_folder.glob("*/rgb/*"))
+    copies = sorted(out.glob("*/rgb/*"))
+    assert [p.stem for p in copies] == [p.stem for p in originals] and all(p.suffix == ".png" for p in copies)
+    for a, b in zip(originals, copies):
+        image = cv2.imread(str(a), cv2.IMREAD_COLOR).astype(np.float32)
+        np.testing.assert_array_equal(cv2.imread(str(b), cv2.IMREAD_COLOR),
+                                      np.clip(image * np.float32(0.6), 0, 255).round().astype(np.uint8))
+    for gt in real_folder.glob("*/scene_gt*.json"):
+        assert (out / gt.parent.name / gt.name).read_text() == gt.read_text()
+    stamp = copies[0].stat().st_mtime_ns
+    appearance.stressed_copy(real_folder, tmp_path / "dark", "brightness", 0.6)
+    assert copies[0].stat().st_mtime_ns == stamp  # the same case: reused
+    appearance.stressed_copy(real_folder, tmp_path / "dark", "brightness", 0.5)
+    assert json.loads((out / "stress.json").read_text())["strength"] == 0.5  # another strength: rebuilt
+
+
+def _write(tmp_path, name, data: bytes):
+    path = tmp_path / name
+    path.write_bytes(data)
+    return path
+
+
+def test_a_model_blind_to_pixels_pays_nothing_and_one_that_reads_them_pays(appearance, real_folder, tmp_path):
+    cases = (("exposure -0.7 EV", "brightness", 0.6), ("unchanged", "brightness", 1.0))
+    blind = {"003_cracker_box": _write(tmp_path, "blind.onnx",
+                                       constant_model([0.98, 0.2, 0.0, 0.0], props=contract()))}
+    s = appearance.run_stress(blind, real_folder, tmp_path / "work", draws=3, seed=0, cases=cases, progress=False)
+    assert [r["cost_deg"] for r in s["cases"]] == pytest.approx([0.0, 0.0], abs=1e-9)
+    reader = {"003_cracker_box": _write(tmp_path, "reader.onnx", channel_mean_model(props=contract()))}
+    s = appearance.run_stress(reader, real_folder, tmp_path / "work", draws=3, seed=0, cases=cases, progress=False)
+    dark, same = s["cases"]
+    assert abs(dark["cost_deg"]) > 0.1  # the crops' means changed, so did the output
+    assert same["cost_deg"] == pytest.approx(0.0, abs=1e-9)
+    worst = max(s["cases"], key=lambda r: r["cost_deg"])
+    assert s["worst_case"] == worst["case"] and s["worst_cost_deg"] == worst["cost_deg"]
+    text = appearance.table({"stress": s})
+    assert "exposure -0.7 EV" in text and "clean" in text
+
+
+def test_rendered_sets_give_the_ratio_of_the_first_to_the_second(appearance, real_folder, tmp_path):
+    reader = {"003_cracker_box": _write(tmp_path, "reader.onnx", channel_mean_model(props=contract()))}
+    dark = appearance.stressed_copy(real_folder, tmp_path / "dark", "brightness", 0.5)
+    r = appearance.run_rendered(reader, {"a": dark, "b": real_folder}, draws=2, seed=0)
+    assert r["ratio"]["of"] == "a" and r["ratio"]["to"] == "b"
+    assert r["ratio"]["value"] == pytest.approx(r["sets"]["a"]["mean_deg"] / r["sets"]["b"]["mean_deg"])
+
+
+def test_the_command_line_refuses_nothing_to_measure(appearance, capsys):
+    with pytest.raises(SystemExit):
+        appearance.main([])
+    assert "nothing to measure" in capsys.readouterr().err
