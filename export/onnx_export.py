@@ -274,7 +274,7 @@ def build_model_metadata(
     if not isinstance(train_noise, str):
         raise ValueError(f"checkpoint info 'train_noise' must be a string such as 'uniform:0:30'; got {train_noise!r}")
     extra = dict(metadata_extra or {})
-    reserved = sorted(set(extra) & (set(REQUIRED_KEYS) | {"quantization", "roll"}))
+    reserved = sorted(set(extra) & (set(REQUIRED_KEYS) | {"quantization", "roll", "crop_filter"}))
     if reserved:
         raise ValueError(f"metadata_extra must not redefine contract key(s) {reserved}; they are set by the exporter")
     # What a user's own object needs beside its name: the meshes it was rendered from (file, sha256, unit), and its
@@ -294,6 +294,7 @@ def build_model_metadata(
         version=refiner_rt.__version__,
         extra={"model_config": model.config, **extra},
         roll=model_roll(model),
+        crop_filter=model.config.get("crop_filter", "none"),
     )
 
 

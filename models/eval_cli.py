@@ -40,6 +40,7 @@ def _load(model: Path, threads: int, device: str = "auto"):
         return pred, {
             "input_size": meta["input_size"],
             "crop_context": meta["crop_context"],
+            "crop_filter": meta.get("crop_filter", "none"),
             "rotation_frame": meta["rotation_frame"],
             "objects": meta["objects"],
             "data": json.loads(meta["data"]) if "data" in meta else None,
@@ -58,6 +59,7 @@ def _load(model: Path, threads: int, device: str = "auto"):
     return torch_predictor(net), {
         "input_size": net.input_size,
         "crop_context": net.config["crop_context"],
+        "crop_filter": net.config.get("crop_filter", "none"),
         "rotation_frame": info.get("rotation_frame", "camera"),
         "objects": info.get("objects", []),
         "data": info.get("data"),
@@ -157,7 +159,7 @@ def run_eval_all(model: Path, data: Path, *, noise: str = "uniform:0:30", draws:
     if not objects:
         raise ValueError(f"{model} records no objects: give --objects")
     crops, _ = folder_cropset(data, objects, int(c["input_size"]), float(c["crop_context"]), cache_root=cache_root,
-                              progress=progress)
+                              progress=progress, crop_filter=c["crop_filter"])
     if per_object:
         predictor = {obj: (_load(per_object[obj], threads, device)[0] if obj in per_object else predictor)
                      for obj in crops.objects}

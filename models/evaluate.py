@@ -148,10 +148,11 @@ def torch_predictor(model, batch_size: int = 256) -> Predictor:
 
 
 def folder_cropset(data: str | Path, objects: list[str], size: int, context: float, *, min_visib: float = 0.3,
-                   min_box_size: float = 16.0, cache_root: str | Path | None = None, progress: bool = False):
+                   min_box_size: float = 16.0, cache_root: str | Path | None = None, progress: bool = False,
+                   crop_filter: str = "none"):
     """Every instance of ``objects`` in a BOP or YCB-Video folder (no split: real frames, or rendered scenes no
     model trained on) with ``visib_fract >= min_visib`` and a visible box of ``min_box_size`` px or more, cropped
-    by the crop rule: ``(CropSet, samples)`` in the same order.
+    by the crop rule (with the model's ``crop_filter``): ``(CropSet, samples)`` in the same order.
 
     The crops are cached under ``cache_root`` (default: ``<data>/.crops``, or the user's cache folder when ``data``
     is read-only).
@@ -166,9 +167,11 @@ def folder_cropset(data: str | Path, objects: list[str], size: int, context: flo
     spec = DataSpec(data=str(data), objects=list(objects), split_mode="scenes", sizes=(0, 0, 0, 0),
                     min_visib=min_visib, min_box_size=min_box_size)
     samples = load_samples(spec)
-    key = json.dumps({**spec.as_dict(), "part": "all", "size": size, "context": context}, sort_keys=True)
+    key = json.dumps({**spec.as_dict(), "part": "all", "size": size, "context": context,
+                      **({"crop_filter": crop_filter} if crop_filter != "none" else {})}, sort_keys=True)
     folder = writable_cache_root(Path(data), cache_root) / f"all_{size}_{hashlib.sha1(key.encode()).hexdigest()[:10]}"
-    cache = CropCache.build_or_load(samples, size, folder, context=context, progress=progress)
+    cache = CropCache.build_or_load(samples, size, folder, context=context, progress=progress,
+                                    crop_filter=crop_filter)
     crops = CropSet(crops=cache.crops, q_gt=cache.q_gt, obj_ids=cache.obj_ids,
                     q_ray=ray_quaternions(cache.K, cache.boxes_xyxy), scene_ids=np.asarray(cache.scene_ids))
     return crops, samples

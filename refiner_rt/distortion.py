@@ -22,7 +22,7 @@ import math
 import cv2
 import numpy as np
 
-from refiner_rt.preprocess import crop_matrix
+from refiner_rt.preprocess import CROP_FILTERS, antialias_sigma, crop_matrix, prefiltered_region
 
 __all__ = ["DISTORTION_LENGTHS", "validate_D", "undistort_boxes", "crop_undistorted"]
 
@@ -87,7 +87,7 @@ def undistort_boxes(boxes_xyxy, K, D) -> np.ndarray:
 
 
 def crop_undistorted(image: np.ndarray, box_xyxy, size: int, context: float, K: np.ndarray, D: np.ndarray,
-                     out=None) -> np.ndarray:
+                     out=None, crop_filter: str = "none") -> np.ndarray:
     """Cut one crop by the crop rule in the undistorted pinhole image of ``K``, sampling the raw ``image``.
 
     Args:
@@ -96,6 +96,8 @@ def crop_undistorted(image: np.ndarray, box_xyxy, size: int, context: float, K: 
         size, context: the crop rule's (``refiner_rt.preprocess``).
         K, D: validated intrinsics and distortion coefficients.
         out: optional ``S x S x 3`` ``uint8`` array to write into.
+        crop_filter: as :func:`refiner_rt.preprocess.crop_to_square` (the raw pixels the crop samples are low-passed
+            for the window's shrink at its centre).
 
     Returns:
         ``S x S x 3`` ``uint8``: what the crop rule cuts from a pinhole image of the scene; zeros outside the image.
@@ -111,5 +113,16 @@ def crop_undistorted(image: np.ndarray, box_xyxy, size: int, context: float, K: 
     pts = np.stack([xn, gy, np.ones_like(xn)], axis=-1).reshape(-1, 1, 3)
     raw, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, D)
     maps = raw.reshape(size, size, 2).astype(np.float32)
+    sigma = antialias_sigma(m[0, 0]) if crop_filter == "antialias" else 0.0
+    if crop_filter not in CROP_FILTERS:
+        raise ValueError(f"crop_filter must be one of {CROP_FILTERS}; got {crop_filter!r}")
+    if sigma > 0.0:
+        inside = np.isfinite(maps).all(axis=-1)
+        if inside.any():
+            lo, hi = maps[inside].min(axis=0), maps[inside].max(axis=0)
+            region, x0, y0 = prefiltered_region(image, lo[0], lo[1], hi[0], hi[1], sigma)
+            if region.size:
+                image = region
+                maps = maps - np.array([x0, y0], np.float32)
     return cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, dst=out,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))

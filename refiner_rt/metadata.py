@@ -12,7 +12,7 @@ import json
 import math
 from dataclasses import dataclass, field
 
-from refiner_rt.preprocess import ROLL_TURNS
+from refiner_rt.preprocess import CROP_FILTERS, ROLL_TURNS
 
 __all__ = [
     "file_sha256",
@@ -87,6 +87,9 @@ class ModelContract:
             centre, and its coarse rotation about the viewing ray, so that the coarse pose's object z axis points up
             (:func:`refiner_rt.preprocess.canonical_roll`), or within 45 degrees of up in quarter turns
             (:func:`refiner_rt.preprocess.quarter_roll`); format 2, ray frame only.
+        crop_filter: ``"none"`` or ``"antialias"``: how the crop rule filters the window's pixels before its warp
+            (:func:`refiner_rt.preprocess.crop_to_square`); ``"none"`` when the key is absent (every model made
+            before it).
     """
 
     arch: str
@@ -101,6 +104,7 @@ class ModelContract:
     version: str
     extra: dict = field(default_factory=dict)
     roll: str = "none"
+    crop_filter: str = "none"
 
     def as_dict(self) -> dict:
         """The contract as plain Python values (what ``RefinerSession.metadata`` returns)."""
@@ -118,6 +122,7 @@ class ModelContract:
             "quantization": self.quantization,
             "checkpoint_sha256": self.checkpoint_sha256,
             **({"roll": self.roll} if self.roll != "none" else {}),
+            **({"crop_filter": self.crop_filter} if self.crop_filter != "none" else {}),
             **self.extra,
         }
 
@@ -136,6 +141,7 @@ def build_metadata(
     quantization: str = "none",
     extra: dict | None = None,
     roll: str = "none",
+    crop_filter: str = "none",
 ) -> dict[str, str]:
     """The ``metadata_props`` of a refiner model as ``{key: str}``, validated by :func:`parse_metadata` (format 2 with
     its ``roll`` key when ``roll`` is not ``"none"``)."""
@@ -153,6 +159,7 @@ def build_metadata(
         "checkpoint_sha256": str(checkpoint_sha256),
         "quantization": str(quantization),
         **({"roll": str(roll)} if roll != "none" else {}),
+        **({"crop_filter": str(crop_filter)} if crop_filter != "none" else {}),
     }
     for k, v in (extra or {}).items():
         props[str(k)] = v if isinstance(v, str) else json.dumps(v)
@@ -218,7 +225,10 @@ def parse_metadata(props: dict[str, str]) -> ModelContract:
     quantization = props.get("quantization", "none")
     if quantization not in QUANTIZATIONS:
         raise ValueError(f"model metadata key 'quantization' must be one of {QUANTIZATIONS}; got {quantization!r}")
-    known = set(REQUIRED_KEYS) | {"quantization", "roll"}
+    crop_filter = props.get("crop_filter", "none")
+    if crop_filter not in CROP_FILTERS:
+        raise ValueError(f"model metadata key 'crop_filter' must be one of {CROP_FILTERS}; got {crop_filter!r}")
+    known = set(REQUIRED_KEYS) | {"quantization", "roll", "crop_filter"}
     extra = {k: v for k, v in props.items() if k not in known}
     return ModelContract(
         arch=props["arch"],
@@ -233,6 +243,7 @@ def parse_metadata(props: dict[str, str]) -> ModelContract:
         version=props["refiner_rt.version"],
         extra=extra,
         roll=roll,
+        crop_filter=crop_filter,
     )
 
 

@@ -5,7 +5,11 @@ functions, so a crop seen at run time is produced exactly as the crops the netwo
 
 Rule (design.md section 2): a square window centred on the box centre with side
 ``max(w, h) * context``, resampled to ``size x size`` in one affine warp (bilinear), parts outside
-the image filled with zeros.
+the image filled with zeros. With ``crop_filter="antialias"`` (a model's metadata says which) the
+window's pixels are first low-passed by a Gaussian of sigma ``0.5 * sqrt(scale**2 - 1)`` source
+pixels, ``scale = side / size`` (none when the window is not shrunk), so that a sharp camera image
+does not alias into the crop: bilinear sampling alone reads 4 of the ``scale**2`` pixels each crop
+pixel covers, and a crop then depends on the image's fine texture and on sub-pixel shifts of the box.
 
 Conventions:
     * images are ``H x W x 3`` ``uint8`` (any channel order: the pixels are only moved, never mixed
@@ -23,6 +27,9 @@ import numpy as np
 
 __all__ = [
     "DEFAULT_CONTEXT",
+    "CROP_FILTERS",
+    "antialias_sigma",
+    "prefiltered_region",
     "MAX_BOX_COORDINATE",
     "crop_window",
     "crop_matrix",
@@ -42,6 +49,29 @@ DEFAULT_CONTEXT = 1.2
 # Box coordinates beyond a million pixels (far past any camera) are refused: they would only make black crops, and
 # past ~1e154 the window's and the viewing ray's arithmetic overflows to inf.
 MAX_BOX_COORDINATE = 1e6
+# How the window's pixels are filtered before the warp: "none" (bilinear only: every model before the metadata key
+# crop_filter) or "antialias" (a Gaussian low-pass matched to the shrink, above).
+CROP_FILTERS = ("none", "antialias")
+
+
+def antialias_sigma(scale: float) -> float:
+    """The Gaussian's sigma in source pixels for a window shrunk ``scale`` times (0 when ``scale <= 1``)."""
+    return 0.5 * math.sqrt(scale * scale - 1.0) if scale > 1.0 else 0.0
+
+
+def prefiltered_region(image: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi: float,
+                       sigma: float) -> tuple[np.ndarray, int, int]:
+    """The part of ``image`` that a crop samples (source pixel indices ``[x_lo, x_hi] x [y_lo, y_hi]``, widened by
+    the filter's reach), Gaussian-filtered with ``sigma``: ``(region, x0, y0)``, the region's top-left pixel index
+    in ``image``. An empty overlap with the image returns an empty region."""
+    h, w = image.shape[:2]
+    pad = int(math.ceil(3.0 * sigma)) + 2
+    x0, y0 = max(0, int(math.floor(x_lo)) - pad), max(0, int(math.floor(y_lo)) - pad)
+    x1, y1 = min(w, int(math.ceil(x_hi)) + pad + 1), min(h, int(math.ceil(y_hi)) + pad + 1)
+    if x1 <= x0 or y1 <= y0:
+        return image[:0, :0], 0, 0
+    region = image[y0:y1, x0:x1]
+    return cv2.GaussianBlur(region, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE), x0, y0
 
 
 def validate_image(image, name: str = "image") -> np.ndarray:
@@ -151,7 +181,8 @@ def crop_matrix(box_xyxy, size: int, context: float = DEFAULT_CONTEXT) -> np.nda
     )
 
 
-def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None) -> np.ndarray:
+def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None,
+                   crop_filter: str = "none") -> np.ndarray:
     """Cut one box out of an image by the crop rule.
 
     Args:
@@ -160,11 +191,20 @@ def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFA
         size: output side ``S``.
         context: window side = ``max(w, h) * context``.
         out: optional preallocated ``S x S x 3`` ``uint8`` C-contiguous array to write into.
+        crop_filter: ``"none"`` (bilinear) or ``"antialias"`` (the window low-passed first; module docstring).
 
     Returns:
         ``S x S x 3`` ``uint8`` crop, zeros where the window leaves the image.
     """
     m = crop_matrix(box_xyxy, size, context)
+    sigma = antialias_sigma(m[0, 0]) if crop_filter == "antialias" else 0.0
+    if crop_filter not in CROP_FILTERS:
+        raise ValueError(f"crop_filter must be one of {CROP_FILTERS}; got {crop_filter!r}")
+    if sigma > 0.0:
+        far = m[0, 0] * size  # the window's side in source pixels
+        region, x0, y0 = prefiltered_region(image, m[0, 2], m[1, 2], m[0, 2] + far, m[1, 2] + far, sigma)
+        if region.size:
+            image, m = region, m - np.array([[0.0, 0.0, x0], [0.0, 0.0, y0]])
     return cv2.warpAffine(
         image,
         m,
@@ -176,7 +216,8 @@ def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFA
     )
 
 
-def crop_batch(image: np.ndarray, boxes_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None) -> np.ndarray:
+def crop_batch(image: np.ndarray, boxes_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None,
+               crop_filter: str = "none") -> np.ndarray:
     """Cut ``N`` boxes out of one image: one ``cv2.warpAffine`` per box into a ``(N, S, S, 3)`` batch.
 
     Args:
@@ -186,6 +227,7 @@ def crop_batch(image: np.ndarray, boxes_xyxy, size: int, context: float = DEFAUL
         context: window side = ``max(w, h) * context``.
         out: optional preallocated C-contiguous ``(>= N, S, S, 3)`` ``uint8`` buffer; the first ``N``
             entries are written and returned as a view.
+        crop_filter: as :func:`crop_to_square`.
 
     Returns:
         ``(N, S, S, 3)`` ``uint8``.
@@ -195,11 +237,11 @@ def crop_batch(image: np.ndarray, boxes_xyxy, size: int, context: float = DEFAUL
         out = np.empty((n, size, size, 3), dtype=np.uint8)
     batch = out[:n]
     for i in range(n):
-        crop_to_square(image, boxes_xyxy[i], size, context, out=batch[i])
+        crop_to_square(image, boxes_xyxy[i], size, context, out=batch[i], crop_filter=crop_filter)
     return batch
 
 
-def resize_crop(crop: np.ndarray, size: int, out=None) -> np.ndarray:
+def resize_crop(crop: np.ndarray, size: int, out=None, crop_filter: str = "none") -> np.ndarray:
     """Resample an already cut-out crop to ``S x S`` with the crop rule's warp.
 
     The crop is treated as the crop window itself (``context = 1``, box = the whole crop); a
@@ -209,12 +251,13 @@ def resize_crop(crop: np.ndarray, size: int, out=None) -> np.ndarray:
         crop: ``h x w x 3`` ``uint8``.
         size: output side ``S``.
         out: optional preallocated ``S x S x 3`` ``uint8`` array.
+        crop_filter: as :func:`crop_to_square`.
 
     Returns:
         ``S x S x 3`` ``uint8``.
     """
     h, w = crop.shape[:2]
-    return crop_to_square(crop, (0.0, 0.0, float(w), float(h)), size, context=1.0, out=out)
+    return crop_to_square(crop, (0.0, 0.0, float(w), float(h)), size, context=1.0, out=out, crop_filter=crop_filter)
 
 
 # --------------------------------------------------------------------------------------------- the canonical roll

@@ -572,9 +572,9 @@ class RefinerSession:
         crops, q_net = self._buffers(len(rows))
         for i, box in enumerate(rows):
             if D is None:
-                crop_to_square(image, box, size, context, out=crops[i])
+                crop_to_square(image, box, size, context, out=crops[i], crop_filter=self.contract.crop_filter)
             else:
-                crop_undistorted(image, box, size, context, K, D, out=crops[i])
+                crop_undistorted(image, box, size, context, K, D, out=crops[i], crop_filter=self.contract.crop_filter)
         return self._run(crops, q_net, q_in, q_rows, iterations, q_frame, views, settle_deg)
 
     def refine_crops(self, crops_bgr, q_in_wxyz, iterations: int = 1, *, q_order: str = "wxyz") -> RefineResult:
@@ -620,7 +620,8 @@ class RefinerSession:
             if c.shape[0] == self.input_size and c.shape[1] == self.input_size:
                 crops[i] = c
             else:
-                resize_crop(np.ascontiguousarray(c), self.input_size, out=crops[i])
+                resize_crop(np.ascontiguousarray(c), self.input_size, out=crops[i],
+                            crop_filter=self.contract.crop_filter)
         return self._run(crops, q_net, q_in, q_rows, iterations, None)
 
     # ------------------------------------------------------------------ internals

@@ -47,7 +47,8 @@ log = logging.getLogger(__name__)
 CACHE_FORMAT = "refiner-rt/crops/1"
 _CROPS, _MASKS, _INDEX, _MANIFEST, _LOCK = "crops.npy", "masks.npy", "index.npz", "manifest.json", ".lock"
 # Manifest keys that must match for a cache to be reused.
-_KEYS = ("format", "n", "size", "context", "samples_fingerprint", "sources_fingerprint", "crop_rule_version")
+_KEYS = ("format", "n", "size", "context", "crop_filter", "samples_fingerprint", "sources_fingerprint",
+         "crop_rule_version")
 _IMAGES_PER_TASK = 16
 
 
@@ -104,15 +105,17 @@ _worker_crops = None
 _worker_masks = None
 _worker_size = 0
 _worker_context = 0.0
+_worker_filter = "none"
 
 
-def _init_worker(crops_path: str, size: int, context: float, single_thread: bool = True, masks_path: str = "") -> None:
-    global _worker_crops, _worker_masks, _worker_size, _worker_context
+def _init_worker(crops_path: str, size: int, context: float, single_thread: bool = True, masks_path: str = "",
+                 crop_filter: str = "none") -> None:
+    global _worker_crops, _worker_masks, _worker_size, _worker_context, _worker_filter
     if single_thread:  # worker processes only: never change the caller's OpenCV threading
         cv2.setNumThreads(1)
     _worker_crops = np.load(crops_path, mmap_mode="r+")
     _worker_masks = np.load(masks_path, mmap_mode="r+") if masks_path else None
-    _worker_size, _worker_context = size, context
+    _worker_size, _worker_context, _worker_filter = size, context, crop_filter
 
 
 def read_mask(path: str, image_size) -> np.ndarray:
@@ -153,7 +156,8 @@ def _crop_images(tasks) -> int:
             )
         decoded = {}  # a YCB-Video label image serves every instance of its frame: decode it once
         for i, box, (mask_path, mask_value) in zip(indices, boxes, masks):
-            preprocess.crop_to_square(image, box, _worker_size, _worker_context, out=_worker_crops[i])
+            preprocess.crop_to_square(image, box, _worker_size, _worker_context, out=_worker_crops[i],
+                                      crop_filter=_worker_filter)
             if mask_path:
                 if mask_path not in decoded:
                     decoded[mask_path] = read_mask(mask_path, image_size)
@@ -204,6 +208,7 @@ class CropCache:
             )
         self.size = int(self.manifest["size"])
         self.context = float(self.manifest["context"])
+        self.crop_filter = str(self.manifest.get("crop_filter", "none"))
         with np.load(self.cache_dir / _INDEX, allow_pickle=False) as index:
             self.q_gt = index["q_gt"]
             self.R = index["R"]
@@ -272,6 +277,7 @@ class CropCache:
         context: float = preprocess.DEFAULT_CONTEXT,
         workers: int | None = 1,
         progress: bool = True,
+        crop_filter: str = "none",
     ) -> "CropCache":
         """Return the cache of ``samples`` in ``cache_dir``, building it if it is missing or stale.
 
@@ -290,6 +296,8 @@ class CropCache:
                 script that asks for ``workers > 1`` must call this under
                 ``if __name__ == "__main__":``; each worker's start-up costs about a second.
             progress: show a tqdm progress bar while building.
+            crop_filter: the crop rule's filter (:data:`refiner_rt.preprocess.CROP_FILTERS`; the model's
+                ``crop_filter``).
 
         Returns:
             The opened :class:`CropCache`.
@@ -309,32 +317,35 @@ class CropCache:
             raise ValueError(f"size must be a positive integer (crop side in pixels); got {size!r}")
         if not (isinstance(context, (int, float)) and np.isfinite(context) and context > 0):
             raise ValueError(f"context must be a positive number (window side / box side); got {context!r}")
+        if crop_filter not in preprocess.CROP_FILTERS:
+            raise ValueError(f"crop_filter must be one of {preprocess.CROP_FILTERS}; got {crop_filter!r}")
         if workers is None:
             workers = os.cpu_count() or 1
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ValueError(f"workers must be an integer >= 1 or None; got {workers!r}")
         cache_dir = Path(cache_dir)
         cache_dir.mkdir(parents=True, exist_ok=True)
-        expected = cls._expected_manifest(samples, int(size), float(context))
+        expected = cls._expected_manifest(samples, int(size), float(context), crop_filter)
         with _locked(cache_dir):
             reason = cls._stale_reason(cache_dir, expected)
             if reason is None:
                 log.info("crop cache %s: up to date (%d crops of %dx%d)", cache_dir, len(samples), size, size)
                 return cls(cache_dir)
             log.info("crop cache %s: building (%s)", cache_dir, reason)
-            cls._build(samples, int(size), float(context), cache_dir, expected, workers, progress)
+            cls._build(samples, int(size), float(context), cache_dir, expected, workers, progress, crop_filter)
             return cls(cache_dir)
 
     # --- internals ---
 
     @staticmethod
-    def _expected_manifest(samples: list[Sample], size: int, context: float) -> dict:
+    def _expected_manifest(samples: list[Sample], size: int, context: float, crop_filter: str = "none") -> dict:
         paths = sorted({s.image_path for s in samples} | {s.mask_path for s in samples if s.mask_path})
         return {
             "format": CACHE_FORMAT,
             "n": len(samples),
             "size": size,
             "context": context,
+            "crop_filter": crop_filter,
             "samples_fingerprint": samples_fingerprint(samples),
             "sources_fingerprint": _sources_fingerprint(paths),
             "crop_rule_version": crop_rule_version(),
@@ -361,7 +372,8 @@ class CropCache:
         return None
 
     @staticmethod
-    def _build(samples, size, context, cache_dir: Path, manifest: dict, workers: int, progress: bool) -> None:
+    def _build(samples, size, context, cache_dir: Path, manifest: dict, workers: int, progress: bool,
+               crop_filter: str = "none") -> None:
         from tqdm.auto import tqdm
 
         start = time.perf_counter()
@@ -386,7 +398,8 @@ class CropCache:
         bar = tqdm(total=n, unit="crop", desc=f"crop cache {cache_dir.name}", disable=not progress, smoothing=0.1)
         try:
             if workers == 1:
-                _init_worker(str(tmp_crops), size, context, single_thread=False, masks_path=str(tmp_masks or ""))
+                _init_worker(str(tmp_crops), size, context, single_thread=False, masks_path=str(tmp_masks or ""),
+                             crop_filter=crop_filter)
                 for chunk in chunks:
                     bar.update(_crop_images(chunk))
             else:
@@ -395,7 +408,8 @@ class CropCache:
                 # spawn: a fresh interpreter per worker, safe whatever threads (torch, OpenMP) the parent runs.
                 ctx = multiprocessing.get_context("spawn")
                 with ctx.Pool(workers, initializer=_init_worker,
-                              initargs=(str(tmp_crops), size, context, True, str(tmp_masks or ""))) as pool:
+                              initargs=(str(tmp_crops), size, context, True, str(tmp_masks or ""),
+                                        crop_filter)) as pool:
                     for done in pool.imap_unordered(_crop_images, chunks):
                         bar.update(done)
         except BaseException:

@@ -1,0 +1,140 @@
+"""The crop rule's anti-aliasing filter (metadata ``crop_filter``): against a whole-image Gaussian from SciPy and the
+rule's naive bilinear sampling, what it removes (aliasing of fine texture), where it does nothing (a window not
+shrunk), and that every path that cuts crops honours the model's choice: the runtime, the undistorted crop, the crop
+cache and the exporter's metadata tool."""
+
+import numpy as np
+import onnx
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from onnx_fixtures import contract, random_weight_model
+from refiner_rt import RefinerSession
+from refiner_rt.metadata import parse_metadata
+from refiner_rt.preprocess import antialias_sigma, crop_matrix, crop_to_square, resize_crop
+from test_preprocess import naive_crop
+
+RNG = np.random.default_rng(3)
+
+
+def test_antialias_is_a_gaussian_of_the_shrink_then_the_bilinear_rule():
+    img = RNG.integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    box, size, ctx = (52.3, 31.7, 101.9, 88.2), 16, 1.2
+    scale = crop_matrix(box, size, ctx)[0, 0]
+    sigma = antialias_sigma(scale)
+    assert sigma == pytest.approx(0.5 * np.sqrt(scale**2 - 1))
+    blurred = np.stack([gaussian_filter(img[..., c].astype(float), sigma, mode="nearest") for c in range(3)], -1)
+    ref = naive_crop(blurred, box, size, ctx)
+    fast = crop_to_square(img, box, size, ctx, crop_filter="antialias").astype(float)
+    # OpenCV blurs in uint8 with a 3-sigma kernel and fixed-point bilinear weights: a few grey levels.
+    assert np.abs(fast - ref).max() <= 4.0
+    assert np.abs(fast - naive_crop(img, box, size, ctx)).mean() > 10  # and it is not the plain rule
+
+
+def test_a_window_not_shrunk_is_the_plain_rule():
+    img = RNG.integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    for box, size in (((10, 5, 26, 21), 16), ((3.5, 2.25, 9.5, 8.25), 20)):
+        np.testing.assert_array_equal(crop_to_square(img, box, size, 1.0, crop_filter="antialias"),
+                                      crop_to_square(img, box, size, 1.0))
+    assert antialias_sigma(1.0) == antialias_sigma(0.5) == 0.0
+
+
+def test_fine_texture_does_not_alias_and_a_sub_pixel_shift_changes_little():
+    yy, xx = np.mgrid[0:480, 0:640]
+    stripes = np.repeat((((xx + yy) // 1) % 2 * 255).astype(np.uint8)[..., None], 3, axis=-1)  # 1-px checkers
+    box = (200.0, 150.0, 392.0, 342.0)  # 192 px: shrunk 3.6x into 64
+    shifted = (200.4, 150.3, 392.4, 342.3)
+    plain = [crop_to_square(stripes, b, 64).astype(float) for b in (box, shifted)]
+    smooth = [crop_to_square(stripes, b, 64, crop_filter="antialias").astype(float) for b in (box, shifted)]
+    assert smooth[0].std() < 0.25 * plain[0].std()  # the checkers average to grey instead of beating
+    assert np.abs(smooth[0] - smooth[1]).mean() < 0.25 * np.abs(plain[0] - plain[1]).mean()
+
+
+def test_unknown_filters_are_refused_by_name():
+    img = np.zeros((10, 10, 3), np.uint8)
+    with pytest.raises(ValueError, match="crop_filter must be one of"):
+        crop_to_square(img, (0, 0, 5, 5), 4, crop_filter="lanczos")
+    props = contract()
+    props["crop_filter"] = "lanczos"
+    with pytest.raises(ValueError, match="metadata key 'crop_filter'"):
+        parse_metadata(props)
+
+
+def test_metadata_round_trip_and_default():
+    assert parse_metadata(contract()).crop_filter == "none"
+    props = contract(crop_filter="antialias")
+    assert props["crop_filter"] == "antialias" and parse_metadata(props).crop_filter == "antialias"
+    assert parse_metadata(props).as_dict()["crop_filter"] == "antialias"
+    assert "crop_filter" not in parse_metadata(props).extra
+
+
+@pytest.mark.parametrize("crop_filter", ["none", "antialias"])
+def test_the_session_cuts_crops_as_its_model_says(crop_filter):
+    size = 16
+    sess = RefinerSession(random_weight_model(size=size, props=contract(input_size=size, crop_filter=crop_filter)))
+    img = RNG.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    box = np.array([[60.0, 40.0, 180.0, 170.0]])
+    q = np.array([[0.9, 0.1, -0.3, 0.3]])
+    q /= np.linalg.norm(q)
+    full = sess.refine(img, box, q).q_refined
+    for f in ("none", "antialias"):
+        crop = crop_to_square(img, box[0], size, 1.2, crop_filter=f)
+        via_crop = sess.refine_crops(crop[None], q).q_refined
+        if f == crop_filter:
+            np.testing.assert_allclose(full, via_crop, atol=1e-6)
+        else:
+            assert np.abs(full - via_crop).max() > 1e-4
+
+
+def test_refine_crops_filters_a_crop_larger_than_the_input():
+    big = RNG.integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    a = resize_crop(big, 16, crop_filter="antialias")
+    np.testing.assert_array_equal(a, crop_to_square(big, (0, 0, 64, 64), 16, 1.0, crop_filter="antialias"))
+    assert np.abs(a.astype(int) - resize_crop(big, 16).astype(int)).mean() > 5
+
+
+def test_undistorted_crops_are_filtered_too():
+    from refiner_rt.distortion import crop_undistorted
+
+    img = RNG.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    D = np.zeros(5)
+    box = (100.0, 60.0, 200.0, 160.0)
+    for f in ("none", "antialias"):
+        # with no distortion, the undistorted crop is the crop rule's (up to the remap's rounding)
+        got = crop_undistorted(img, box, 16, 1.2, K, D, crop_filter=f).astype(int)
+        assert np.abs(got - crop_to_square(img, box, 16, 1.2, crop_filter=f).astype(int)).max() <= 2
+
+
+def test_the_crop_cache_records_and_uses_the_filter(tmp_path):
+    import cv2
+
+    from models.data import CropCache
+    from models.data.sample import Sample
+
+    img = RNG.integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    path = tmp_path / "a.png"
+    cv2.imwrite(str(path), img)
+    s = Sample(image_path=str(path), obj_id="003_cracker_box", R=np.eye(3), t=np.array([0.0, 0.0, 1.0]),
+               box_xyxy=np.array([20.0, 20.0, 100.0, 90.0]), K=np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]]),
+               image_size=(160, 120), scene_id="000001", frame_id=1)
+    plain = CropCache.build_or_load([s], 16, tmp_path / "c", progress=False)
+    assert plain.crop_filter == "none"
+    smooth = CropCache.build_or_load([s], 16, tmp_path / "c", progress=False, crop_filter="antialias")
+    assert smooth.crop_filter == "antialias"  # the filter is part of the cache's key: rebuilt
+    np.testing.assert_array_equal(smooth.crops[0], crop_to_square(img, s.box_xyxy, 16, crop_filter="antialias"))
+
+
+def test_with_crop_filter_writes_a_copy_the_runtime_loads(tmp_path):
+    from export.crop_filter import with_crop_filter
+
+    src = tmp_path / "m.onnx"
+    src.write_bytes(random_weight_model(size=8))
+    dst = with_crop_filter(src, tmp_path / "aa.onnx", "antialias")
+    assert RefinerSession(str(dst)).metadata["crop_filter"] == "antialias"
+    a, b = onnx.load(str(src)), onnx.load(str(dst))
+    assert [i.raw_data for i in a.graph.initializer] == [i.raw_data for i in b.graph.initializer]
+    back = with_crop_filter(dst, tmp_path / "back.onnx", "none")
+    assert "crop_filter" not in RefinerSession(str(back)).metadata
+    with pytest.raises(ValueError, match="crop_filter must be one of"):
+        with_crop_filter(src, tmp_path / "x.onnx", "box")
