@@ -94,7 +94,7 @@ def compare(paths: list[Path], cache: Path | None) -> dict:
               "kept_scenes": sorted({f for f, k in zip(folders, keep) if k}), "models": []}
     for (p, net, info), n_seen in zip(loaded, models_seen):
         crops = cropset_for(splits_of(spec0), "test", spec0, net.input_size, net.config["crop_context"],
-                            cache_root=cache, progress=False).subset(np.flatnonzero(keep))
+                            cache_root=cache, progress=False, crop_filter=net.config["crop_filter"]).subset(np.flatnonzero(keep))
         errors = evaluate_errors(torch_predictor(net.eval()), crops, rotation_frame=info.get("rotation_frame", "camera"))
         spec = _spec(p, info)
         result["models"].append({"checkpoint": str(p), "data": spec.data, "split_mode": spec.split_mode,

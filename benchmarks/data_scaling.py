@@ -318,7 +318,8 @@ def run(args) -> dict:
             splits = load_splits(spec)
         except ValueError as exc:
             raise SystemExit(f"{mode} split: {exc}") from None
-        parts = {p: cropset_for(splits, p, spec, size, context, cache_root=args.cache, progress=not args.quiet)
+        parts = {p: cropset_for(splits, p, spec, size, context, cache_root=args.cache, progress=not args.quiet,
+                                crop_filter=probe.config["crop_filter"])
                  for p in ("train_base", "val", "test")}
         train_all, val, test = parts["train_base"], parts["val"], parts["test"]
         try:

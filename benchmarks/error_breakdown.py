@@ -57,7 +57,7 @@ def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
         if not getattr(splits, part):  # e.g. no fine-tuning part
             continue
         crops = cropset_for(splits, part, spec, net.input_size, net.config["crop_context"], cache_root=cache,
-                            progress=False)
+                            progress=False, crop_filter=net.config["crop_filter"])
         if objects:  # a per-object model of a split over more objects: its own object's crops only
             crops = crops.subset(np.isin(crops.obj_ids, objects))
             if len(crops) == 0:

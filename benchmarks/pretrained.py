@@ -291,14 +291,15 @@ def whole_folder_spec(data: Path, obj: str, part: str):
 
 
 def evaluate_fresh(onnx_paths: dict[str, Path], obj: str, data: Path, cache: Path, rotation_frame: str,
-                   input_size: int, crop_context: float, noise: str = "uniform:0:30") -> dict:
+                   input_size: int, crop_context: float, noise: str = "uniform:0:30", crop_filter: str = "none") -> dict:
     """Errors of each ONNX model on every instance of ``obj`` in ``data``, a folder of rendered scenes that no
     shipped model trained on (``refiner-rt render`` with a seed other than the training set's) (:func:`_score`)."""
     from models.pipeline import cropset_for, load_splits
 
     spec = whole_folder_spec(data, obj, "test")
     splits = load_splits(spec)
-    test = cropset_for(splits, "test", spec, input_size, crop_context, cache_root=cache, progress=False)
+    test = cropset_for(splits, "test", spec, input_size, crop_context, cache_root=cache, progress=False,
+                       crop_filter=crop_filter)
     folder_scenes = sum(1 for p in Path(data).iterdir() if (p / "scene_gt.json").is_file())  # BOP scenes
     return {"test_scenes": _scenes(test), "folder_scenes": folder_scenes,
             "split": {**spec.as_dict(), "data": data.resolve().name},
@@ -495,7 +496,7 @@ def _fresh_quantization(fp32: Path, obj: str, heldout: Path, calibration: Path, 
 
     c = parse_metadata(_metadata(fp32))
     return (lambda paths: evaluate_fresh(paths, obj, heldout, cache, c.rotation_frame, c.input_size, c.crop_context,
-                                         noise),
+                                         noise, crop_filter=c.crop_filter),
             lambda: dataset_calibration(calibration, c, cache_root=cache,
                                         spec=whole_folder_spec(calibration, obj, "train_base")))
 

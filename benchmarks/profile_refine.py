@@ -74,7 +74,7 @@ def overhead(sess: RefinerSession, image, boxes, q_in, seconds: float) -> dict:
     K = frame_K(sess)
     s = sess.input_size
     boxes = validate_boxes(boxes)
-    crops = np.stack([crop_to_square(image, b, s, sess.contract.crop_context) for b in boxes])
+    crops = np.stack([crop_to_square(image, b, s, sess.contract.crop_context, crop_filter=sess.contract.crop_filter) for b in boxes])
     if sess.contract.channel_order == "RGB":
         crops = np.ascontiguousarray(crops[..., ::-1])
     feed = {INPUT_IMAGE: crops, INPUT_QUATERNION: q_in.astype(np.float32)}
@@ -130,7 +130,7 @@ def ort_profile(sess: RefinerSession, image, boxes, q_in, calls: int, workdir: P
     prof = ort.InferenceSession(source, sess_options=options, providers=sess.providers,
                                 disabled_optimizers=list(DISABLED_OPTIMIZERS))
     s = sess.input_size
-    crops = np.stack([crop_to_square(image, b, s, sess.contract.crop_context) for b in validate_boxes(boxes)])
+    crops = np.stack([crop_to_square(image, b, s, sess.contract.crop_context, crop_filter=sess.contract.crop_filter) for b in validate_boxes(boxes)])
     feed = {INPUT_IMAGE: crops, INPUT_QUATERNION: q_in.astype(np.float32)}
     for _ in range(calls):
         prof.run([OUTPUT_QUATERNION], feed)

@@ -294,7 +294,7 @@ def build_model_metadata(
         version=refiner_rt.__version__,
         extra={"model_config": model.config, **extra},
         roll=model_roll(model),
-        crop_filter=model.config.get("crop_filter", "none"),
+        crop_filter=model.config["crop_filter"],
     )
 
 

@@ -346,7 +346,7 @@ def dataset_calibration(
                 else DataSpec(data=str(data_dir)))
     crops = cropset_for(
         load_splits(spec), "train_base", spec, contract.input_size, contract.crop_context,
-        cache_root=cache_root, progress=False,
+        cache_root=cache_root, progress=False, crop_filter=contract.crop_filter,
     )
     if len(crops) < 2:
         raise ValueError(f"{data_dir}: the training split has {len(crops)} crop(s); calibration needs at least 2")

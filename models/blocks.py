@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from refiner_rt.metadata import CHANNEL_ORDERS, MAX_CROP_CONTEXT, MAX_INPUT_SIZE
-from refiner_rt.preprocess import DEFAULT_CONTEXT
+from refiner_rt.preprocess import CROP_FILTERS, DEFAULT_CONTEXT
 
 __all__ = [
     "IMAGENET_MEAN_RGB",
@@ -241,6 +241,9 @@ class Refiner(nn.Module):
         * ``mean_rgb``, ``std_rgb`` (3 floats, RGB order, [0, 1] units): normalisation; ImageNet by default.
         * ``crop_context`` (float from 1 to ``MAX_CROP_CONTEXT`` = 4): crop-rule context factor the model is
           trained with (default 1.2); written to the ONNX metadata.
+        * ``crop_filter`` (str): the crop rule's filter, ``"none"`` (default: every model before the key) or
+          ``"antialias"`` (:func:`refiner_rt.preprocess.crop_to_square`); the training crops are cut with it and the
+          ONNX metadata tells the runtime.
         * ``pose_widths`` (list of int): pose stage widths after the 4 inputs; default ``[64, 512, 4096]``.
         * ``head_widths`` (list of int): refinement head hidden widths; default ``[1024, 256, 64]``.
 
@@ -258,6 +261,7 @@ class Refiner(nn.Module):
         "mean_rgb": list(IMAGENET_MEAN_RGB),
         "std_rgb": list(IMAGENET_STD_RGB),
         "crop_context": DEFAULT_CONTEXT,
+        "crop_filter": "none",
         "pose_widths": [64, 512, 4096],
         "head_widths": [1024, 256, 64],
     }
@@ -296,6 +300,8 @@ class Refiner(nn.Module):
         if not isinstance(context, (int, float)) or isinstance(context, bool) or not 1.0 <= context <= MAX_CROP_CONTEXT:
             raise ValueError(f"config['crop_context'] must be a number from 1 to {MAX_CROP_CONTEXT:g}; got {context!r}")
         cfg["crop_context"] = float(context)
+        if cfg["crop_filter"] not in CROP_FILTERS:
+            raise ValueError(f"config['crop_filter'] must be one of {CROP_FILTERS}; got {cfg['crop_filter']!r}")
         cfg["pose_widths"] = validate_int_list(cfg, "pose_widths")
         cfg["head_widths"] = validate_int_list(cfg, "head_widths", min_len=0)
         return cfg

@@ -111,7 +111,7 @@ def run_eval(
         spec.objects = objects
     splits = load_splits(spec)
     test = cropset_for(splits, "test", spec, int(c["input_size"]), float(c["crop_context"]),
-                       cache_root=cache_root, workers=workers, progress=progress)
+                       cache_root=cache_root, workers=workers, progress=progress, crop_filter=c["crop_filter"])
     if per_object:
         preds = {obj: _load(p, threads, device)[0] for obj, p in per_object.items() if obj in test.objects}
         for obj in test.objects:

@@ -207,10 +207,12 @@ def writable_cache_root(data: Path, cache_root: str | Path | None = None) -> Pat
     return Path.home() / ".cache" / "refiner-rt" / "crops" / f"{data.resolve().name}-{tag}"
 
 
-def _cache_dir(spec: DataSpec, part: str, size: int, context: float, cache_root: Path | None) -> Path:
+def _cache_dir(spec: DataSpec, part: str, size: int, context: float, cache_root: Path | None,
+               crop_filter: str = "none") -> Path:
     if part != "train_base":
         spec = spec.held_out()  # extra training folders change no other part: share its cache
-    key = json.dumps({**spec.as_dict(), "part": part, "size": size, "context": context}, sort_keys=True)
+    key = json.dumps({**spec.as_dict(), "part": part, "size": size, "context": context,
+                      **({"crop_filter": crop_filter} if crop_filter != "none" else {})}, sort_keys=True)
     tag = hashlib.sha1(key.encode()).hexdigest()[:10]
     return writable_cache_root(Path(spec.data), cache_root) / f"{spec.split_mode}_{part}_{size}_{tag}"
 
@@ -226,6 +228,7 @@ def cropset_for(
     workers: int = 1,
     progress: bool = True,
     obj_id: str | None = None,
+    crop_filter: str = "none",
 ) -> CropSet:
     """The CropSet of one split part (optionally one object), through the crop cache.
 
@@ -239,6 +242,7 @@ def cropset_for(
         workers: processes that build the cache.
         progress: progress bar while building.
         obj_id: only this object's samples.
+        crop_filter: the crop rule's filter (the model's ``config["crop_filter"]``).
     """
     from models.data import CropCache
 
@@ -257,7 +261,8 @@ def cropset_for(
             + ": render more scenes (refiner-rt render --frames), or ask for fewer crops per part (refiner-rt train "
             "--base-per-object, --per-object, --val-per-object, --test-per-object)")
     cache = CropCache.build_or_load(
-        samples, size, _cache_dir(spec, part, size, context, cache_root), context=context, workers=workers, progress=progress
+        samples, size, _cache_dir(spec, part, size, context, cache_root, crop_filter), context=context, workers=workers,
+        progress=progress, crop_filter=crop_filter,
     )
     cs = CropSet(
         crops=cache.crops,
@@ -310,5 +315,5 @@ def checkpoint_test_set(
     spec = checkpoint_spec(info, data)
     splits = load_splits(spec.held_out())  # the split is drawn without extra training folders
     test = cropset_for(splits, "test", spec, model.input_size, model.config["crop_context"],
-                       cache_root=cache_root, progress=progress)
+                       cache_root=cache_root, progress=progress, crop_filter=model.config.get("crop_filter", "none"))
     return (test, spec, list(splits.test)) if with_samples else (test, spec)

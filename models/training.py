@@ -234,7 +234,7 @@ def _train_pass(recipe: TrainRecipe, out: Path, *, resume: bool, progress: bool,
     wanted = (["val"] + (["train_base"] if base_model is None else [])
               + (["train_finetune"] if recipe.per_object else []))
     parts = {p: cropset_for(splits, p, spec, size, context, cache_root=recipe.cache_root, workers=recipe.workers,
-                            progress=show) for p in wanted}
+                            progress=show, crop_filter=model.config["crop_filter"]) for p in wanted}
     first = "train_base" if base_model is None else "train_finetune"
     check_masks(recipe.background, recipe.occlude,
                 all(parts[p].masks is not None for p in parts if p != "val"),

@@ -138,3 +138,16 @@ def test_with_crop_filter_writes_a_copy_the_runtime_loads(tmp_path):
     assert "crop_filter" not in RefinerSession(str(back)).metadata
     with pytest.raises(ValueError, match="crop_filter must be one of"):
         with_crop_filter(src, tmp_path / "x.onnx", "box")
+
+
+def test_a_network_config_names_the_filter_and_the_export_passes_it_on():
+    import models
+    from export.onnx_export import build_model_metadata
+
+    net = models.build_refiner("shallow", crop_filter="antialias")
+    assert net.config["crop_filter"] == "antialias"
+    assert models.build_refiner("shallow").config["crop_filter"] == "none"
+    props = build_model_metadata(net, info={"objects": ["003_cracker_box"], "train_noise": "uniform:0:30"})
+    assert parse_metadata(props).crop_filter == "antialias"
+    with pytest.raises(ValueError, match=r"config\['crop_filter'\] must be one of"):
+        models.build_refiner("shallow", crop_filter="bicubic")
