@@ -22,7 +22,7 @@ import math
 import cv2
 import numpy as np
 
-from refiner_rt.preprocess import CROP_FILTERS, antialias_sigma, crop_matrix, prefiltered_region
+from refiner_rt.preprocess import CROP_FILTERS, crop_matrix, prefiltered_region
 
 __all__ = ["DISTORTION_LENGTHS", "validate_D", "undistort_boxes", "crop_undistorted"]
 
@@ -113,16 +113,15 @@ def crop_undistorted(image: np.ndarray, box_xyxy, size: int, context: float, K: 
     pts = np.stack([xn, gy, np.ones_like(xn)], axis=-1).reshape(-1, 1, 3)
     raw, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, D)
     maps = raw.reshape(size, size, 2).astype(np.float32)
-    sigma = antialias_sigma(m[0, 0]) if crop_filter == "antialias" else 0.0
     if crop_filter not in CROP_FILTERS:
         raise ValueError(f"crop_filter must be one of {CROP_FILTERS}; got {crop_filter!r}")
-    if sigma > 0.0:
+    if crop_filter == "antialias" and m[0, 0] > 1.0:
         inside = np.isfinite(maps).all(axis=-1)
         if inside.any():
             lo, hi = maps[inside].min(axis=0), maps[inside].max(axis=0)
-            region, x0, y0 = prefiltered_region(image, lo[0], lo[1], hi[0], hi[1], sigma)
-            if region.size:
+            region, x0, y0, f = prefiltered_region(image, lo[0], lo[1], hi[0], hi[1], m[0, 0])
+            if region.size and f > 1:  # the same sample points, in the region's pixels
                 image = region
-                maps = maps - np.array([x0, y0], np.float32)
+                maps = ((maps - np.array([x0, y0], np.float32) + 0.5) / np.float32(f) - 0.5).astype(np.float32)
     return cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, dst=out,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))

@@ -6,10 +6,11 @@ functions, so a crop seen at run time is produced exactly as the crops the netwo
 Rule (design.md section 2): a square window centred on the box centre with side
 ``max(w, h) * context``, resampled to ``size x size`` in one affine warp (bilinear), parts outside
 the image filled with zeros. With ``crop_filter="antialias"`` (a model's metadata says which) the
-window's pixels are first low-passed by a Gaussian of sigma ``0.5 * sqrt(scale**2 - 1)`` source
-pixels, ``scale = side / size`` (none when the window is not shrunk), so that a sharp camera image
-does not alias into the crop: bilinear sampling alone reads 4 of the ``scale**2`` pixels each crop
-pixel covers, and a crop then depends on the image's fine texture and on sub-pixel shifts of the box.
+window's pixels are first averaged over blocks of ``f x f``, ``f`` the largest power of two not above
+the shrink ``scale = side / size`` (:func:`prefiltered_region`; nothing when ``scale < 2``), so that
+the bilinear warp shrinks by less than 2: bilinear sampling alone reads 4 of the ``scale**2`` pixels
+each crop pixel covers, and a sharp camera image then aliases into the crop (the crop depends on the
+image's fine texture and on sub-pixel shifts of the box).
 
 Conventions:
     * images are ``H x W x 3`` ``uint8`` (any channel order: the pixels are only moved, never mixed
@@ -28,7 +29,6 @@ import numpy as np
 __all__ = [
     "DEFAULT_CONTEXT",
     "CROP_FILTERS",
-    "antialias_sigma",
     "prefiltered_region",
     "MAX_BOX_COORDINATE",
     "crop_window",
@@ -54,24 +54,29 @@ MAX_BOX_COORDINATE = 1e6
 CROP_FILTERS = ("none", "antialias")
 
 
-def antialias_sigma(scale: float) -> float:
-    """The Gaussian's sigma in source pixels for a window shrunk ``scale`` times (0 when ``scale <= 1``)."""
-    return 0.5 * math.sqrt(scale * scale - 1.0) if scale > 1.0 else 0.0
-
-
 def prefiltered_region(image: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi: float,
-                       sigma: float) -> tuple[np.ndarray, int, int]:
+                       scale: float) -> tuple[np.ndarray, int, int, int]:
     """The part of ``image`` that a crop samples (source pixel indices ``[x_lo, x_hi] x [y_lo, y_hi]``, widened by
-    the filter's reach), Gaussian-filtered with ``sigma``: ``(region, x0, y0)``, the region's top-left pixel index
-    in ``image``. An empty overlap with the image returns an empty region."""
+    a block), averaged over blocks of ``f x f`` pixels, ``f`` the largest power of two not above ``scale`` (halved
+    ``log2(f)`` times by ``cv2.INTER_AREA``, OpenCV's fast path; the blocks aligned on the first crop pixel's
+    footprint), so that the bilinear warp after it shrinks by less than 2. Returns ``(region, x0, y0, f)``: region
+    pixel ``(i, j)`` averages the image's pixels ``[x0 + i f, x0 + (i + 1) f) x [y0 + j f, y0 + (j + 1) f)``, so an
+    image index ``x`` is region index ``(x - x0 + 0.5) / f - 0.5``. ``f = 1`` (no change) when ``scale < 2``; an empty
+    overlap with the image returns an empty region."""
     h, w = image.shape[:2]
-    pad = int(math.ceil(3.0 * sigma)) + 2
-    x0, y0 = max(0, int(math.floor(x_lo)) - pad), max(0, int(math.floor(y_lo)) - pad)
-    x1, y1 = min(w, int(math.ceil(x_hi)) + pad + 1), min(h, int(math.ceil(y_hi)) + pad + 1)
+    f = 1 << max(0, int(math.floor(math.log2(scale)))) if scale >= 2.0 else 1
+    # the first crop pixel's footprint starts half a shrink before its sample point
+    x0 = int(math.floor(x_lo - 0.5 * scale + 0.5)) - f
+    y0 = int(math.floor(y_lo - 0.5 * scale + 0.5)) - f
+    x0, y0 = x0 % f if x0 < 0 else x0, y0 % f if y0 < 0 else y0  # inside the image, still on the blocks
+    x1 = min(w - (w - x0) % f, x0 + f * -(-(int(math.ceil(x_hi)) + 2 * f - x0) // f))  # whole blocks, inside
+    y1 = min(h - (h - y0) % f, y0 + f * -(-(int(math.ceil(y_hi)) + 2 * f - y0) // f))
     if x1 <= x0 or y1 <= y0:
-        return image[:0, :0], 0, 0
+        return image[:0, :0], 0, 0, 1
     region = image[y0:y1, x0:x1]
-    return cv2.GaussianBlur(region, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE), x0, y0
+    while region.shape[0] % 2 == 0 and region.shape[1] % 2 == 0 and (x1 - x0) // region.shape[1] < f:
+        region = cv2.resize(region, (region.shape[1] // 2, region.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    return region, x0, y0, f
 
 
 def validate_image(image, name: str = "image") -> np.ndarray:
@@ -197,14 +202,15 @@ def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFA
         ``S x S x 3`` ``uint8`` crop, zeros where the window leaves the image.
     """
     m = crop_matrix(box_xyxy, size, context)
-    sigma = antialias_sigma(m[0, 0]) if crop_filter == "antialias" else 0.0
     if crop_filter not in CROP_FILTERS:
         raise ValueError(f"crop_filter must be one of {CROP_FILTERS}; got {crop_filter!r}")
-    if sigma > 0.0:
-        far = m[0, 0] * size  # the window's side in source pixels
-        region, x0, y0 = prefiltered_region(image, m[0, 2], m[1, 2], m[0, 2] + far, m[1, 2] + far, sigma)
-        if region.size:
-            image, m = region, m - np.array([[0.0, 0.0, x0], [0.0, 0.0, y0]])
+    if crop_filter == "antialias" and m[0, 0] > 1.0:
+        last = m[0, 0] * (size - 1)  # the last sample's offset from the first, in source pixels
+        region, x0, y0, f = prefiltered_region(image, m[0, 2], m[1, 2], m[0, 2] + last, m[1, 2] + last, m[0, 0])
+        if region.size and f > 1:  # the same sample points, in the region's pixels
+            image = region
+            m = np.array([[m[0, 0] / f, 0.0, (m[0, 2] - x0 + 0.5) / f - 0.5],
+                          [0.0, m[1, 1] / f, (m[1, 2] - y0 + 0.5) / f - 0.5]])
     return cv2.warpAffine(
         image,
         m,

@@ -11,24 +11,35 @@ from scipy.ndimage import gaussian_filter
 from onnx_fixtures import contract, random_weight_model
 from refiner_rt import RefinerSession
 from refiner_rt.metadata import parse_metadata
-from refiner_rt.preprocess import antialias_sigma, crop_matrix, crop_to_square, resize_crop
+from refiner_rt.preprocess import crop_matrix, crop_to_square, prefiltered_region, resize_crop
 from test_preprocess import naive_crop
 
 RNG = np.random.default_rng(3)
 
 
-def test_antialias_is_a_gaussian_of_the_shrink_then_the_bilinear_rule():
-    img = RNG.integers(0, 256, (120, 160, 3), dtype=np.uint8)
-    box, size, ctx = (52.3, 31.7, 101.9, 88.2), 16, 1.2
-    scale = crop_matrix(box, size, ctx)[0, 0]
-    sigma = antialias_sigma(scale)
-    assert sigma == pytest.approx(0.5 * np.sqrt(scale**2 - 1))
-    blurred = np.stack([gaussian_filter(img[..., c].astype(float), sigma, mode="nearest") for c in range(3)], -1)
-    ref = naive_crop(blurred, box, size, ctx)
-    fast = crop_to_square(img, box, size, ctx, crop_filter="antialias").astype(float)
-    # OpenCV blurs in uint8 with a 3-sigma kernel and fixed-point bilinear weights: a few grey levels.
-    assert np.abs(fast - ref).max() <= 4.0
-    assert np.abs(fast - naive_crop(img, box, size, ctx)).mean() > 10  # and it is not the plain rule
+def test_an_integer_shrink_averages_each_crop_pixels_block():
+    """A window shrunk exactly 4 times on the pixel grid: each crop pixel is the mean of the 4 x 4 image pixels it
+    covers (numpy's block mean), where bilinear sampling alone reads 4 of them."""
+    img = RNG.integers(0, 256, (200, 240, 3), dtype=np.uint8)
+    box, size = (40.0, 48.0, 104.0, 112.0), 16  # 64 px into 16, the window on whole pixels
+    blocks = img[48:112, 40:104].astype(float).reshape(16, 4, 16, 4, 3).mean(axis=(1, 3))
+    fast = crop_to_square(img, box, size, 1.0, crop_filter="antialias").astype(float)
+    assert np.abs(fast - blocks).max() <= 1.0  # uint8 rounding
+    assert np.abs(crop_to_square(img, box, size, 1.0).astype(float) - blocks).mean() > 10
+
+
+def test_a_shrink_between_powers_of_two_is_near_an_ideal_low_pass():
+    """5.4x: blocks of 4, then bilinear at 1.35x; the crop is near a Gaussian low-pass of the whole shrink (SciPy)
+    followed by the plain rule, and far from the plain rule on the sharp image."""
+    img = RNG.integers(0, 256, (200, 240, 3), dtype=np.uint8)
+    box, size = (40.0, 48.0, 126.4, 134.4), 16
+    assert crop_matrix(box, size, 1.0)[0, 0] == pytest.approx(5.4)
+    a = crop_to_square(img, box, size, 1.0, crop_filter="antialias").astype(float)
+    sigma = 5.4 / np.sqrt(12)  # the box filter of the footprint's width
+    ideal = naive_crop(np.stack([gaussian_filter(img[..., c].astype(float), sigma, mode="nearest")
+                                 for c in range(3)], -1), box, size, 1.0)
+    plain = crop_to_square(img, box, size, 1.0).astype(float)
+    assert np.abs(a - ideal).mean() < 0.5 * np.abs(plain - ideal).mean()
 
 
 def test_a_window_not_shrunk_is_the_plain_rule():
@@ -36,7 +47,7 @@ def test_a_window_not_shrunk_is_the_plain_rule():
     for box, size in (((10, 5, 26, 21), 16), ((3.5, 2.25, 9.5, 8.25), 20)):
         np.testing.assert_array_equal(crop_to_square(img, box, size, 1.0, crop_filter="antialias"),
                                       crop_to_square(img, box, size, 1.0))
-    assert antialias_sigma(1.0) == antialias_sigma(0.5) == 0.0
+    assert prefiltered_region(img, 3.0, 3.0, 20.0, 20.0, 1.9)[3] == 1  # under 2x: no blocks
 
 
 def test_fine_texture_does_not_alias_and_a_sub_pixel_shift_changes_little():
