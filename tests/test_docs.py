@@ -16,7 +16,8 @@ from refiner_rt import pretrained as pt
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 DOCS = [README, ROOT / "benchmarks" / "RESULTS.md", ROOT / "benchmarks" / "DATA.md",
-        ROOT / "refiner_rt" / "samples" / "README.md", *sorted((ROOT / "benchmarks" / "studies").glob("**/README.md"))]
+        ROOT / "refiner_rt" / "samples" / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+        *sorted((ROOT / "benchmarks" / "studies").glob("**/README.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 
 
