@@ -2,7 +2,7 @@
 
 This is what robot code embeds. It needs numpy, OpenCV and onnxruntime only (never torch).
 
-Conventions (design.md section 2):
+Conventions (docs/design.md §2):
     * quaternions are ``wxyz`` (scalar first, Hamilton product), float64, returned with ``w >= 0``;
     * rotations map object coordinates to camera coordinates (``x_cam = R @ x_obj + t``);
     * images are ``H x W x 3`` ``uint8`` **BGR** (what ``cv2.imread`` gives);

@@ -4,7 +4,7 @@ The paper refines one frame from a detector's coarse pose. In video the best coa
 usually the refined pose of frame ``t - 1``: a detector's pose is needed once (and again only to recover), and
 every later frame costs one network pass per object. ``benchmarks/tracking.py`` measures this on rendered video.
 
-Conventions (design.md section 2):
+Conventions (docs/design.md §2):
     * quaternions are ``wxyz`` (scalar first, Hamilton product), float64, returned with ``w >= 0``;
     * rotations map object coordinates to camera coordinates (``x_cam = R @ x_obj + t``);
     * images are ``H x W x 3`` ``uint8`` **BGR** (what ``cv2.imread`` gives);
