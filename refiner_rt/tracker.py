@@ -390,7 +390,7 @@ class RefinerTracker:
                     if q_det is not None:
                         fused.append((i, q_det))
             # a cascade runs its coarse refiner, then its fine one, on every update: with the fine refiner alone from
-            # frame to frame its small errors added up (benchmarks/studies/cascade: median 2.6 degrees against 1.8)
+            # frame to frame its small errors added up (benchmarks/studies/cascade, "Tracking on the cascade")
             coarse = [True] * (len(ids) + len(fused))
             both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
                                 np.array(q_in + [q for _, q in fused]), coarse).tolist()
