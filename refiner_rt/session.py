@@ -515,7 +515,7 @@ class RefinerSession:
                 this many degrees, and an object whose pass is not kept stops there (it has settled: a pass that
                 turns a result by less is the refiner's floor, not a correction). From inputs within the refiner's
                 range the first pass then stands nearly everywhere; from coarse poses 30-60 degrees off, beyond the
-                range it trained on, the later passes go on (README, "Coarse poses far off").
+                range it trained on, the later passes go on (docs/cascade.md, "Coarse poses far off").
                 :data:`SETTLE_DEG` is the value measured there. A number in ``(0, 180)`` with ``iterations >= 2``,
                 or None (default): every pass is kept. Later passes run only for the objects still going on.
 
