@@ -156,6 +156,14 @@ def test_readme_cascade_code_runs_after_the_robot_code(tmp_path):
     assert "cascade" in done.stdout
 
 
+def test_readme_stays_a_short_read_with_one_results_table():
+    """The README is read top to bottom: at most 300 lines and one generated results table; the rest lives in docs/
+    and benchmarks/RESULTS.md."""
+    text = README.read_text()
+    assert len(text.splitlines()) <= 300, f"README.md has {len(text.splitlines())} lines; move detail to docs/"
+    assert re.findall(r"<!-- generated: ([\w-]+) -->", text) == ["shipped-models-short"]
+
+
 def test_readme_example_uses_a_shipped_model_with_K():
     code = _readme_python_block()
     assert 'RefinerSession.pretrained("003_cracker_box"' in code and "K=K" in code
