@@ -126,8 +126,9 @@ REFERENCE_COMMAND = ("refiner-rt bench --cpu --shipped first --archs shallow,vgg
 
 
 def speed_reference() -> str:
-    """The README's one speed table: every row of ``benchmarks/results/bench_reference.json`` (one run on the reference
-    machine, batch 1, one thread), with its ratio over the paper's shallow network of the same precision."""
+    """The reference machine's speed table (RESULTS.md, "The reference machine"): every row of
+    ``benchmarks/results/bench_reference.json`` (one run on the reference machine, batch 1, one thread), with its
+    ratio over the paper's shallow network of the same precision."""
     if not (RESULTS / REFERENCE_BENCH).is_file():
         return f"Not measured yet: `{REFERENCE_COMMAND}`."
     rows = [r for r in json.loads((RESULTS / REFERENCE_BENCH).read_text()) if r["runtime"] == "onnxruntime"]

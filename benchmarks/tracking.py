@@ -29,7 +29,7 @@ frame, every 2nd, every 4th: larger motion between updates), four estimates are 
   ``--max-correction-deg``): the camera's turn, estimated from every tracked object of the scene (they stand still),
   turns each track before its update and carries hidden objects through their occlusions.
 
-Coarse poses follow design.md section 1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
+Coarse poses follow docs/design.md §1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
 ``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
 of a scene are tracked by one tracker, each with its own shipped model, one ``update()`` per frame. Reported per method
 and step: mean error over all scored frames, the mean error at each sequence's last scored frame, the share of

@@ -1,6 +1,6 @@
 """Export a refiner to a self-contained, parity-checked ONNX model carrying the refiner-rt metadata contract.
 
-Graph (design.md section 5; names from :mod:`refiner_rt.metadata`):
+Graph (docs/design.md §4.1; names from :mod:`refiner_rt.metadata`):
     * input ``image``: ``(batch, S, S, 3)`` uint8, NHWC, in the model's channel order (BGR by default);
     * input ``q_in``: ``(batch, 4)`` float32, ``wxyz``, the coarse rotation object-to-camera;
     * output ``q_out``: ``(batch, 4)`` float32, ``wxyz``, unit norm; ``q_refined = q_in * q_out``.

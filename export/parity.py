@@ -1,6 +1,6 @@
 """Parity between an exported ONNX refiner and its PyTorch model: onnxruntime (and OpenCV's cv2.dnn) vs torch.
 
-The exporter treats export as a test (design.md section 5): the same fixed-seed random inputs (uint8 crops and unit
+The exporter treats export as a test (docs/design.md §4.4): the same fixed-seed random inputs (uint8 crops and unit
 quaternions) go through PyTorch and onnxruntime, in batches of different sizes so the dynamic batch axis is
 exercised, and the largest absolute difference of any ``q_out`` component, ``max |dq|``, must not exceed the
 tolerance (fp32: 1e-4).
@@ -35,7 +35,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_TOL = 1e-4  # fp32 max |dq| (design.md section 5)
+DEFAULT_TOL = 1e-4  # fp32 max |dq| (docs/design.md §4.4)
 MIN_PARITY_INPUTS = 64
 PARITY_SEED = 0
 _MAX_BATCH = 16

@@ -8,7 +8,7 @@
     recipe = models.load_recipe("paper").merged(data="renders/", objects=["003_cracker_box"])
     models.train(recipe, out="runs/paper.pt")         # a whole run: base, per-object fine-tuning, continuations
 
-Conventions (design.md section 2): quaternions ``wxyz``, rotations object-to-camera, images ``(N, S, S, 3)``
+Conventions (docs/design.md §2): quaternions ``wxyz``, rotations object-to-camera, images ``(N, S, S, 3)``
 uint8 NHWC in the model's channel order (BGR by default).
 """
 

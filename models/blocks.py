@@ -2,10 +2,10 @@
 an ONNX-friendly local response norm, and the :class:`Refiner` base class that wires them together.
 
 The network follows Jain & Dellaert, "Fast 3D Pose Refinement with RGB Images", section "Network Architecture"
-(design.md section 1): a CNN feature stage on the crop, a pose stage that expands the coarse quaternion to a
+(docs/design.md §1): a CNN feature stage on the crop, a pose stage that expands the coarse quaternion to a
 feature vector, and a refinement head on their concatenation whose 4 outputs are unit-normalised.
 
-Conventions (design.md section 2):
+Conventions (docs/design.md §2):
     * quaternions are ``wxyz`` (scalar first), Hamilton product; ``q_in`` is the coarse rotation
       object-to-camera, the output ``q_out`` the correction with ``q_refined = q_in * q_out``;
     * the image input is ``(N, S, S, 3)`` ``uint8`` NHWC in the model's ``channel_order`` (default ``"BGR"``,

@@ -1,4 +1,4 @@
-"""Checkpoint files: save a refiner with its config and training info, load it back safely (design.md section 5).
+"""Checkpoint files: save a refiner with its config and training info, load it back safely (docs/design.md §5).
 
 A checkpoint is a ``torch.save`` dict::
 

@@ -12,7 +12,7 @@ Differences from the paper's design (``models.shallow``), each chosen by measure
     * the head is narrower (``3d -> 256 -> 64 -> 4``), so the model is about 4x smaller than the
       paper's and faster on a CPU.
 
-Contract unchanged (design.md section 5): ``forward(image (N, S, S, 3) uint8 NHWC BGR, q_in (N, 4)
+Contract unchanged (docs/design.md §4.1): ``forward(image (N, S, S, 3) uint8 NHWC BGR, q_in (N, 4)
 wxyz) -> q_out (N, 4)`` unit ``wxyz``, ``q_refined = q_in * q_out``; the quaternion-to-matrix
 conversion happens inside the graph.
 """

@@ -5,7 +5,7 @@ The loss is the paper's geodesic angle between the predicted correction and its 
 form ``2 * atan2(|v|, |w|)`` (as :func:`refiner_rt.quaternion.geodesic_angle_rad`): exact near 0 and pi, and with a
 finite gradient at a perfect prediction, where ``acos`` has an infinite slope and ``|v|`` an undefined one.
 
-Conventions (design.md section 2): quaternions ``wxyz`` (scalar first), Hamilton product, shape ``(..., 4)``;
+Conventions (docs/design.md §2.1): quaternions ``wxyz`` (scalar first), Hamilton product, shape ``(..., 4)``;
 ``q`` and ``-q`` are the same rotation (the loss ignores the sign).
 """
 

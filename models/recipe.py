@@ -8,7 +8,7 @@ read back from JSON or TOML files; named recipes ship in :data:`NAMED_RECIPES`.
 Cross-field rules (e.g. in-plane turns need the viewing-ray frame, new backgrounds need instance masks) live in
 :meth:`TrainRecipe.validate` and :func:`check_masks`, and nowhere else.
 
-Conventions (design.md section 2): quaternions ``wxyz``, rotations object-to-camera, angles in degrees.
+Conventions (docs/design.md §2): quaternions ``wxyz``, rotations object-to-camera, angles in degrees.
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
 """RefinerCascade: an object's coarse refiner and its fine refiner, run in turn, for results below the coarse floor.
 
-A coarse refiner corrects inputs up to 30 degrees off but has a floor: an input better than about 3 degrees comes
-out no better, and a perfect input is moved by 2-3 degrees. A fine refiner (``RefinerSession.pretrained(obj,
-stage="fine")``, ``benchmarks/fine.py``) is the same network trained further on inputs a few degrees off only; it is
-sharper there and blind far away (from an input 25 degrees off it may move by a degree or two). The cascade uses
-each where it is good:
+A coarse refiner corrects inputs up to 30 degrees off but has a floor: an input already better than a few degrees
+comes out no better, and a perfect input is moved by the refiner's drift (docs/design.md §8; the measured floor is in
+``benchmarks/studies/cascade``). A fine refiner (``RefinerSession.pretrained(obj, stage="fine")``,
+``benchmarks/fine.py``) is the same network trained further on inputs a few degrees off only; it is sharper there
+and blind far away (from an input far off it moves little). The cascade uses each where it is good:
 
 1. both refiners look at every input, each averaging box-jittered views (``RefinerSession.refine(views=...)``):
    the coarse one ``coarse_views``, the fine one ``fine_views``;
@@ -14,8 +14,7 @@ each where it is good:
 3. elsewhere (and for the rows given in ``coarse``, e.g. a detector's pose), the fine refiner from the coarse one's
    result; with ``settle_deg``, the coarse refiner first runs a second pass on those rows, kept where it turns the
    result by more than ``settle_deg`` (``RefinerSession.refine(settle_deg=...)``: a coarse pose 30-60 degrees off,
-   beyond the range the coarse refiner trained on, is brought within the fine refiner's range; README, "Coarse poses
-   far off").
+   beyond the range the coarse refiner trained on, is brought within the fine refiner's range; docs/design.md §7).
 
 Each step is one batched call per refiner. Cost per object: ``coarse_views + fine_views`` network passes when the
 gate holds, ``coarse_views + 2 * fine_views`` otherwise, and ``coarse_views`` more with ``settle_deg`` (``refiner-rt
@@ -44,9 +43,8 @@ __all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARS
 
 # The defaults (benchmarks/fine.py chooses each shipped object's gates on rendered scenes the card does not score,
 # with these view counts): a fine correction of at most 2 degrees, and a coarse one of at most 8, mean the input was
-# within the fine refiner's sharp range; four views took a sixth to a fifth off the fine refiner's error from the true
-# pose, and four for the coarse refiner took 0.29 degrees off its U(0, 30) mean on fresh renders and 0.74 on the real
-# dev frames (benchmarks/studies/cascade, "Views").
+# within the fine refiner's sharp range; four views for each refiner were chosen among view pairs on rendered scenes
+# (benchmarks/studies/cascade, "Views: four for the coarse refiner too").
 DEFAULT_GATE_DEG = 2.0
 DEFAULT_COARSE_GATE_DEG = 8.0
 DEFAULT_COARSE_VIEWS = 4

@@ -2,7 +2,7 @@
 
 The sample frames (``refiner_rt/samples/``, package data) are rendered scenes that no shipped model trained on, with
 ground truth; ``benchmarks/demo_samples.py`` wrote them. For every object instance a coarse rotation is drawn
-``U(0, 30)`` degrees around the truth (``q_in = q_gt * q_noise``, the paper's protocol, design.md section 1), refined
+``U(0, 30)`` degrees around the truth (``q_in = q_gt * q_noise``, the paper's protocol, docs/design.md §1), refined
 by the object's shipped model with the camera intrinsics, and compared with the truth (geodesic angle, degrees).
 
 Conventions: quaternions ``wxyz`` (Hamilton), rotations object to camera, boxes ``(x1, y1, x2, y2)`` pixels,

@@ -1,9 +1,9 @@
 """Viewing-ray frame and view jitter: the torch-free geometry that the runtime and training share.
 
-A crop shows the object's rotation relative to the ray through the box centre (design.md section 2, "Viewing
-ray"); :func:`ray_quaternions` gives that ray's rotation from the camera frame. :func:`view_boxes` gives the fixed
-jittered windows of ``RefinerSession.refine(views=K)``. numpy only: ``models`` imports it from here, so training
-never imports the ONNX session.
+A crop shows the object's rotation relative to the ray through the box centre (docs/design.md §2.7, "The
+viewing-ray frame"); :func:`ray_quaternions` gives that ray's rotation from the camera frame. :func:`view_boxes`
+gives the fixed jittered windows of ``RefinerSession.refine(views=K)``. numpy only: ``models`` imports it from here,
+so training never imports the ONNX session.
 
 Conventions: quaternions ``wxyz`` (scalar first), float64; boxes ``(x1, y1, x2, y2)`` in continuous pixels;
 ``K`` in pixels with OpenCV's pixel centres at integers.

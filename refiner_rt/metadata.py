@@ -1,4 +1,4 @@
-"""The ONNX model contract: graph input/output names and the ``metadata_props`` keys (design.md section 5).
+"""The ONNX model contract: graph input/output names and the ``metadata_props`` keys (docs/design.md §4).
 
 The exporter writes this contract with :func:`build_metadata`; the runtime reads it back with
 :func:`parse_metadata` and refuses any model whose contract it does not understand, naming the key.
@@ -253,7 +253,7 @@ def _is_dynamic(dim) -> bool:
 
 
 def check_graph(inputs, outputs, input_size: int) -> None:
-    """Check a refiner graph's inputs and outputs against the contract (design.md section 5).
+    """Check a refiner graph's inputs and outputs against the contract (docs/design.md §4.1).
 
     Expected: exactly the inputs ``image`` ``(batch, S, S, 3)`` ``tensor(uint8)`` and ``q_in`` ``(batch, 4)``
     ``tensor(float)``, and an output ``q_out`` ``(batch, 4)`` ``tensor(float)`` (other outputs are ignored), with the

@@ -3,7 +3,7 @@
 Training (``models/``) and the runtime (:class:`refiner_rt.RefinerSession`) both call these
 functions, so a crop seen at run time is produced exactly as the crops the network was trained on.
 
-Rule (design.md section 2): a square window centred on the box centre with side
+Rule (docs/design.md §3): a square window centred on the box centre with side
 ``max(w, h) * context``, resampled to ``size x size`` in one affine warp (bilinear), parts outside
 the image filled with zeros. With ``crop_filter="antialias"`` (a model's metadata says which) the
 window's pixels are first averaged over blocks of ``f x f``, ``f`` the largest power of two not above

@@ -1,6 +1,6 @@
 """Unit-quaternion maths for rotations, in numpy (float64), batched over leading axes.
 
-Convention (the whole project uses it; see design.md section 2):
+Convention (the whole project uses it; see docs/design.md §2.1):
     * quaternions are ``wxyz`` (scalar first), shape ``(..., 4)``, Hamilton product;
     * a rotation maps object coordinates to camera coordinates (``x_cam = R @ x_obj + t``);
     * angles are in degrees unless a name ends in ``_rad``;

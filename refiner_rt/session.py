@@ -2,7 +2,7 @@
 
 This is what robot code embeds. It needs numpy, OpenCV and onnxruntime only (never torch).
 
-Conventions (design.md section 2):
+Conventions (docs/design.md §2):
     * quaternions are ``wxyz`` (scalar first, Hamilton product), float64, returned with ``w >= 0``;
     * rotations map object coordinates to camera coordinates (``x_cam = R @ x_obj + t``);
     * images are ``H x W x 3`` ``uint8`` **BGR** (what ``cv2.imread`` gives);
@@ -10,8 +10,8 @@ Conventions (design.md section 2):
     * the refined rotation is ``q_refined = q_in * q_out`` (the paper's composition).
 
 Speed (``benchmarks/profile_refine.py`` measures it): for up to :data:`SMALL_BATCH` boxes, the
-per-box checks and the quaternion maths run on Python floats, since numpy's fixed cost per call (about a
-microsecond per ufunc on a 4-vector) would otherwise exceed the network's time for the small models. The
+per-box checks and the quaternion maths run on Python floats, since numpy's fixed cost per call would otherwise
+exceed the network's time for the small models (``benchmarks/studies/speed``, "Choices in the runtime"). The
 operations and their order are those of :mod:`refiner_rt.quaternion`, so results are bit-identical to the
 vectorised path used for larger batches. Crops go into a reusable uint8 batch, one ``cv2.warpAffine`` each.
 
@@ -68,18 +68,15 @@ __all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS"
 
 log = logging.getLogger(__name__)
 
-# Up to this many boxes, refine() validates and composes on Python floats (see the module docstring). Measured on
-# the project's EPYC (checks + composition, warm caches): about 1.8 us per box on Python floats against about
-# 90 us for the numpy path at any N up to 64, so the crossover is near 50 boxes.
+# Up to this many boxes, refine() validates and composes on Python floats (see the module docstring); below the
+# measured crossover with the numpy path (benchmarks/studies/speed, "Choices in the runtime").
 SMALL_BATCH = 32
 _MIN_NORM = 1e-12  # as refiner_rt.quaternion.as_quaternion: a smaller norm is a zero quaternion
 _INF = math.inf
 # Crops per call (boxes x views). Memory grows linearly with it: the crop batch takes S * S * 3 bytes per crop
-# (12 KB at 64 x 64, 147 KB at 224 x 224) and onnxruntime's activations most of the rest. Measured peak RSS
-# (batch 1 vs 256 vs 1024 crops, shallow and fusion, fp32 and INT8, 64 x 64): about 0.45 MB more per crop, so
-# +450 MB at the limit; a 224 x 224 network (VGG-M) needs roughly (224 / 64)^2 = 12x that per crop (not measured).
-# Split larger requests into several calls; large batches are not faster per box on a CPU (benchmarks/studies/speed: fusion INT8
-# ran fewer refinements/s at batch 32 than at batch 8).
+# (12 KB at 64 x 64, 147 KB at 224 x 224) and onnxruntime's activations most of the rest (the peak memory per crop
+# is measured in benchmarks/studies/speed, "Choices in the runtime"). Split larger requests into several calls;
+# large batches are not faster per box on a CPU.
 MAX_BATCH = 1024
 # iterations: each one is a network pass (the paper does 1); bounded so that a wrong value cannot run for hours.
 MAX_ITERATIONS = 16
@@ -93,11 +90,10 @@ SETTLE_DEG = 2.0
 K_MIN_FOCAL = 1e-3
 K_MAX_ABS = 1e9
 # onnxruntime graph transformers every session turns off. QDQPropagationTransformer moves the first QuantizeLinear
-# of a static-qdq-int8-conv model above the first block's max-pool, which then runs on uint8 in NCHW: 146 us of a
-# 260 us call for the shipped five-block refiner, against about 4 us for the fp32 NCHWc max-pool it replaces; without
-# it the call takes 122 us (AVX-512 VNNI EPYC, benchmarks/studies/int8_convs/results_vnni.json). Max-pooling and
-# reshapes commute with quantisation, so the outputs are the same bit for bit (tests/test_quantize_conv.py checks both
-# static schemes); fp32 and dynamic-int8 models have no QuantizeLinear to move (same outputs; same speed measured).
+# of a static-qdq-int8-conv model above the first block's max-pool, which then runs on uint8 in NCHW, much slower
+# than the fp32 max-pool it replaces (benchmarks/studies/int8_convs). Max-pooling and reshapes commute with
+# quantisation, so the outputs are the same bit for bit (tests/test_quantize_conv.py checks both static schemes);
+# fp32 and dynamic-int8 models have no QuantizeLinear to move.
 DISABLED_OPTIMIZERS = ("QDQPropagationTransformer",)
 def default_session_options(threads: int, **config_entries: str) -> ort.SessionOptions:
     """The ``onnxruntime.SessionOptions`` a :class:`RefinerSession` on ``threads`` threads uses (the class docstring
@@ -332,9 +328,8 @@ class RefinerSession:
         threads: threads the network runs on (``>= 1``), the calling thread included; ``0`` means every
             core this process may run on (:func:`available_cores`, its CPU affinity). Cropping and the
             quaternion maths run on the calling thread. With 1 thread onnxruntime creates no thread pool.
-            With more, its workers spin briefly after each call (measured up to 1.5x faster at batch 1 than
-            without spinning on a 2-core EPYC), which takes CPU from other processes on those cores: on a
-            machine shared with a renderer, prefer ``threads=1``.
+            With more, its workers spin briefly after each call (faster at batch 1), which takes CPU from other
+            processes on those cores: on a machine shared with a renderer, prefer ``threads=1``.
         providers: onnxruntime execution providers, default ``["CPUExecutionProvider"]``. Each must
             be available: there is no silent fallback to another provider.
         session_options: an ``onnxruntime.SessionOptions`` to use instead of the defaults (then
@@ -347,13 +342,12 @@ class RefinerSession:
     element types, shapes, a dynamic batch axis), and one trial run on a batch of two black crops, which checks
     that the batch axis really is free and that ``q_out`` comes back ``(2, 4)``.
 
-    Default session options, each chosen by measurement (``benchmarks/profile_refine.py``): graph optimisation
-    ``ORT_ENABLE_ALL`` (``EXTENDED``/``BASIC`` ran 1.2-1.5x slower at batch 1; ALL adds layout transformations such
-    as NCHWc convolutions), CPU memory arena and memory pattern on (turning them off never helped), sequential
-    execution with one inter-op thread (the graph is a chain), intra-op spinning left at onnxruntime's default (on).
-    IOBinding saved 0.5-3.5 us per call, within the noise of the whole call, so the plain ``run`` stays. onnxruntime's
-    ``QDQPropagationTransformer`` is always off (:data:`DISABLED_OPTIMIZERS`; also with ``session_options``): it
-    halves the speed of the static INT8 conv models and changes nothing else.
+    Default session options, each chosen by measurement (``benchmarks/profile_refine.py``; the numbers are in
+    ``benchmarks/studies/speed``, "Choices in the runtime"): graph optimisation ``ORT_ENABLE_ALL`` (it adds layout
+    transformations such as NCHWc convolutions), CPU memory arena and memory pattern on, sequential execution with
+    one inter-op thread (the graph is a chain), intra-op spinning left at onnxruntime's default (on), the plain
+    ``run`` (no IOBinding). onnxruntime's ``QDQPropagationTransformer`` is always off (:data:`DISABLED_OPTIMIZERS`;
+    also with ``session_options``): it slows the static INT8 conv models and changes nothing else.
 
     Raises:
         ModelNotFoundError: ``model`` is a path that does not exist (a :class:`ModelError`, so a ``ValueError``,
@@ -521,7 +515,7 @@ class RefinerSession:
                 this many degrees, and an object whose pass is not kept stops there (it has settled: a pass that
                 turns a result by less is the refiner's floor, not a correction). From inputs within the refiner's
                 range the first pass then stands nearly everywhere; from coarse poses 30-60 degrees off, beyond the
-                range it trained on, the later passes go on (README, "Coarse poses far off").
+                range it trained on, the later passes go on (docs/cascade.md, "Coarse poses far off").
                 :data:`SETTLE_DEG` is the value measured there. A number in ``(0, 180)`` with ``iterations >= 2``,
                 or None (default): every pass is kept. Later passes run only for the objects still going on.
 

@@ -16,7 +16,7 @@ Frames without an entry have no detections (the tracked objects keep their rotat
 Output: the refined rotation of every object in every frame where it had a box, as JSON
 ``{"frames": {"000000.png": {"003_cracker_box": [w, x, y, z]}}, ...}``.
 
-Conventions (design.md section 2): quaternions ``wxyz`` (scalar first), object-to-camera; boxes ``(x1, y1, x2,
+Conventions (docs/design.md §2): quaternions ``wxyz`` (scalar first), object-to-camera; boxes ``(x1, y1, x2,
 y2)`` in pixels, continuous coordinates; ``K`` in pixels (OpenCV convention).
 """
 

@@ -4,7 +4,7 @@ The paper refines one frame from a detector's coarse pose. In video the best coa
 usually the refined pose of frame ``t - 1``: a detector's pose is needed once (and again only to recover), and
 every later frame costs one network pass per object. ``benchmarks/tracking.py`` measures this on rendered video.
 
-Conventions (design.md section 2):
+Conventions (docs/design.md §2):
     * quaternions are ``wxyz`` (scalar first, Hamilton product), float64, returned with ``w >= 0``;
     * rotations map object coordinates to camera coordinates (``x_cam = R @ x_obj + t``);
     * images are ``H x W x 3`` ``uint8`` **BGR** (what ``cv2.imread`` gives);
@@ -390,7 +390,7 @@ class RefinerTracker:
                     if q_det is not None:
                         fused.append((i, q_det))
             # a cascade runs its coarse refiner, then its fine one, on every update: with the fine refiner alone from
-            # frame to frame its small errors added up (benchmarks/studies/cascade: median 2.6 degrees against 1.8)
+            # frame to frame its small errors added up (benchmarks/studies/cascade, "Tracking on the cascade")
             coarse = [True] * (len(ids) + len(fused))
             both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
                                 np.array(q_in + [q for _, q in fused]), coarse).tolist()

@@ -16,7 +16,8 @@ from refiner_rt import pretrained as pt
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 DOCS = [README, ROOT / "benchmarks" / "RESULTS.md", ROOT / "benchmarks" / "DATA.md",
-        ROOT / "refiner_rt" / "samples" / "README.md", *sorted((ROOT / "benchmarks" / "studies").glob("**/README.md"))]
+        ROOT / "refiner_rt" / "samples" / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+        *sorted((ROOT / "benchmarks" / "studies").glob("**/README.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 
 
@@ -73,6 +74,50 @@ def test_no_machine_paths_or_internal_issue_numbers():
     assert not hits, "\n".join(hits)
 
 
+DESIGN = ROOT / "docs" / "design.md"
+# "docs/design.md §2.7", "docs/design.md section 4" (the number may follow a line break)
+DESIGN_CITATION = re.compile(r"design\.md,?\s+(?:§\s*|sections?\s+)(\d+(?:\.\d+)?)")
+
+
+def design_sections() -> set[str]:
+    """The numbers of docs/design.md's numbered sections and subsections ("2", "2.7")."""
+    text = re.sub(r"```.*?```", "", DESIGN.read_text(), flags=re.S)
+    return {m.group(1) for m in re.finditer(r"^#{2,3} (\d+(?:\.\d+)?)\.? ", text, flags=re.M)}
+
+
+def _tracked(*patterns: str) -> list[str]:
+    files = subprocess.run(["git", "-C", str(ROOT), "ls-files", *patterns], capture_output=True, text=True).stdout
+    if not files.split():
+        pytest.skip("not a git checkout")
+    return files.split()
+
+
+def test_design_citations_name_sections_that_exist():
+    """Every "docs/design.md §N" (or "section N") in the code and docs names a section docs/design.md has, every
+    "§N" inside docs/design.md too, and the design is never cited under another path."""
+    sections = design_sections()
+    assert {"1", "2", "3", "4", "8", "9", "10", "11"} <= sections, sorted(sections)
+    bad = []
+    for name in _tracked("*.py", "*.md"):
+        if name == "tests/test_docs.py":
+            continue
+        path = ROOT / name
+        if not path.is_file():
+            continue
+        text = path.read_text()
+        cited = [m.group(1) for m in DESIGN_CITATION.finditer(text)]
+        if path == DESIGN:
+            cited += re.findall(r"§(\d+(?:\.\d+)?)", text)
+        bad += [f"{name}: no section {n} in docs/design.md" for n in cited if n not in sections]
+        for m in re.finditer(r"(\S*)design\.md", text):
+            prefix = m.group(1)
+            in_docs_link = name.startswith("docs/") and prefix.endswith("(")
+            if not (prefix.endswith("docs/") or in_docs_link or path == DESIGN):
+                line = text[: m.start()].count("\n") + 1
+                bad.append(f"{name}:{line}: cites {prefix}design.md; the design is docs/design.md")
+    assert not bad, "\n".join(bad)
+
+
 def _readme_python_block(heading: str = "## In robot code") -> str:
     text = README.read_text()
     section = text[text.index(heading):]
@@ -109,6 +154,14 @@ def test_readme_cascade_code_runs_after_the_robot_code(tmp_path):
                           env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
     assert done.returncode == 0, done.stderr
     assert "cascade" in done.stdout
+
+
+def test_readme_stays_a_short_read_with_one_results_table():
+    """The README is read top to bottom: at most 300 lines and one generated results table; the rest lives in docs/
+    and benchmarks/RESULTS.md."""
+    text = README.read_text()
+    assert len(text.splitlines()) <= 300, f"README.md has {len(text.splitlines())} lines; move detail to docs/"
+    assert re.findall(r"<!-- generated: ([\w-]+) -->", text) == ["shipped-models-short"]
 
 
 def test_readme_example_uses_a_shipped_model_with_K():

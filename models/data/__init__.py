@@ -3,7 +3,7 @@
 Importable without torch (ONNX evaluation uses it). Submodules load on first use, so
 ``from models.data import synth`` (the renderer) does not pull in the loaders and vice versa.
 
-Conventions (design.md section 2): rotations object to camera, quaternions ``wxyz``, translations
+Conventions (docs/design.md §2): rotations object to camera, quaternions ``wxyz``, translations
 in metres, boxes ``(x1, y1, x2, y2)`` in continuous pixel coordinates, images BGR.
 
 Example::

@@ -1,7 +1,7 @@
 """Reader for BOP-format datasets (BOP's YCB-V and the project's rendered scenes), producing :class:`Sample` records.
 
 Format (BOP toolkit, ``docs/bop_datasets_format.md`` and ``bop_toolkit_lib/inout.py``), as
-summarised in design.md section 6::
+summarised in docs/design.md §6.3::
 
     <split_dir>/<scene:06d>/rgb/<im_id:06d>.png|.jpg
     <split_dir>/<scene:06d>/scene_gt.json        {"<im_id>": [{"cam_R_m2c": 9 numbers row-major,

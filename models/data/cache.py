@@ -2,7 +2,7 @@
 
 Training reads tens of thousands of ``S x S`` crops per epoch; decoding a 640x480 PNG per crop
 would dominate the step time on a CPU. :class:`CropCache` cuts each sample's crop once with
-:func:`refiner_rt.preprocess.crop_to_square` (the rule the runtime uses, design.md section 2)
+:func:`refiner_rt.preprocess.crop_to_square` (the rule the runtime uses, docs/design.md §3)
 and stores it in ``<cache_dir>``::
 
     crops.npy       (N, S, S, 3) uint8, BGR, opened as a read-only memmap (numpy .npy format)

@@ -9,7 +9,7 @@ numeric ids the file formats use to those strings:
   ``ycbv``: objects 1..21 in the YCB-Video order), and so do the project's rendered BOP scenes.
 
 The paper's nine objects (Jain & Dellaert, "Fast 3D Pose Refinement with RGB Images", Table 1)
-are listed in design.md section 6.
+are listed in docs/design.md §6.1.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ YCBV_CLASSES: tuple[str, ...] = (
     "061_foam_brick",
 )
 
-# The paper's nine objects: YCB id -> the name the paper's tables use (design.md section 6).
+# The paper's nine objects: YCB id -> the name the paper's tables use (docs/design.md §6.1).
 PAPER_NAMES: dict[str, str] = {
     "002_master_chef_can": "Tin Can",
     "003_cracker_box": "Crackers",

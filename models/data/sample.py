@@ -3,7 +3,7 @@
 Both readers (:func:`models.data.load_ycbv`, :func:`models.data.load_bop`) produce ``Sample``
 records, so splits, the crop cache, training and evaluation never see a file format.
 
-Conventions (design.md section 2):
+Conventions (docs/design.md §2):
     * ``R`` maps object to camera coordinates (``x_cam = R @ x_obj + t``), like YCB-Video's
       ``poses[:, :3, i]`` and BOP's ``cam_R_m2c``; ``t`` is in **metres**;
     * quaternions are ``wxyz`` (scalar first), ``w >= 0`` (:attr:`Sample.q_gt`);

@@ -3,7 +3,7 @@
 The paper (Jain & Dellaert, "Fast 3D Pose Refinement with RGB Images", section "Training Data")
 draws, per object, 5000 training images (3000 for the base network, 2000 more for per-object
 fine-tuning), 3000 validation and 3000 test images from YCB-Video's frames at random
-(design.md section 6). Two modes:
+(docs/design.md §6.6). Two modes:
 
 * ``"frames"``: each object's samples are shuffled and cut into parts. Consecutive video frames
   are near-duplicates, so test frames have close neighbours in training (the paper's protocol).

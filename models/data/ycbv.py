@@ -1,7 +1,7 @@
 """Reader for the YCB-Video dataset in its native layout, producing :class:`models.data.Sample` records.
 
 Format (Xiang et al., "PoseCNN", RSS 2018; the dataset's own README and ``classes.txt``), as
-summarised in design.md section 6::
+summarised in docs/design.md §6.2::
 
     <root>/data/<seq>/<frame>-color.png    640x480 colour image
     <root>/data/<seq>/<frame>-meta.mat     MATLAB file: poses 3x4xN (3x4 when N = 1), object to camera,
