@@ -14,8 +14,8 @@ Camera: ``k`` and ``d`` of ``CameraInfo`` (``plumb_bob`` or ``rational_polynomia
 camera); ``rectified=True`` for a rectified image topic (``image_rect``): ``p``'s left 3x3 and no distortion.
 
 No pose (the one rule, :func:`coarse_rotation`): a box-only detection carries no usable coarse rotation. Its
-``results[0].pose.pose.orientation`` is then all zeros, or ``(0, 0, 0, 1)``: the message's default, what an rclpy
-node publishes when it never sets the field; non-finite values count as none too. Both are "no pose" unless
+``results[0].pose.pose.orientation`` is then all zeros, or ``(0, 0, 0, 1)`` (or ``(0, 0, 0, -1)``): the message's
+default, what an rclpy node publishes when it never sets the field; non-finite values count as none too. Both are "no pose" unless
 ``identity_is_pose=True`` (``--identity-is-pose``), for a detector that really outputs the identity rotation. Any
 other orientation must be a unit quaternion (norm within :data:`QUATERNION_NORM_TOLERANCE` of 1): one further off
 is refused with an error naming the detection, never normalised in silence.

@@ -10,8 +10,8 @@ The input bag holds an image topic (``sensor_msgs/Image`` or ``CompressedImage``
 with ``--image-topic`` and the like. Detections are matched to images by ``header.stamp`` (approximate time sync):
 each image takes the detection message nearest in time within ``sync_tolerance_ms`` (default
 :data:`SYNC_TOLERANCE_MS`, for a 30 Hz camera), nearest pairs first, one message per image and one image per
-message. Matches that are not exact are counted and logged; when no image has a match the bag is refused with the
-counts and the closest offset seen, before anything is written. Each matched image goes through
+message. Matches that are not exact are counted (``refiner-rt track`` warns); when no image has a match the bag is
+refused with the counts and the closest offset seen, before anything is written. Each matched image goes through
 :class:`refiner_rt.ros.RosRefiner` (the function a live node calls; its docstring has the no-pose rule and the
 instance ids), and the output bag (MCAP, a rosbag2 folder that Foxglove and ``ros2 bag play`` open) gets, at the
 image's time:
@@ -162,8 +162,9 @@ def refine_bag(bag: Path, out: Path, refiner: RosRefiner, *, image_topic: str | 
                total: Callable[[int], None] | None = None) -> BagSummary:
     """Run ``refiner`` over every image of ``bag`` that a detection message matches (within
     ``sync_tolerance_ms`` milliseconds, module docstring) and write the results to the MCAP bag ``out``.
-    ``total(n)`` is told the number of images first, ``progress(1)`` after each. Approximate matches are logged
-    (a warning with their count and largest offset) and counted in the summary.
+    ``total(n)`` is told the number of images first, ``progress(1)`` after each. Approximate matches are counted in
+    the summary (``approximate``, ``max_offset_ms``, ``unmatched_detections``: ``refiner-rt track`` prints them as
+    a warning) and logged at INFO level.
 
     Raises:
         ValueError: a topic that is missing or ambiguous, no image matched by any detection message (the counts
@@ -213,7 +214,7 @@ def refine_bag(bag: Path, out: Path, refiner: RosRefiner, *, image_topic: str | 
         summary.max_offset_ms = max(offsets) / 1e6
         summary.unmatched_detections = len(detections) - len(matched)
         if summary.approximate:
-            log.warning("%d of %d matched images have detections stamped up to %.3f ms apart (within %g ms)",
+            log.info("%d of %d matched images have detections stamped up to %.3f ms apart (within %g ms)",
                         summary.approximate, len(matched), summary.max_offset_ms, sync_tolerance_ms)
         if total:
             total(len(image_stamps))
