@@ -282,8 +282,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Frames in a --video image strip, evenly spaced.")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
 def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-              sync_tolerance_ms, identity_is_pose, class_map, models, fp32, K_text, predict, scene_motion, lost_deg, detector_weight, iterations, views,
-              settle_deg, threads, video_path, strip_frames, fps):
+              sync_tolerance_ms, identity_is_pose, class_map, models, fp32, K_text, predict, scene_motion, lost_deg,
+              detector_weight, iterations, views, settle_deg, threads, video_path, strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
     DETECTIONS is JSON: {"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "frames": {"<image file>": {"<object id>": [x1,y1,x2,y2]
