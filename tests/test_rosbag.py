@@ -577,3 +577,20 @@ def test_options_of_the_frames_path_are_refused_with_a_bag_with_what_the_bag_giv
     for flag in (["--sync-tolerance-ms", "5"], ["--identity-is-pose"]):
         res = CliRunner().invoke(main, ["track", str(frames), str(tmp_path / "d.json"), "-o", "x.json", *flag])
         assert res.exit_code == 2 and f"{flag[0]} apply to --bag only" in res.output
+
+
+def test_two_instances_without_ids_are_tracked_apart():
+    """Track mode: two detections of one class without ids start <class>#1 and #2 (by the boxes' left edges) from
+    their poses and keep them through box-only frames, each nearer its own start than the other's."""
+    image, K, objects = _frames()[0]
+    a, b = sorted(objects[:2], key=lambda o: o["box_xyxy"][0])
+    cls = a["object_id"]
+    r = RosRefiner("track")
+    for i in range(3):
+        dets = [_detection(cls, o["box_xyxy"], _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW) for o in (b, a)]
+        poses = {p.object_id: p for p in r.process(_image(image, i), _info(K, i), _array(i, dets))}
+        assert sorted(poses) == [f"{cls}#1", f"{cls}#2"] and r.skipped == {}
+    for n, o, other in ((1, a, b), (2, b, a)):
+        q = poses[f"{cls}#{n}"].q_wxyz
+        np.testing.assert_array_equal(poses[f"{cls}#{n}"].box, o["box_xyxy"])
+        assert rq.geodesic_angle(q, _q_in(o, 0)) < rq.geodesic_angle(q, _q_in(other, 0))
