@@ -18,7 +18,8 @@ class Refiner(Node):
         self.refiner, self.pubs = RosRefiner(mode="track", cascade=True), {}
         subs = [message_filters.Subscriber(self, t, n) for t, n in ((Image, "image_raw"), (CameraInfo, "camera_info"),
                                                                      (Detection2DArray, "detections"))]
-        message_filters.TimeSynchronizer(subs, 10).registerCallback(self.on_frame)
+        # stamps within 20 ms, as refiner-rt track --bag matches them (--sync-tolerance-ms)
+        message_filters.ApproximateTimeSynchronizer(subs, 10, slop=0.02).registerCallback(self.on_frame)
 
     def on_frame(self, image, info, detections):
         for p in self.refiner.process(image, info, detections):

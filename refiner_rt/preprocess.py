@@ -31,6 +31,8 @@ __all__ = [
     "CROP_FILTERS",
     "prefiltered_region",
     "MAX_BOX_COORDINATE",
+    "MIN_BOX_SIDE",
+    "MIN_INSIDE_FRACTION",
     "crop_window",
     "crop_matrix",
     "crop_to_square",
@@ -49,8 +51,14 @@ DEFAULT_CONTEXT = 1.2
 # Box coordinates beyond a million pixels (far past any camera) are refused: they would only make black crops, and
 # past ~1e154 the window's and the viewing ray's arithmetic overflows to inf.
 MAX_BOX_COORDINATE = 1e6
+# Boxes the runtime refuses because no usable crop comes from them (validate_boxes; the session's fast path checks the
+# same): a side under MIN_BOX_SIDE pixels (a sub-pixel box, or one normalised to 0..1), and a box with less than
+# MIN_INSIDE_FRACTION of its area inside the image (its crop is mostly the zero fill: a box for another image size,
+# or an object nearly out of view).
+MIN_BOX_SIDE = 2.0
+MIN_INSIDE_FRACTION = 0.25
 # How the window's pixels are filtered before the warp: "none" (bilinear only: every model before the metadata key
-# crop_filter) or "antialias" (a Gaussian low-pass matched to the shrink, above).
+# crop_filter) or "antialias" (block averages matched to the shrink, above).
 CROP_FILTERS = ("none", "antialias")
 
 
@@ -103,12 +111,16 @@ def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str 
     Args:
         boxes: array-like ``(N, 4)`` (or a single ``(4,)`` box, returned as ``(1, 4)``; an empty sequence is
             ``(0, 4)``, no boxes).
-        image_shape: ``(H, W, ...)``; when given, each box must overlap the image.
+        image_shape: ``(H, W, ...)``; when given, each box must have at least :data:`MIN_INSIDE_FRACTION` of its
+            area inside the image, and boxes normalised to 0..1 are told apart (below).
         name: argument name used in error messages.
 
     Raises:
         ValueError: a ragged sequence, wrong shape, non-finite values, coordinates beyond
-            ``+-MAX_BOX_COORDINATE``, empty boxes (``x2 <= x1`` or ``y2 <= y1``), or boxes entirely outside the image.
+            ``+-MAX_BOX_COORDINATE``, empty boxes (``x2 <= x1`` or ``y2 <= y1``), boxes narrower or lower than
+            :data:`MIN_BOX_SIDE` pixels, boxes normalised to 0..1 (every coordinate within ``[0, 1]`` while the image
+            is larger: the message says to scale them by the image size), or boxes entirely or mostly outside the
+            image (the message names the box and its share inside).
     """
     try:
         arr = np.asarray(boxes)
@@ -142,6 +154,19 @@ def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str 
         )
     if image_shape is not None:
         h, w = int(image_shape[0]), int(image_shape[1])
+        if len(arr) and arr.min() >= 0.0 and arr.max() <= 1.0 and max(w, h) > MIN_BOX_SIDE:
+            raise ValueError(
+                f"{name} look normalised to 0..1 (every coordinate within [0, 1]) but the image is {w}x{h} pixels: "
+                f"boxes are (x1, y1, x2, y2) in pixels; scale them by (W, H, W, H) = ({w}, {h}, {w}, {h})"
+            )
+    small = (arr[:, 2] - arr[:, 0] < MIN_BOX_SIDE) | (arr[:, 3] - arr[:, 1] < MIN_BOX_SIDE)
+    if np.any(small):
+        i = int(np.argmax(small))
+        raise ValueError(
+            f"{name}[{i}] is {arr[i, 2] - arr[i, 0]:.3g} x {arr[i, 3] - arr[i, 1]:.3g} pixels: expected at least "
+            f"{MIN_BOX_SIDE:g} x {MIN_BOX_SIDE:g} (xyxy pixels, not normalised); got {arr[i].tolist()}"
+        )
+    if image_shape is not None:
         outside = (arr[:, 2] <= 0) | (arr[:, 3] <= 0) | (arr[:, 0] >= w) | (arr[:, 1] >= h)
         if np.any(outside):
             i = int(np.argmax(outside))
@@ -149,7 +174,24 @@ def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str 
                 f"{name}[{i}] lies entirely outside the {w}x{h} image: expected a box overlapping "
                 f"[0, {w}) x [0, {h}); got {arr[i].tolist()}"
             )
+        inside = inside_fraction(arr, image_shape)
+        mostly = inside < MIN_INSIDE_FRACTION
+        if np.any(mostly):
+            i = int(np.argmax(mostly))
+            raise ValueError(
+                f"{name}[{i}] lies mostly outside the {w}x{h} image: {100 * inside[i]:.3g}% of its area is inside, "
+                f"expected at least {100 * MIN_INSIDE_FRACTION:g}% (a box for another image size?); got "
+                f"{arr[i].tolist()}"
+            )
     return arr
+
+
+def inside_fraction(boxes: np.ndarray, image_shape: tuple[int, ...]) -> np.ndarray:
+    """``(N,)`` share of each ``(N, 4)`` non-empty box's area (``x1, y1, x2, y2`` pixels) inside the ``H x W`` image."""
+    h, w = image_shape[0], image_shape[1]
+    iw = np.clip(np.minimum(boxes[:, 2], w) - np.maximum(boxes[:, 0], 0.0), 0.0, None)
+    ih = np.clip(np.minimum(boxes[:, 3], h) - np.maximum(boxes[:, 1], 0.0), 0.0, None)
+    return (iw / (boxes[:, 2] - boxes[:, 0])) * (ih / (boxes[:, 3] - boxes[:, 1]))
 
 
 def crop_window(box_xyxy, context: float = DEFAULT_CONTEXT) -> tuple[float, float, float]:

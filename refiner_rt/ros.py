@@ -12,13 +12,26 @@ A pose is object to camera in the image's ``header.frame_id`` (the camera's opti
 rotation only: the position is the detection's, passed through (``None`` when the detection has none).
 Camera: ``k`` and ``d`` of ``CameraInfo`` (``plumb_bob`` or ``rational_polynomial``; an empty model is a pinhole
 camera); ``rectified=True`` for a rectified image topic (``image_rect``): ``p``'s left 3x3 and no distortion.
+
+No pose (the one rule, :func:`coarse_rotation`): a box-only detection carries no usable coarse rotation. Its
+``results[0].pose.pose.orientation`` is then all zeros, or ``(0, 0, 0, 1)`` (or ``(0, 0, 0, -1)``): the message's
+default, what an rclpy node publishes when it never sets the field; non-finite values count as none too. Both are "no pose" unless
+``identity_is_pose=True`` (``--identity-is-pose``), for a detector that really outputs the identity rotation. Any
+other orientation must be a unit quaternion (norm within :data:`QUATERNION_NORM_TOLERANCE` of 1): one further off
+is refused with an error naming the detection, never normalised in silence.
+
+Instances (:func:`detections_from_msg`): each detection gets an instance id, the object id it is tracked and
+published under: ``<object id>#<Detection2D.id>`` when the detector sets ``id``; without one, an object detected
+once in the frame keeps its object id, and several detections of one object are numbered by their boxes' left edge,
+left to right: ``<object id>#1``, ``<object id>#2``... (set ``Detection2D.id`` for identities that hold when
+objects cross). Two detections with the same instance id in one frame: the later ones are skipped.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -26,9 +39,14 @@ import numpy as np
 from refiner_rt import quaternion as rq
 
 __all__ = ["RosRefiner", "RefinedPose", "Detection", "image_from_msg", "camera_from_info", "detections_from_msg",
-           "stamp_ns", "VISION_MSGS", "DISTORTION_MODELS"]
+           "coarse_rotation", "stamp_ns", "VISION_MSGS", "DISTORTION_MODELS", "QUATERNION_NORM_TOLERANCE"]
 
 log = logging.getLogger(__name__)
+
+# A detection's orientation must have a norm within this of 1 (a float32 detector's round-off is about 1e-7);
+# one further off is an error, not renormalised (module docstring, "No pose").
+QUATERNION_NORM_TOLERANCE = 1e-3
+INSTANCE_SEPARATOR = "#"  # as refiner_rt.tracker.INSTANCE_SEPARATOR (not imported here: the tracker loads lazily)
 
 # CameraInfo distortion models this runtime undistorts through (OpenCV's model); "" is a pinhole camera.
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "")
@@ -114,8 +132,10 @@ def camera_from_info(msg, rectified: bool = False) -> tuple[np.ndarray, np.ndarr
 @dataclass(frozen=True)
 class Detection:
     """One object of a ``vision_msgs/Detection2DArray``: ``object_id`` (its ``class_id``, mapped), ``box``
-    ``(x1, y1, x2, y2)`` pixels, the coarse rotation ``q_wxyz`` (``None`` when the pose is all zeros: no pose),
-    ``position`` (metres, or ``None``), ``score`` and the tracking ``id`` (``Detection2D.id``, may be empty)."""
+    ``(x1, y1, x2, y2)`` pixels, the coarse rotation ``q_wxyz`` (``None``: no pose, :func:`coarse_rotation`),
+    ``position`` (metres, or ``None`` when all zeros or non-finite), ``score``, the tracking ``id``
+    (``Detection2D.id``, may be empty) and ``instance``, the id it is refined and published under (module
+    docstring, "Instances")."""
 
     object_id: str
     box: np.ndarray
@@ -123,13 +143,43 @@ class Detection:
     position: np.ndarray | None
     score: float
     id: str
+    instance: str = ""
 
 
-def detections_from_msg(msg, class_map: Mapping | None = None) -> list[Detection]:
+def coarse_rotation(xyzw, identity_is_pose: bool = False, what: str = "orientation") -> np.ndarray | None:
+    """A detection's coarse rotation by the no-pose rule (module docstring): ``(4,)`` wxyz unit, or ``None``.
+
+    Args:
+        xyzw: ``geometry_msgs/Quaternion`` components ``(x, y, z, w)``.
+        identity_is_pose: take ``(0, 0, 0, 1)`` as the identity rotation (default: the message's default, no pose).
+        what: names the detection in the error.
+
+    Raises:
+        ValueError: a finite, non-zero quaternion whose norm is further than :data:`QUATERNION_NORM_TOLERANCE`
+            from 1.
+    """
+    q = np.asarray(xyzw, dtype=np.float64)
+    if not np.isfinite(q).all() or not q.any():
+        return None
+    if not identity_is_pose and q[0] == 0.0 and q[1] == 0.0 and q[2] == 0.0 and abs(q[3]) == 1.0:
+        return None
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ValueError(f"{what} (x, y, z, w) = {q.tolist()} has norm {norm:.6g}: expected a unit quaternion (within "
+                         f"{QUATERNION_NORM_TOLERANCE:g}), or all zeros or (0, 0, 0, 1) for a box-only detection")
+    return rq.from_xyzw(q / norm)
+
+
+def detections_from_msg(msg, class_map: Mapping | None = None, identity_is_pose: bool = False) -> list[Detection]:
     """The detections of a ``vision_msgs/Detection2DArray`` (ROS 2 Humble field names; the first hypothesis of
-    each). ``class_map``: detector class id -> object id (default: the class id is the object id)."""
+    each), with their instance ids (module docstring). ``class_map``: detector class id -> object id (default: the
+    class id is the object id). ``identity_is_pose``: as :func:`coarse_rotation`.
+
+    Raises:
+        ValueError: an orientation that is not a unit quaternion (named by its index, class and id).
+    """
     out = []
-    for d in msg.detections:
+    for i, d in enumerate(msg.detections):
         if not len(d.results):
             continue
         hyp = d.results[0]
@@ -139,26 +189,51 @@ def detections_from_msg(msg, class_map: Mapping | None = None) -> list[Detection
         hw, hh = 0.5 * float(d.bbox.size_x), 0.5 * float(d.bbox.size_y)
         pose = hyp.pose.pose
         o = pose.orientation
-        xyzw = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+        what = f"detections[{i}] (class_id {class_id!r}, id {str(d.id)!r}): results[0].pose.pose.orientation"
+        q = coarse_rotation([o.x, o.y, o.z, o.w], identity_is_pose, what)
         p = np.array([pose.position.x, pose.position.y, pose.position.z], dtype=np.float64)
-        out.append(Detection(object_id=object_id, box=np.array([cx - hw, cy - hh, cx + hw, cy + hh]),
-                             q_wxyz=rq.from_xyzw(xyzw) if np.isfinite(xyzw).all() and xyzw.any() else None,
+        out.append(Detection(object_id=object_id, box=np.array([cx - hw, cy - hh, cx + hw, cy + hh]), q_wxyz=q,
                              position=p if np.isfinite(p).all() and p.any() else None,
                              score=float(hyp.hypothesis.score), id=str(d.id)))
-    return out
+    return _with_instances(out)
+
+
+def _with_instances(dets: list[Detection]) -> list[Detection]:
+    """``dets`` with their ``instance`` ids (module docstring, "Instances"): ``<object>#<id>`` where ``id`` is set;
+    without it, ``<object>`` for an object detected once, else ``<object>#1``, ``#2``... by the box's left edge."""
+    taken = {f"{d.object_id}{INSTANCE_SEPARATOR}{d.id}" for d in dets if d.id}
+    unnamed: dict[str, list[int]] = {}
+    for i, d in enumerate(dets):
+        if not d.id:
+            unnamed.setdefault(d.object_id, []).append(i)
+    names = {i: f"{d.object_id}{INSTANCE_SEPARATOR}{d.id}" for i, d in enumerate(dets) if d.id}
+    for object_id, idx in unnamed.items():
+        if len(idx) == 1 and object_id not in taken:
+            names[idx[0]] = object_id
+            continue
+        k = 0
+        for i in sorted(idx, key=lambda i: (dets[i].box[0], dets[i].box[1])):
+            k += 1
+            while f"{object_id}{INSTANCE_SEPARATOR}{k}" in taken:
+                k += 1
+            names[i] = f"{object_id}{INSTANCE_SEPARATOR}{k}"
+    return [replace(d, instance=names[i]) for i, d in enumerate(dets)]
 
 
 @dataclass(frozen=True)
 class RefinedPose:
-    """One refined object of a frame: ``object_id`` (with ``#<Detection2D.id>`` when tracking instances),
-    ``q_wxyz`` (object to camera) and ``q_xyzw`` (the same, ROS order), ``position`` (the detection's, or ``None``),
-    ``box`` and ``score`` (the detection's)."""
+    """One refined object of a frame: ``object_id`` (the detection's instance id: the object id, with
+    ``#<Detection2D.id>`` or ``#<n>`` for one of several instances, module docstring), ``q_wxyz`` (object to camera)
+    and ``q_xyzw`` (the same, ROS order), ``position`` (the detection's, or ``None``), ``box`` and ``score`` (the
+    detection's), and ``lost``: the tracker's loss-of-track check flagged it in this frame (``lost_deg``; always
+    False without it and in ``"refine"`` mode)."""
 
     object_id: str
     q_wxyz: np.ndarray
     position: np.ndarray | None
     box: np.ndarray
     score: float
+    lost: bool = False
 
     @property
     def q_xyzw(self) -> np.ndarray:
@@ -170,14 +245,18 @@ class RosRefiner:
 
     Args:
         mode: ``"refine"``: every detection with a coarse pose is refined from it (the paper's per-frame use);
-            ``"track"``: a :class:`refiner_rt.RefinerTracker` per camera: a detection's pose starts an object (or
-            restarts it), later frames refine from the previous result, so the detector's pose is needed once.
-            Instances of one class are told apart by ``Detection2D.id`` when it is set.
+            ``"track"``: a :class:`refiner_rt.RefinerTracker` per camera: a detection's pose starts an object, later
+            frames refine from the previous result, so the detector's pose is needed once. A later pose of a
+            tracked object re-initialises it, or with ``detector_weight`` is fused with the track
+            (:meth:`refiner_rt.RefinerTracker.update_from_detector`, as ``refiner-rt track`` does for frames).
+            Instances are told apart by their instance ids (module docstring).
         models: ``{object id: RefinerSession or RefinerCascade}`` (default: each detected object's shipped model,
             loaded on first sight; objects without one are skipped and counted in :attr:`skipped`).
         cascade: with the shipped models, use each object's :class:`refiner_rt.RefinerCascade` (coarse and fine)
             where a fine refiner ships.
         rectified, class_map: as :func:`camera_from_info` and :func:`detections_from_msg`.
+        identity_is_pose: take an orientation of ``(0, 0, 0, 1)`` as the identity rotation, for a detector that
+            really outputs it; by default it is the message's default and means no pose (:func:`coarse_rotation`).
         int8, threads: for the shipped models.
         settle_deg: for detector poses that may be more than 30 degrees off: each refinement by a
             :class:`refiner_rt.RefinerSession` runs two passes, the second kept where it turns the result by more
@@ -187,14 +266,17 @@ class RosRefiner:
             (:meth:`refiner_rt.RefinerSession.refine`; ``1`` to ``MAX_VIEWS``, default 1): four took the shipped
             refiners from 5.67 to 4.93 degrees on the real dev frames, for four network passes. A cascade averages
             its own views: not with ``cascade=True``.
-        tracker_kwargs: passed to :class:`refiner_rt.RefinerTracker` (``predict``, ``lost_deg``...).
+        tracker_kwargs: passed to :class:`refiner_rt.RefinerTracker` (``predict``, ``lost_deg``,
+            ``detector_weight``...), checked here. With ``lost_deg`` each :class:`RefinedPose` says whether the
+            check flagged it (``lost``).
 
     Not thread-safe in ``"track"`` mode (one tracker per camera stream).
     """
 
     def __init__(self, mode: str = "track", models: Mapping | None = None, *, cascade: bool = False,
-                 rectified: bool = False, class_map: Mapping | None = None, int8: bool = True, threads: int = 1,
-                 settle_deg: float | None = None, views: int = 1, **tracker_kwargs):
+                 rectified: bool = False, class_map: Mapping | None = None, identity_is_pose: bool = False,
+                 int8: bool = True, threads: int = 1, settle_deg: float | None = None, views: int = 1,
+                 **tracker_kwargs):
         if mode not in ("refine", "track"):
             raise ValueError(f"mode must be 'refine' or 'track'; got {mode!r}")
         from refiner_rt.session import RefinerSession, _validate_settle
@@ -207,6 +289,7 @@ class RosRefiner:
             raise ValueError(f"{sorted(tracker_kwargs)} apply to mode='track' only")
         self.mode, self.cascade, self.rectified = mode, bool(cascade), bool(rectified)
         self.class_map = dict(class_map or {})
+        self.identity_is_pose = bool(identity_is_pose)
         self.int8, self.threads, self.tracker_kwargs = int8, threads, tracker_kwargs
         self.settle_deg = _validate_settle(settle_deg)
         self.views = views
@@ -214,10 +297,19 @@ class RosRefiner:
             self.tracker_kwargs = {"iterations": 2, **tracker_kwargs, "settle_deg": self.settle_deg}
         if mode == "track" and views != 1:
             self.tracker_kwargs = {**self.tracker_kwargs, "views": views}
+        if mode == "track":  # the tracker's own checks, now rather than at the first frame
+            from refiner_rt.tracker import RefinerTracker
+
+            RefinerTracker({}, np.eye(3), {}, **self.tracker_kwargs)
         self._models = dict(models or {})
         self._given = models is not None
         self._tracker = None
         self.skipped: dict[str, int] = {}  # class id -> detections skipped (no refiner for it, or no pose to start)
+
+    @property
+    def checks_loss(self) -> bool:
+        """Whether the tracker runs the loss-of-track check (``mode="track"`` with ``lost_deg``)."""
+        return self.mode == "track" and self.tracker_kwargs.get("lost_deg") is not None
 
     def _model(self, object_id: str):
         if object_id in self._models:
@@ -246,14 +338,22 @@ class RosRefiner:
         self.skipped[object_id] = self.skipped.get(object_id, 0) + 1
 
     def process(self, image_msg, info_msg, detections_msg) -> list[RefinedPose]:
-        """The refined poses of one frame (its image, its camera's ``CameraInfo`` and its detections)."""
+        """The refined poses of one frame (its image, its camera's ``CameraInfo`` and its detections).
+
+        Raises:
+            ValueError: an image, camera or detection this runtime cannot use (named), e.g. an orientation that is
+                not a unit quaternion (:func:`coarse_rotation`).
+        """
         image = image_from_msg(image_msg)
         K, D = camera_from_info(info_msg, self.rectified)
-        dets = []
-        for d in detections_from_msg(detections_msg, self.class_map):
+        dets, names = [], set()
+        for d in detections_from_msg(detections_msg, self.class_map, self.identity_is_pose):
             if self._model(d.object_id) is None:
                 self._skip(d.object_id)  # no refiner for this class
+            elif d.instance in names:  # a second detection under one instance id: not told apart
+                self._skip(d.object_id)
             else:
+                names.add(d.instance)
                 dets.append(d)
         if self.mode == "refine":
             return self._refine(image, K, D, dets)
@@ -275,7 +375,7 @@ class RosRefiner:
                 {} if self.settle_deg is None else {"iterations": 2, "settle_deg": self.settle_deg})}
             res = model.refine(image, np.array([d.box for d in group]), np.array([d.q_wxyz for d in group]), K=K,
                                D=D, **passes)
-            out += [RefinedPose(object_id, q, d.position, d.box, d.score) for d, q in zip(group, res.q_refined)]
+            out += [RefinedPose(d.instance, q, d.position, d.box, d.score) for d, q in zip(group, res.q_refined)]
         return out
 
     def _track(self, image, K, D, dets: list[Detection]) -> list[RefinedPose]:
@@ -284,20 +384,18 @@ class RosRefiner:
         if self._tracker is None:
             self._tracker = RefinerTracker({}, K, {}, D=D, **self.tracker_kwargs)
         tracker = self._tracker
-        boxes, seen = {}, {}
+        boxes, poses, seen = {}, {}, {}
         for d in dets:
-            key = f"{d.object_id}#{d.id}" if d.id else d.object_id
-            if key in boxes:  # a second instance without an id to tell it apart: not trackable
-                self._skip(d.object_id)
-                continue
-            if d.q_wxyz is not None:
-                if key in tracker:
-                    tracker.reset(key, d.q_wxyz)
-                else:
-                    tracker.add(key, d.q_wxyz, session=self._model(d.object_id))
-            elif key not in tracker:
+            if d.q_wxyz is None and d.instance not in tracker:
                 self._skip(d.object_id)  # a box but no pose to start from yet
                 continue
-            boxes[key], seen[key] = d.box, d
-        refined = tracker.update(image, boxes) if boxes else {}
-        return [RefinedPose(key, q, seen[key].position, seen[key].box, seen[key].score) for key, q in refined.items()]
+            boxes[d.instance], seen[d.instance] = d.box, d
+            if d.q_wxyz is not None:
+                poses[d.instance] = d.q_wxyz
+        if not boxes:
+            return []
+        sessions = {key: self._model(seen[key].object_id) for key in poses if key not in tracker}
+        refined = tracker.update_from_detector(image, boxes, poses, sessions=sessions)
+        lost = set(tracker.lost)
+        return [RefinedPose(key, q, seen[key].position, seen[key].box, seen[key].score, lost=key in lost)
+                for key, q in refined.items()]

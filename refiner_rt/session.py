@@ -59,8 +59,8 @@ from refiner_rt.geometry import (  # noqa: F401  (re-exported under their old na
     view_boxes,
     view_offsets,
 )
-from refiner_rt.preprocess import (MAX_BOX_COORDINATE, ROLL_TURNS, crop_to_square, resize_crop, validate_boxes,
-                                   validate_image)
+from refiner_rt.preprocess import (MAX_BOX_COORDINATE, MIN_BOX_SIDE, MIN_INSIDE_FRACTION, ROLL_TURNS, crop_to_square,
+                                   resize_crop, validate_boxes, validate_image)
 from refiner_rt.distortion import crop_undistorted, undistort_boxes, validate_D
 
 __all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "default_session_options", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS", "SETTLE_DEG",
@@ -174,8 +174,9 @@ def _small_boxes(boxes, image_shape) -> tuple[np.ndarray, list] | None:
 
     Returns:
         ``(float64 (N, 4) array, N lists [x1, y1, x2, y2])`` when every box is finite, within
-        ``+-MAX_BOX_COORDINATE``, non-empty and overlaps the image; None otherwise (the caller then runs
-        :func:`validate_boxes`, which raises or converts).
+        ``+-MAX_BOX_COORDINATE``, at least ``MIN_BOX_SIDE`` pixels on each side and at least
+        ``MIN_INSIDE_FRACTION`` inside the image (the rules of :func:`validate_boxes`); None otherwise (the caller
+        then runs :func:`validate_boxes`, which raises or converts).
     """
     if isinstance(boxes, np.ndarray):
         arr = boxes
@@ -189,11 +190,15 @@ def _small_boxes(boxes, image_shape) -> tuple[np.ndarray, list] | None:
     arr = arr.astype(np.float64, copy=False)
     rows = arr.tolist()
     h, w = image_shape[0], image_shape[1]
-    lo, hi = -MAX_BOX_COORDINATE, MAX_BOX_COORDINATE
+    lo, hi, side, share = -MAX_BOX_COORDINATE, MAX_BOX_COORDINATE, MIN_BOX_SIDE, MIN_INSIDE_FRACTION
     for x1, y1, x2, y2 in rows:
         # chained comparisons are False for nan and inf, so they check finiteness too
-        if not (lo <= x1 < x2 <= hi and lo <= y1 < y2 <= hi and x2 > 0 and y2 > 0 and x1 < w and y1 < h):
+        if not (lo <= x1 < x2 <= hi and lo <= y1 < y2 <= hi and x2 - x1 >= side and y2 - y1 >= side and x2 > 0
+                and y2 > 0 and x1 < w and y1 < h):
             return None
+        if x1 < 0 or y1 < 0 or x2 > w or y2 > h:  # partly outside: enough of it inside?
+            if ((min(x2, w) - max(x1, 0.0)) / (x2 - x1)) * ((min(y2, h) - max(y1, 0.0)) / (y2 - y1)) < share:
+                return None
     return arr, rows
 
 
@@ -238,6 +243,10 @@ def _as_wxyz(q, q_order: str, name: str = "q_in_wxyz"):
             shape = np.shape(q)
         except (ValueError, TypeError):  # ragged: _q_in names it
             return q
+    if tuple(shape) == (3, 3):
+        raise ValueError(f"{name} has shape (3, 3): one rotation matrix, not (N, 4) quaternions; pass matrices as "
+                         "(N, 3, 3) (R[None] for one box), or convert it with refiner_rt.quaternion.from_matrix(R) "
+                         "(wxyz, object to camera)")
     if len(shape) == 3 and shape[1:] == (3, 3):
         R = np.asarray(q, dtype=np.float64)
         if not np.all(np.isfinite(R)):
@@ -306,6 +315,27 @@ def _validate_K(K) -> np.ndarray:
             f"got {arr.tolist()}"
         )
     return arr
+
+
+_PRINCIPAL_POINT_WARNED: set = set()  # (cx, cy, W, H) already warned about (at most 64: no growth without bound)
+
+
+def _check_principal_point(K: np.ndarray, image_shape) -> None:
+    """Log a warning (once per principal point and image size) when ``K``'s principal point lies outside the
+    image's central half: the sign of a ``K`` for another resolution (one calibrated at twice the size puts it at
+    the image's corner, or beyond). Not refused: the ``K`` of a cropped image (a region of interest) may put it
+    anywhere, and is right."""
+    h, w = image_shape[0], image_shape[1]
+    cx, cy = K[0, 2], K[1, 2]
+    if abs(cx - 0.5 * w) <= 0.25 * w and abs(cy - 0.5 * h) <= 0.25 * h:
+        return
+    key = (float(cx), float(cy), w, h)
+    if key in _PRINCIPAL_POINT_WARNED or len(_PRINCIPAL_POINT_WARNED) >= 64:
+        return
+    _PRINCIPAL_POINT_WARNED.add(key)
+    log.warning("K's principal point (cx, cy) = (%g, %g) lies outside the central half of the %dx%d image: is K "
+                "for another resolution? Scale fx, fy, cx, cy by the image's size over the calibration's (a cropped "
+                "image's K may lie there: then this is expected)", float(cx), float(cy), w, h)
 
 
 def _ort_message(exc: Exception) -> str:
@@ -487,16 +517,21 @@ class RefinerSession:
         Args:
             image_bgr: ``H x W x 3`` ``uint8`` image, **BGR** channel order.
             boxes_xyxy: ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels (float, continuous
-                coordinates); each must be non-empty, overlap the image and have coordinates within
-                ``+-MAX_BOX_COORDINATE`` (1e6) pixels. ``N * views`` at most :data:`MAX_BATCH` (1024).
+                coordinates), not normalised to 0..1; each at least ``MIN_BOX_SIDE`` (2) pixels wide and high,
+                with at least ``MIN_INSIDE_FRACTION`` (25%) of its area inside the image and coordinates within
+                ``+-MAX_BOX_COORDINATE`` (1e6) pixels (:func:`refiner_rt.preprocess.validate_boxes`: the errors
+                name the box). ``N * views`` at most :data:`MAX_BATCH` (1024).
             q_in_wxyz: ``(N, 4)`` coarse object-to-camera rotations, ``wxyz`` (or in ``q_order``). Finite and
                 non-zero; non-unit quaternions are normalised (their norm carries no rotation; huge
                 components are scaled down first, so any finite non-zero quaternion works). Or ``(N, 3, 3)``
-                rotation matrices (object to camera, ``x_cam = R @ x_obj + t``; orthonormal within 1e-3, det +1).
+                rotation matrices (object to camera, ``x_cam = R @ x_obj + t``; orthonormal within 1e-3, det +1;
+                a single ``(3, 3)`` matrix is refused with a message saying how to pass it).
             iterations: feed the refined rotation back this many times (``1`` to :data:`MAX_ITERATIONS`;
                 the paper does 1).
             K: ``(3, 3)`` camera intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels, finite,
-                ``fx, fy`` in ``[K_MIN_FOCAL, K_MAX_ABS]``, ``|s|, |cx|, |cy| <= K_MAX_ABS``. Required by models
+                ``fx, fy`` in ``[K_MIN_FOCAL, K_MAX_ABS]``, ``|s|, |cx|, |cy| <= K_MAX_ABS``, for this image's
+                resolution: a principal point outside the image's central half is logged as a warning (the sign of
+                a ``K`` for another resolution; a cropped image's ``K`` may put it there). Required by models
                 trained in the viewing-ray frame (metadata ``rotation_frame == "ray"``), checked but unused by
                 ``"camera"`` models.
             views: refine each object from this many crops and average the corrections (chordal mean,
@@ -544,11 +579,13 @@ class RefinerSession:
         if views > 1 or settle_deg is not None:
             q_rows, small = None, None  # the averaged and the settling paths run on numpy arrays
         q_frame = None
+        if K is not None:
+            K = _validate_K(K)
+            _check_principal_point(K, image.shape)
         if D is not None:
             if K is None:
                 raise ValueError("K is required with D: the distortion coefficients are in the pixels of the "
                                  "(3, 3) camera intrinsics K")
-            K = _validate_K(K)
             boxes = rows = undistort_boxes(boxes, K, D)  # the boxes in the pinhole image of K
         if self._ray:
             if K is None:
@@ -556,10 +593,7 @@ class RefinerSession:
                     "K is required: this model was trained in the viewing-ray frame (metadata rotation_frame='ray'); "
                     "pass the (3, 3) camera intrinsics"
                 )
-            K = _validate_K(K)
             q_frame = _ray_rows(K, rows) if small is not None else ray_quaternions(K, boxes)
-        elif K is not None:
-            _validate_K(K)
         size, context = self.contract.input_size, self.contract.crop_context
         if views > 1:
             rows = view_boxes(boxes, views, context)

@@ -232,6 +232,13 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               "topic).")
 @click.option("--info-topic", help="With --bag: the CameraInfo topic (default: the bag's one).")
 @click.option("--detections-topic", help="With --bag: the Detection2DArray topic (default: the bag's one).")
+@click.option("--sync-tolerance-ms", type=click.FloatRange(0.0, 1000.0), default=None, metavar="MS",
+              help="With --bag: match each image to the detection message nearest in stamp within this many "
+                   "milliseconds (approximate matches are counted and reported; no match at all is an error). "
+                   "Default: 20, for a 30 Hz camera; 0 for exact stamps only.")
+@click.option("--identity-is-pose", is_flag=True,
+              help="With --bag: a detection orientation of (0, 0, 0, 1) is the identity rotation. Default: it is "
+                   "the message's default, a box-only detection (no pose), like all zeros.")
 @click.option("--class-map", "class_map", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="With --bag: a JSON object mapping the detector's class ids to YCB ids (default: the class id "
                    "is the YCB id).")
@@ -247,13 +254,15 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
                    "with it (RefinerTracker(predict=\"scene\")). Not with --predict.")
 @click.option("--lost-deg", type=click.FloatRange(0.0, 180.0, min_open=True), default=None,
               help="Loss-of-track check: flag an object lost when a second refinement moves its rotation by more "
-                   "than this many degrees (one more pass per object and frame, N with --views N); the output's \"lost\" lists "
-                   "those frames, for a detector's new \"q\". Default: no check.")
+                   "than this many degrees (one more pass per object and frame, N with --views N); the output's "
+                   "\"lost\" lists those frames, for a detector's new \"q\" (with --bag: the /refiner_rt/lost "
+                   "topic). Default: no check.")
 @click.option("--detector-weight", type=click.FloatRange(0.0, 1.0, min_open=True), default=None,
               help="Fuse a tracked object's later detector poses (\"q\") instead of restarting from them: refine each "
                    "beside the track and keep the rotation this share of the way to it (0.5: the weight measured "
-                   "best on rendered video, benchmarks/RESULTS.md; one more pass per pose, N with --views N). Not with --lost-deg. "
-                   "Default: a \"q\" re-initialises the object.")
+                   "best on rendered video, benchmarks/RESULTS.md; one more pass per pose, N with --views N). With "
+                   "--bag, the detections' poses (--mode track). Not with --lost-deg. Default: a \"q\" re-initialises "
+                   "the object.")
 @click.option("--iterations", type=click.IntRange(1, MAX_ITERATIONS), default=1, show_default=True,
               help="Refinement passes per object and frame.")
 @click.option("--views", type=click.IntRange(1, MAX_VIEWS), default=1, show_default=True,
@@ -273,8 +282,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Frames in a --video image strip, evenly spaced.")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
 def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-              class_map, models, fp32, K_text, predict, scene_motion, lost_deg, detector_weight, iterations, views,
-              settle_deg, threads, video_path, strip_frames, fps):
+              sync_tolerance_ms, identity_is_pose, class_map, models, fp32, K_text, predict, scene_motion, lost_deg,
+              detector_weight, iterations, views, settle_deg, threads, video_path, strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
     DETECTIONS is JSON: {"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "frames": {"<image file>": {"<object id>": [x1,y1,x2,y2]
@@ -292,19 +301,27 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.UsageError("--views is for single refiners; --cascade averages its own views (four for each of "
                                "its refiners): give one of them")
 
+    if lost_deg is not None and detector_weight is not None:
+        raise click.UsageError("--lost-deg and --detector-weight are two uses of the detections' \"q\" (restart a "
+                               "lost track, or fuse every pose); give one")
     bag_only = {"--mode": mode != "track", "--rectified": rectified,
                 "--image-topic": image_topic, "--info-topic": info_topic, "--detections-topic": detections_topic,
+                "--sync-tolerance-ms": sync_tolerance_ms is not None, "--identity-is-pose": identity_is_pose,
                 "--class-map": class_map}
     if bag is not None:
         if frames is not None or detections is not None:
             raise click.UsageError("give either --bag BAG or FRAMES DETECTIONS, not both")
-        unused = [flag for flag, value in {"--K": K_text, "--detector-weight": detector_weight, "--video": video_path,
-                                           "--model": models, "--iterations": iterations != 1}.items() if value]
+        # what a bag gives instead of each option of the frames path
+        instead = {"--K": (K_text, "the bag's CameraInfo gives the camera"),
+                   "--video": (video_path, "the output bag has the overlay, /refiner_rt/overlay/compressed"),
+                   "--model": (models, "each object's shipped model refines it"),
+                   "--iterations": (iterations != 1, "one pass per object and frame; --settle-deg adds a second")}
+        unused = [f"{flag} ({why})" for flag, (value, why) in instead.items() if value]
         if unused:
-            raise click.UsageError(f"{', '.join(unused)} apply to FRAMES DETECTIONS, not to --bag (a bag's "
-                                   "CameraInfo gives the camera)")
+            raise click.UsageError(f"not with --bag, only with FRAMES DETECTIONS: {'; '.join(unused)}")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-                          class_map, fp32, prediction, lost_deg, threads, settle_deg, views)
+                          class_map, fp32, prediction, lost_deg, threads, settle_deg, views, detector_weight,
+                          sync_tolerance_ms, identity_is_pose)
     if frames is None or detections is None:
         raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
     used = [flag for flag, value in bag_only.items() if value]
@@ -313,9 +330,6 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     if out_path.suffix.lower() != ".json":
         raise click.BadParameter(f"expected a .json file for the rotations (a video or image strip goes to --video); "
                                  f"got {out_path.name!r}", param_hint="'-o' / '--out'")
-    if lost_deg is not None and detector_weight is not None:
-        raise click.UsageError("--lost-deg and --detector-weight are two uses of the detections' \"q\" (restart a "
-                               "lost track, or fuse every pose); give one")
     try:
         K, dets = read_detections(detections)
     except ValueError as exc:
@@ -354,20 +368,13 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         frame_dets = dets.get(path.name, {})
         t0 = time.perf_counter()
         try:
-            fused = {}
             for object_id, det in frame_dets.items():
-                if det["q"] is not None:
-                    if object_id in tracker and detector_weight is not None:
-                        fused[object_id] = det["q"]
-                    elif object_id in tracker:
-                        tracker.reset(object_id, det["q"])
-                    else:
-                        tracker.add(object_id, det["q"])
-                elif object_id not in tracker:
+                if det["q"] is None and object_id not in tracker:
                     raise ValueError(f"{object_id!r} has a box but no rotation to start from: give its first "
                                      f"detection as {{\"box\": [...], \"q\": [w, x, y, z]}}")
             boxes = {o: d["box"] for o, d in frame_dets.items()}
-            out = tracker.update(image, boxes, detector=fused or None)
+            out = tracker.update_from_detector(image, boxes, {o: d["q"] for o, d in frame_dets.items()
+                                                              if d["q"] is not None})
         except (ValueError, TypeError) as exc:
             raise click.ClickException(f"{path.name}: {exc}") from None
         seconds += time.perf_counter() - t0
@@ -396,12 +403,14 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
 
 
 def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic, class_map, fp32,
-               predict, lost_deg, threads, settle_deg, views):
-    """``track --bag``: :func:`refiner_rt.rosbag.refine_bag` with a progress bar and one-line errors."""
+               predict, lost_deg, threads, settle_deg, views, detector_weight=None, sync_tolerance_ms=None,
+               identity_is_pose=False):
+    """``track --bag``: :func:`refiner_rt.rosbag.refine_bag` with a progress bar and one-line errors; approximate
+    stamp matches and lost tracks are reported on stderr."""
     from refiner_rt.ros import RosRefiner
 
     try:
-        from refiner_rt.rosbag import refine_bag
+        from refiner_rt.rosbag import SYNC_TOLERANCE_MS, refine_bag
         mapping = None
         if class_map is not None:
             try:
@@ -410,17 +419,21 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
                 raise ValueError(f"{class_map}: not a readable JSON object ({exc})") from None
             if not isinstance(mapping, dict) or not all(isinstance(v, str) for v in mapping.values()):
                 raise ValueError(f"{class_map}: expected a JSON object {{detector class id: YCB id}}")
-        extra = {k: v for k, v in {"predict": predict, "lost_deg": lost_deg}.items() if v}
+        extra = {k: v for k, v in {"predict": predict, "lost_deg": lost_deg,
+                                   "detector_weight": detector_weight}.items() if v}
         if extra and mode != "track":
             flags = ["--scene-motion" if k == "predict" and v == "scene" else "--" + k.replace("_", "-")
                      for k, v in extra.items()]
             raise click.UsageError(f"{', '.join(flags)} apply to --mode track")
         refiner = RosRefiner(mode, cascade=cascade, rectified=rectified, class_map=mapping, int8=not fp32,
-                             settle_deg=settle_deg, views=views, threads=threads, **extra)
+                             identity_is_pose=identity_is_pose, settle_deg=settle_deg, views=views, threads=threads,
+                             **extra)
+        tolerance = SYNC_TOLERANCE_MS if sync_tolerance_ms is None else sync_tolerance_ms
         t0 = time.perf_counter()
         with _LazyBar("frames") as bar:
             summary = refine_bag(bag, out_path, refiner, image_topic=image_topic, info_topic=info_topic,
-                                 detections_topic=detections_topic, total=bar.start, progress=bar.update)
+                                 detections_topic=detections_topic, sync_tolerance_ms=tolerance, total=bar.start,
+                                 progress=bar.update)
     except ModuleNotFoundError as exc:
         raise click.ClickException(str(exc) if exc.name == "rosbags" else f"needs {exc.name!r}") from None
     except (ValueError, TypeError, FileExistsError) as exc:
@@ -430,6 +443,16 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
             raise click.ClickException(f"{bag}: {type(exc).__name__}: {exc}") from None
         raise
     skipped = f"; skipped detections: {summary.skipped}" if summary.skipped else ""
+    if summary.approximate:
+        click.echo(f"warning: {summary.approximate} of {summary.frames_with_detections} images matched detections "
+                   f"stamped up to {summary.max_offset_ms:.3f} ms apart (approximate sync within {tolerance:g} ms)",
+                   err=True)
+    if summary.unmatched_detections:
+        click.echo(f"warning: {summary.unmatched_detections} of {summary.detection_messages} detection messages "
+                   f"matched no image within {tolerance:g} ms", err=True)
+    if summary.lost:
+        click.echo(f"lost (the loss-of-track check, frames per instance; on /refiner_rt/lost): {summary.lost}",
+                   err=True)
     click.echo(f"{summary.images} images ({summary.image_topic}), {summary.frames_with_detections} with detections "
                f"({summary.detections_topic}), {summary.poses} poses of {len(summary.objects)} objects in "
                f"{time.perf_counter() - t0:.1f} s -> {out_path} (topics: {', '.join(summary.output_topics)}){skipped}")

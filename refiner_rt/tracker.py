@@ -452,6 +452,46 @@ class RefinerTracker:
         self.redetections += len(redetected)
         return out
 
+    def update_from_detector(self, image, boxes: Mapping, poses: Mapping, sessions: Mapping | None = None
+                             ) -> dict[str, np.ndarray]:
+        """One frame of a detector that gives every object's box and, in some frames, its coarse pose: the step
+        ``refiner-rt track`` runs per frame, on a folder of frames and on a ROS 2 bag
+        (:class:`refiner_rt.ros.RosRefiner`) alike.
+
+        Each pose starts its object when it is not tracked yet (:meth:`add`, with ``sessions[object id]`` when
+        given); for a tracked object it is fused with the track when the tracker has ``detector_weight`` (module
+        docstring), else it re-initialises the object (:meth:`reset`). Then :meth:`update` with ``boxes``.
+
+        Args:
+            image: as :meth:`update`.
+            boxes: ``{object id: (4,) box (x1, y1, x2, y2)}`` in pixels; an object not tracked needs a pose here.
+            poses: ``{object id: (4,) coarse object-to-camera rotation}`` (``q_order``, or a ``(3, 3)`` matrix) for
+                some of the objects in ``boxes``.
+            sessions: ``{object id: RefinerSession, RefinerCascade or pretrained name}`` for the objects this frame
+                starts (default: as :meth:`add`).
+
+        Returns:
+            As :meth:`update`; :attr:`lost` as after it.
+
+        Raises:
+            ValueError / TypeError: a pose without a box, a box of an object neither tracked nor given a pose, or
+                anything :meth:`add`, :meth:`reset` and :meth:`update` refuse.
+        """
+        if not isinstance(poses, Mapping):
+            raise TypeError(f"poses must be a mapping {{object id: (4,) rotation}}; got {type(poses).__name__}")
+        missing = sorted(set(poses) - set(boxes))
+        if missing:
+            raise ValueError(f"poses names {missing}, which have no box in boxes: a detector's pose comes with its box")
+        fused = {}
+        for object_id, q in poses.items():
+            if object_id not in self._tracks:
+                self.add(object_id, q, session=None if sessions is None else sessions.get(object_id))
+            elif self.detector_weight is not None:
+                fused[object_id] = q
+            else:
+                self.reset(object_id, q)
+        return self.update(image, boxes, detector=fused or None)
+
     def _refine(self, sess, image, rows: list, q_in, coarse: list) -> np.ndarray:
         if isinstance(sess, RefinerCascade):
             return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse)).q_refined

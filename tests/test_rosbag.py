@@ -293,3 +293,304 @@ def test_the_readme_ros_section_runs(tmp_path):
     done = subprocess.run([sys.executable, "-m", "refiner_rt.cli", *args], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert pose_topic("003_cracker_box") in read_bag(tmp_path / "refined")
+
+
+# ---------------------------------------------------------------- the ROS 2 contract: poses, stamps, instances, TF
+IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)  # geometry_msgs/Quaternion's default: what an rclpy node leaves unset
+
+
+def _stamp(i: int, offset_ns: int = 0):
+    t = (100 + i) * 10**9 + 5 + offset_ns
+    return T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9)
+
+
+def _detection(class_id, box, xyzw, t_m=(0.1, -0.05, 0.8), det_id=""):
+    x1, y1, x2, y2 = box
+    x, y, z, w = (float(v) for v in xyzw)
+    pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=t_m[0], y=t_m[1], z=t_m[2]),
+                                       orientation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))
+    hyp = T["vision_msgs/msg/ObjectHypothesisWithPose"](
+        hypothesis=T["vision_msgs/msg/ObjectHypothesis"](class_id=class_id, score=0.9),
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)))
+    bbox = T["vision_msgs/msg/BoundingBox2D"](
+        center=T["vision_msgs/msg/Pose2D"](position=T["vision_msgs/msg/Point2D"](x=(x1 + x2) / 2, y=(y1 + y2) / 2),
+                                           theta=0.0), size_x=float(x2 - x1), size_y=float(y2 - y1))
+    return T["vision_msgs/msg/Detection2D"](header=_header(0), results=[hyp], bbox=bbox, id=det_id)
+
+
+def _array(i, dets, offset_ns=0):
+    header = T["std_msgs/msg/Header"](stamp=_stamp(i, offset_ns), frame_id="camera_color_optical_frame")
+    return T["vision_msgs/msg/Detection2DArray"](header=header, detections=dets)
+
+
+def write_sequence_bag(path: Path, image, K, arrays) -> None:
+    """One image (the same every frame) with its CameraInfo at stamps 100 + i s, and the Detection2DArrays given
+    (their own stamps) on /det."""
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c_img = w.add_connection("/img", "sensor_msgs/msg/Image", typestore=STORE)
+        c_info = w.add_connection("/info", "sensor_msgs/msg/CameraInfo", typestore=STORE)
+        c_det = w.add_connection("/det", "vision_msgs/msg/Detection2DArray", typestore=STORE)
+        for i, arr in enumerate(arrays):
+            t = (100 + i) * 10**9 + 5
+            w.write(c_info, t, STORE.serialize_cdr(_info(K, i), "sensor_msgs/msg/CameraInfo"))
+            w.write(c_img, t, STORE.serialize_cdr(_image(image, i), "sensor_msgs/msg/Image"))
+            if arr is not None:
+                w.write(c_det, t, STORE.serialize_cdr(arr, "vision_msgs/msg/Detection2DArray"))
+
+
+def _xyzw(q_wxyz):
+    return rq.to_xyzw(np.asarray(q_wxyz))
+
+
+def _q(msg_orientation):
+    o = msg_orientation
+    return rq.from_xyzw(np.array([o.x, o.y, o.z, o.w]))
+
+
+def test_the_rclpy_default_orientation_is_no_pose_unless_the_flag_says_so():
+    """(0, 0, 0, 1) and all zeros are box-only detections: refine mode skips them, track mode keeps tracking from
+    the previous result instead of restarting from the identity; identity_is_pose=True refines from the identity."""
+    from refiner_rt.ros import coarse_rotation, detections_from_msg
+
+    assert coarse_rotation(IDENTITY_XYZW) is None and coarse_rotation((0, 0, 0, 0)) is None
+    assert coarse_rotation((0, 0, 0, -1)) is None and coarse_rotation((np.nan, 0, 0, 1)) is None
+    np.testing.assert_array_equal(coarse_rotation(IDENTITY_XYZW, identity_is_pose=True), [1, 0, 0, 0])
+    image, K, objects = _frames()[0]
+    o = objects[0]
+    box_only = _array(0, [_detection(o["object_id"], o["box_xyxy"], IDENTITY_XYZW)])
+    assert detections_from_msg(box_only)[0].q_wxyz is None
+    r = RosRefiner("refine")
+    assert r.process(_image(image, 0), _info(K, 0), box_only) == [] and r.skipped == {o["object_id"]: 1}
+    (p,) = RosRefiner("refine", identity_is_pose=True).process(_image(image, 0), _info(K, 0), box_only)
+    want = RefinerSession.pretrained(o["object_id"]).refine(image, [o["box_xyxy"]], [[1.0, 0, 0, 0]], K=K)
+    assert rq.geodesic_angle(p.q_wxyz, want.q_refined[0]) < 1e-9
+    # tracking: a pose in the first frame, the message default after it; the identity restarts nothing
+    tracker = RosRefiner("track")
+    first = _array(0, [_detection(o["object_id"], o["box_xyxy"], _xyzw(_q_in(o, 0)))])
+    (p0,) = tracker.process(_image(image, 0), _info(K, 0), first)
+    for i in (1, 2):
+        (p,) = tracker.process(_image(image, i), _info(K, i), _array(i, box_only.detections))
+    far_from_identity = rq.geodesic_angle(np.array([1.0, 0, 0, 0]), np.array(o["q_gt_wxyz"]))
+    assert rq.geodesic_angle(p.q_wxyz, np.array(o["q_gt_wxyz"])) < 12.0 < far_from_identity
+    assert rq.geodesic_angle(p.q_wxyz, p0.q_wxyz) < 5.0
+
+
+def test_a_non_unit_orientation_is_an_error_naming_the_detection(tmp_path):
+    image, K, objects = _frames()[0]
+    o = objects[1]
+    q = 1.7 * _xyzw(_q_in(o, 0))
+    bag = tmp_path / "in"
+    write_sequence_bag(bag, image, K, [_array(0, [_detection(objects[0]["object_id"], objects[0]["box_xyxy"],
+                                                             _xyzw(_q_in(objects[0], 0))),
+                                                  _detection(o["object_id"], o["box_xyxy"], q, det_id="7")])])
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "out"), "--mode", "refine"])
+    assert res.exit_code == 1 and "Traceback" not in res.output, res.output
+    assert f"detections[1] (class_id {o['object_id']!r}, id '7')" in res.output
+    assert "has norm 1.7: expected a unit quaternion" in res.output
+
+
+@pytest.mark.parametrize("offset_ms", [1.0, -1.0])
+def test_detections_stamped_1_ms_off_match_their_images_with_a_warning(tmp_path, offset_ms):
+    image, K, objects = _frames()[0]
+    arrays = [_array(i, [_detection(o["object_id"], o["box_xyxy"], _xyzw(_q_in(o, i))) for o in objects],
+                     offset_ns=int(offset_ms * 1e6)) for i in range(3)]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, arrays)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--mode", "refine"])
+    assert res.exit_code == 0, res.output
+    assert "3 images" in res.stdout and "3 with detections" in res.stdout
+    assert "warning: 3 of 3 images matched detections stamped up to 1.000 ms apart" in res.stderr
+    got = read_bag(out)
+    for o in objects:
+        poses = got[pose_topic(o["object_id"])]
+        assert [m.header.stamp.sec for _, m in poses] == [100, 101, 102]  # at the image's stamp, not the detection's
+        assert poses[0][1].header.stamp.nanosec == 5
+    # with exact matching only, the same bag has no match
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "exact"), "--mode", "refine",
+                                    "--sync-tolerance-ms", "0"])
+    assert res.exit_code == 1 and "no detections matched an image within 0 ms" in res.output
+
+
+def test_detections_100_ms_off_match_nothing_and_the_command_fails_with_the_counts(tmp_path):
+    image, K, objects = _frames()[0]
+    arrays = [_array(i, [_detection(o["object_id"], o["box_xyxy"], _xyzw(_q_in(o, i))) for o in objects],
+                     offset_ns=100_000_000) for i in range(2)] + [None]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, arrays)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out)])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert ("no detections matched an image within 20 ms (--sync-tolerance-ms): 3 images on /img, 2 detection "
+            "messages on /det, the closest stamps 100.000 ms apart") in res.output
+    assert not out.exists()  # nothing written
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--sync-tolerance-ms", "150"])
+    assert res.exit_code == 0, res.output
+    assert "2 with detections" in res.stdout and "up to 100.000 ms apart" in res.stderr
+
+
+def test_stamps_are_matched_one_to_one_nearest_first():
+    from refiner_rt.rosbag import match_stamps
+
+    ms = 1_000_000
+    images = [0, 33 * ms, 66 * ms, 100 * ms]
+    # the detection at 17 ms is nearest to the image at 33 ms (16 ms), the one at 34 ms too (1 ms): it wins
+    matched, closest = match_stamps(images, [17 * ms, 34 * ms, 70 * ms, 500 * ms], 20 * ms)
+    assert matched == {1: 1, 0: 0, 2: 2} and closest == 1 * ms
+    assert match_stamps(images, [], 20 * ms) == ({}, None)
+    assert match_stamps(images, [300 * ms], 20 * ms) == ({}, 200 * ms)
+
+
+def test_two_instances_without_ids_get_distinct_ids_topics_and_tf(tmp_path):
+    """Two detections of one class without Detection2D.id: <class>#1 and #2 by the boxes' left edges, each refined
+    from its own box and pose, on its own topic and TF frame, with the detector's position passed through."""
+    from refiner_rt.rosbag import object_frame
+
+    image, K, objects = _frames()[0]
+    a, b = sorted(objects[:2], key=lambda o: -o["box_xyxy"][0])  # a: the right one, written first
+    cls = a["object_id"]
+    dets = [_detection(cls, o["box_xyxy"], _xyzw(_q_in(o, 0)), t_m=o["t_m"]) for o in (a, b)]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, [_array(0, dets)])
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--mode", "refine"])
+    assert res.exit_code == 0, res.output
+    got = read_bag(out)
+    session = RefinerSession.pretrained(cls)
+    tf = got["/tf"]
+    assert len(tf) == 1
+    frames = {t.child_frame_id: t for t in tf[0][1].transforms}
+    # one batch, as the refiner runs them (an INT8 model's activations are quantised per batch)
+    both = session.refine(image, [a["box_xyxy"], b["box_xyxy"]], np.stack([_q_in(a, 0), _q_in(b, 0)]), K=K)
+    for n, o, want in ((1, b, both.q_refined[1]), (2, a, both.q_refined[0])):  # numbered left to right
+        instance = f"{cls}#{n}"
+        ((_, msg),) = got[pose_topic(instance)]
+        assert rq.geodesic_angle(_q(msg.pose.orientation), want) < 1e-6
+        t = frames[object_frame(instance)]
+        assert object_frame(instance) == f"{cls}_{n}" and t.header.frame_id == "camera_color_optical_frame"
+        assert (t.header.stamp.sec, t.header.stamp.nanosec) == (100, 5)
+        np.testing.assert_allclose([t.transform.translation.x, t.transform.translation.y,
+                                    t.transform.translation.z], o["t_m"])
+        assert rq.geodesic_angle(_q(t.transform.rotation), want) < 1e-6
+    ids = {d.id: d.bbox.center.position.x for d in got["/refiner_rt/detections"][0][1].detections}
+    assert ids["1"] < ids["2"]
+    # ids the detector sets name the instances; a repeated one is skipped, not published twice
+    from refiner_rt.ros import detections_from_msg
+
+    named = _array(0, [_detection(cls, a["box_xyxy"], IDENTITY_XYZW, det_id="7"),
+                       _detection(cls, b["box_xyxy"], IDENTITY_XYZW, det_id="7"),
+                       _detection(cls, b["box_xyxy"], IDENTITY_XYZW)])
+    assert [d.instance for d in detections_from_msg(named)] == [f"{cls}#7", f"{cls}#7", cls]
+    dets[1].id = dets[0].id = "7"
+    r = RosRefiner("refine")
+    assert [p.object_id for p in r.process(_image(image, 0), _info(K, 0), _array(0, dets))] == [f"{cls}#7"]
+    assert r.skipped == {cls: 1}
+
+
+def test_track_with_detector_weight_on_a_bag_fuses_as_the_frames_path_does(tmp_path):
+    """A box-only detector between poses (the rclpy default orientation in frame 1) and a later pose 20 degrees off
+    in frame 2: --bag --detector-weight 0.5 gives the frames path's rotations, and a pose restarts the track
+    without it."""
+    image, K, objects = _frames()[0]
+    objects = objects[:2]
+    later = {o["object_id"]: rq.multiply(np.array(o["q_gt_wxyz"]), rq.from_axis_angle([1.0, 0.5, 0.0], 20.0))
+             for o in objects}
+    poses = [{o["object_id"]: _q_in(o, 0) for o in objects}, {}, later, {}]
+    arrays = [_array(i, [_detection(o["object_id"], o["box_xyxy"],
+                                    _xyzw(p[o["object_id"]]) if o["object_id"] in p else IDENTITY_XYZW)
+                         for o in objects]) for i, p in enumerate(poses)]
+    bag = tmp_path / "in"
+    write_sequence_bag(bag, image, K, arrays)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    doc = {"K": K.tolist(), "frames": {}}
+    for i, p in enumerate(poses):
+        cv2.imwrite(str(folder / f"{i:06d}.png"), image)
+        doc["frames"][f"{i:06d}.png"] = {o["object_id"]: ({"box": o["box_xyxy"], "q": p[o["object_id"]].tolist()}
+                                                          if o["object_id"] in p else o["box_xyxy"]) for o in objects}
+    dets = tmp_path / "dets.json"
+    dets.write_text(json.dumps(doc))
+    results = {}
+    for extra in ([], ["--detector-weight", "0.5"]):
+        out = tmp_path / f"out{len(extra)}"
+        res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), *extra])
+        assert res.exit_code == 0, res.output
+        got = read_bag(out)
+        res = CliRunner().invoke(main, ["track", str(folder), str(dets), "-o", str(out) + ".json", *extra])
+        assert res.exit_code == 0, res.output
+        frames = json.loads(Path(str(out) + ".json").read_text())["frames"]
+        for o in objects:
+            bag_poses = got[pose_topic(o["object_id"])]
+            assert len(bag_poses) == 4
+            for i, (_, msg) in enumerate(bag_poses):
+                want = np.array(frames[f"{i:06d}.png"][o["object_id"]])
+                assert rq.geodesic_angle(_q(msg.pose.orientation), want) < 1e-6, (extra, o["object_id"], i)
+        results[len(extra)] = {o["object_id"]: _q(got[pose_topic(o["object_id"])][2][1].pose.orientation)
+                               for o in objects}
+    for o in objects:  # fused: between the track and the new detection, so not the restart's result
+        assert rq.geodesic_angle(results[0][o["object_id"]], results[2][o["object_id"]]) > 0.25
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "r"), "--mode", "refine",
+                                    "--detector-weight", "0.5"])
+    assert res.exit_code == 2 and "--detector-weight apply to --mode track" in res.output
+
+
+@pytest.mark.parametrize("lost_deg, flagged", [("0.001", True), ("179", False)])
+def test_lost_deg_with_a_bag_writes_the_lost_flag(tmp_path, lost_deg, flagged):
+    """--lost-deg with --bag: /refiner_rt/lost at every frame, holding the detections the check flagged (every
+    refined track at 0.001 degrees, none at 179; the first frame is refined from a coarse pose, never checked)."""
+    image, K, objects = _frames()[0]
+    objects = objects[:2]
+    arrays = [_array(i, [_detection(o["object_id"], o["box_xyxy"], _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW)
+                         for o in objects]) for i in range(3)]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, arrays)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--lost-deg", lost_deg])
+    assert res.exit_code == 0, res.output
+    lost = read_bag(out)["/refiner_rt/lost"]
+    assert [m.header.stamp.sec for _, m in lost] == [100, 101, 102]
+    ids = sorted(o["object_id"] for o in objects)
+    want = [[], ids, ids] if flagged else [[], [], []]
+    assert [sorted(d.results[0].hypothesis.class_id for d in m.detections) for _, m in lost] == want
+    assert ("lost (the loss-of-track check" in res.stderr) is flagged
+    r = RosRefiner("track", lost_deg=float(lost_deg))
+    flags = [[p.lost for p in r.process(_image(image, i), _info(K, i), arrays[i])] for i in range(3)]
+    assert flags == [[False, False], [flagged] * 2, [flagged] * 2]
+    assert "/refiner_rt/lost" not in read_bag(write_and_track(tmp_path, image, K, arrays))
+
+
+def write_and_track(tmp_path, image, K, arrays) -> Path:
+    bag, out = tmp_path / "plain_in", tmp_path / "plain_out"
+    write_sequence_bag(bag, image, K, arrays)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_options_of_the_frames_path_are_refused_with_a_bag_with_what_the_bag_gives_instead(tmp_path):
+    bag = tmp_path / "in"
+    write_bag(bag)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "o"), "--K", "1,1,1,1"])
+    assert res.exit_code == 2 and "--K (the bag's CameraInfo gives the camera)" in res.output
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "o"), "--video", "v.mp4"])
+    assert res.exit_code == 2 and "--video (the output bag has the overlay" in res.output
+    assert "CameraInfo" not in res.output
+    frames = tmp_path / "f"
+    frames.mkdir()
+    (tmp_path / "d.json").write_text("{}")
+    for flag in (["--sync-tolerance-ms", "5"], ["--identity-is-pose"]):
+        res = CliRunner().invoke(main, ["track", str(frames), str(tmp_path / "d.json"), "-o", "x.json", *flag])
+        assert res.exit_code == 2 and f"{flag[0]} apply to --bag only" in res.output
+
+
+def test_two_instances_without_ids_are_tracked_apart():
+    """Track mode: two detections of one class without ids start <class>#1 and #2 (by the boxes' left edges) from
+    their poses and keep them through box-only frames, each nearer its own start than the other's."""
+    image, K, objects = _frames()[0]
+    a, b = sorted(objects[:2], key=lambda o: o["box_xyxy"][0])
+    cls = a["object_id"]
+    r = RosRefiner("track")
+    for i in range(3):
+        dets = [_detection(cls, o["box_xyxy"], _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW) for o in (b, a)]
+        poses = {p.object_id: p for p in r.process(_image(image, i), _info(K, i), _array(i, dets))}
+        assert sorted(poses) == [f"{cls}#1", f"{cls}#2"] and r.skipped == {}
+    for n, o, other in ((1, a, b), (2, b, a)):
+        q = poses[f"{cls}#{n}"].q_wxyz
+        np.testing.assert_array_equal(poses[f"{cls}#{n}"].box, o["box_xyxy"])
+        assert rq.geodesic_angle(q, _q_in(o, 0)) < rq.geodesic_angle(q, _q_in(other, 0))

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 import onnx_fixtures as fx
 from refiner_rt import RefinerSession
 from refiner_rt import quaternion as rq
-from refiner_rt.preprocess import crop_to_square, resize_crop
+from refiner_rt.preprocess import crop_to_square, resize_crop, validate_boxes
 from refiner_rt.session import MAX_VIEWS, VIEW_JITTER, ray_quaternions, view_boxes
 
 RNG = np.random.default_rng(0)
@@ -207,7 +207,14 @@ def test_empty_batch_returns_empty_result():
         (dict(q_in_wxyz=np.ones((2, 4))), "q_in_wxyz has 2 rotations but boxes_xyxy has 3"),
         (dict(q_in_wxyz=np.zeros((3, 4))), "zero quaternion"),
         (dict(q_in_wxyz=np.full((3, 4), np.nan)), "finite"),
-        (dict(q_in_wxyz=np.ones((3, 3))), r"shape \(\.\.\., 4\)"),
+        (dict(q_in_wxyz=np.ones((3, 3))), r"q_in_wxyz has shape \(3, 3\): one rotation matrix.*R\[None\].*"
+                                          r"quaternion\.from_matrix\(R\)"),
+        (dict(boxes_xyxy=[[0.1, 0.2, 0.4, 0.6]] * 3), r"boxes_xyxy look normalised to 0\.\.1 .* the image is 64x48 "
+                                                      r"pixels.*scale them by \(W, H, W, H\) = \(64, 48, 64, 48\)"),
+        (dict(boxes_xyxy=[[5, 6, 25, 30], [10, 10, 11.5, 30], [5, 6, 25, 30]]),
+         r"boxes_xyxy\[1\] is 1\.5 x 20 pixels: expected at least 2 x 2"),
+        (dict(boxes_xyxy=[[5, 6, 25, 30], [5, 6, 25, 30], [50, 30, 90, 70]]),
+         r"boxes_xyxy\[2\] lies mostly outside the 64x48 image: 15\.8% of its area is inside, expected at least 25%"),
         (dict(iterations=0), "iterations must be an integer from 1 to 16"),
         (dict(views=0), "views must be an integer from 1 to 16"),
         (dict(views=17), "views must be an integer from 1 to 16"),
@@ -319,7 +326,7 @@ K_TEST = np.array([[500.0, 0, 31.5], [0, 500.0, 23.5], [0, 0, 1]])
 def test_lean_refine_is_bit_identical_to_the_reference(n, frame, order, iterations):
     rng = np.random.default_rng(n)
     side = rng.uniform(6, 30, n)
-    cx, cy = rng.uniform(0, 64, n), rng.uniform(0, 48, n)
+    cx, cy = rng.uniform(4, 60, n), rng.uniform(6, 42, n)  # at least a quarter of each box inside
     boxes = np.stack([cx - side / 2, cy - side / 2, cx + side / 2, cy + side * 0.3], axis=1)
     q_in = rng.standard_normal((n, 4)) * 3  # non-unit: normalised by both
     model = mix_model(props=fx.contract(rotation_frame=frame, channel_order=order))
@@ -434,7 +441,7 @@ def _thread_calls(count: int, seed: int, ray: bool) -> list[tuple]:
         kind = i % 10
         n = {7: 3, 8: session_module.SMALL_BATCH + 5}.get(kind, 1 if kind != 9 else 2)
         side = rng.uniform(6, 30, n)
-        cx, cy = rng.uniform(0, 64, n), rng.uniform(0, 48, n)
+        cx, cy = rng.uniform(4, 60, n), rng.uniform(6, 42, n)  # at least a quarter of each box inside
         boxes = np.stack([cx - side / 2, cy - side / 2, cx + side / 2, cy + side * 0.4], axis=1)
         q_in = rng.standard_normal((n, 4))
         if kind == 9:
@@ -662,12 +669,17 @@ def test_limits_are_documented_constants_and_hold_at_their_edge():
         sess.refine_crops(crops, rq.identity((edge + 1,)))
     with pytest.raises(ValueError, match="iterations must be an integer from 1 to 16"):
         sess.refine_crops(crops[:1], rq.identity((1,)), iterations=17)
-    # the widest box and K the limits allow still give a finite unit rotation in the viewing-ray frame
+    # the widest boxes and K the limits allow still give finite unit viewing-ray rotations, and refine() does with
+    # the widest box the image allows (a quarter of it inside) and that K
     ray = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
     big = session_module.MAX_BOX_COORDINATE
     K = np.array([[session_module.K_MIN_FOCAL, session_module.K_MAX_ABS, session_module.K_MAX_ABS],
                   [0, session_module.K_MIN_FOCAL, -session_module.K_MAX_ABS], [0, 0, 1]])
     for boxes in ([[-big, -big, big, big]], [[-big, -big, 1, 1]] * 40):
+        q = ray_quaternions(K, np.array(boxes, dtype=np.float64))
+        assert np.isfinite(q).all()
+        np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
+    for boxes in ([[-32.0, -24.0, 96.0, 72.0]], [[-32.0, -24.0, 96.0, 72.0]] * 40):
         res = ray.refine(IMG, boxes, rq.identity((len(boxes),)), K=K, views=2 if len(boxes) == 1 else 1)
         assert np.isfinite(res.q_refined).all()
         np.testing.assert_allclose(np.linalg.norm(res.q_refined, axis=1), 1.0, atol=1e-12)
@@ -752,7 +764,7 @@ def table(draw, valid: np.ndarray, bad: bool, to_int):
 
 @st.composite
 def images(draw, bad: bool):
-    h, w = draw(st.integers(1, 40)), draw(st.integers(1, 40))
+    h, w = draw(st.integers(3, 40)), draw(st.integers(2, 40))  # at least 2 x 2 after the [::2] view below
     image = draw(hnp.arrays(np.uint8, (h, w, 3), elements=st.integers(0, 255)))
     if not bad:
         return image if draw(st.integers(0, 3)) else image[::2, ::-1]  # non-contiguous views are fine
@@ -764,12 +776,19 @@ def images(draw, bad: bool):
 
 @st.composite
 def overlapping_boxes(draw, n: int, h: int, w: int) -> np.ndarray:
-    """``(n, 4)`` boxes that overlap an ``h x w`` image, from slivers to many times its size."""
-    x1 = draw(hnp.arrays(np.float64, n, elements=st.floats(-50, w - 1e-3)))
-    y1 = draw(hnp.arrays(np.float64, n, elements=st.floats(-50, h - 1e-3)))
-    sx = draw(hnp.arrays(np.float64, n, elements=st.floats(1e-3, 200)))
-    sy = draw(hnp.arrays(np.float64, n, elements=st.floats(1e-3, 200)))
-    return np.stack([x1, y1, np.maximum(x1, 0) + sx, np.maximum(y1, 0) + sy], axis=1).reshape(n, 4)
+    """``(n, 4)`` boxes the runtime takes in an ``h x w`` image (``h, w >= 2``): from ``MIN_BOX_SIDE`` pixels to
+    1.8 times the image, anywhere that keeps 52% of each side inside (27% of the area, above
+    ``MIN_INSIDE_FRACTION``)."""
+    def side(size):
+        # from 2.01 (so that rounding keeps 2 pixels) to 1.8 times the image
+        length = draw(hnp.arrays(np.float64, n, elements=st.floats(0, 1))) * (1.8 * size - 2.01) + 2.01
+        start = draw(hnp.arrays(np.float64, n, elements=st.floats(0, 1)))
+        low, high = 0.52 * length - length, size - 0.52 * length  # the first coordinate's range
+        first = low + start * (high - low)
+        return first, first + length
+    x1, x2 = side(w)
+    y1, y2 = side(h)
+    return np.stack([x1, y1, x2, y2], axis=1).reshape(n, 4)
 
 
 @st.composite
@@ -900,5 +919,58 @@ def test_rotations_in_the_forms_robot_code_has_matrices_and_ros_order_against_sc
         sess.refine(image, boxes, wxyz, q_order="XYZW")
     with pytest.raises(ValueError, match=r"q_in_wxyz\[1\] is not a rotation matrix"):
         sess.refine(image, boxes, np.stack([np.eye(3), 2 * np.eye(3), np.eye(3)]))
-    with pytest.raises(ValueError, match="q_order='xyzw' must have shape"):
+    with pytest.raises(ValueError, match=r"has shape \(3, 3\): one rotation matrix"):
         sess.refine(image, boxes, np.zeros((3, 3)), q_order="xyzw")
+    one = sess.refine(image, boxes[:1], rot.as_matrix()[:1])  # one matrix as (1, 3, 3), as the message says
+    np.testing.assert_allclose(one.R[0], rot.as_matrix()[0], atol=1e-9)
+    bad = rot.as_matrix()[:1].copy()
+    bad[0, :, 0] *= -1  # a reflection: orthonormal, determinant -1
+    with pytest.raises(ValueError, match=r"q_in_wxyz\[0\] is not a rotation matrix.*det -1"):
+        sess.refine(image, boxes[:1], bad)
+
+
+def test_silent_inputs_are_caught_at_the_boundary(caplog):
+    """Boxes normalised to 0..1, sub-pixel boxes and boxes mostly outside the image are refused by name, on the fast
+    path (a few boxes) and the numpy path (more than SMALL_BATCH) alike; a principal point far from the image's centre
+    (K for another resolution) is logged once per K and image size, and the call still refines."""
+    import logging
+
+    sess = RefinerSession(fx.constant_model([1, 0, 0, 0]))
+    image = np.zeros((480, 640, 3), np.uint8)
+    for n in (1, session_module.SMALL_BATCH + 1):
+        ok = np.tile([[100.0, 100.0, 200.0, 220.0]], (n, 1))
+        with pytest.raises(ValueError, match=r"boxes_xyxy look normalised to 0\.\.1.*640x480"):
+            sess.refine(image, np.tile([[0.15, 0.2, 0.3, 0.45]], (n, 1)), rq.identity((n,)))
+        for bad, match in (([100, 100, 101.5, 220], rf"boxes_xyxy\[{n - 1}\] is 1\.5 x 120 pixels"),
+                           ([-120, 400, 40, 520], rf"boxes_xyxy\[{n - 1}\] lies mostly outside the 640x480 image: "
+                                                  r"16\.7% of its area is inside, expected at least 25%")):
+            boxes = ok.copy()
+            boxes[-1] = bad
+            with pytest.raises(ValueError, match=match):
+                sess.refine(image, boxes, rq.identity((n,)))
+        boxes = ok.copy()
+        boxes[-1] = [600, 100, 760, 220]  # exactly a quarter inside: taken
+        assert len(sess.refine(image, boxes, rq.identity((n,)))) == n
+    session_module._PRINCIPAL_POINT_WARNED.clear()
+    K_big = np.array([[1000.0, 0, 640.0], [0, 1000.0, 480.0], [0, 0, 1]])  # calibrated at 1280x960
+    with caplog.at_level(logging.WARNING, logger="refiner_rt.session"):
+        for _ in range(3):
+            sess.refine(image, [[100.0, 100.0, 200.0, 220.0]], rq.identity((1,)), K=K_big)
+        sess.refine(image, [[100.0, 100.0, 200.0, 220.0]], rq.identity((1,)), K=K_big / 2 + np.diag([0, 0, 0.5]))
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == 1, warned
+    assert "principal point (cx, cy) = (640, 480) lies outside the central half of the 640x480 image" in warned[0]
+
+
+@FUZZ
+@given(boxes=hnp.arrays(np.float64, (3, 4), elements=st.one_of(st.floats(-60, 120), st.integers(-60, 120).map(float),
+                                                                st.floats(0, 1))),
+       h=st.integers(2, 60), w=st.integers(2, 60))
+def test_the_fast_box_path_takes_exactly_the_boxes_validate_boxes_takes(boxes, h, w):
+    fast = session_module._small_boxes(boxes, (h, w, 3))
+    try:
+        validate_boxes(boxes, (h, w, 3))
+    except ValueError:
+        assert fast is None
+    else:
+        assert fast is not None

@@ -452,6 +452,31 @@ def test_a_fused_detection_moves_the_track_w_of_the_way(frame, w):
     assert_same_rotation(q2, want * scipy_q(Q_OUT))
 
 
+def test_update_from_detector_starts_fuses_or_restarts_from_each_pose():
+    """The per-frame step both `refiner-rt track` paths run: a pose starts an untracked object; for a tracked one it
+    is fused with detector_weight, else it restarts the track; a pose without a box, or a box of an object neither
+    tracked nor posed, is refused by name."""
+    from scipy.spatial.transform import Slerp
+
+    q_det = rq.from_axis_angle([1.0, 0.2, 0.0], 25.0)
+    c = scipy_q(Q_OUT)
+    for w in (None, 0.5):
+        tracker = RefinerTracker({}, K, {}, detector_weight=w)
+        first = tracker.update_from_detector(IMG, {"003_cracker_box": BOX_A}, {"003_cracker_box": Q0[0]},
+                                             sessions={"003_cracker_box": session()})
+        assert_same_rotation(first["003_cracker_box"], scipy_q(Q0[0]) * c)
+        q = tracker.update_from_detector(IMG, {"003_cracker_box": BOX_A}, {"003_cracker_box": q_det})
+        track, det = scipy_q(Q0[0]) * c * c, scipy_q(q_det) * c
+        want = det if w is None else Slerp([0.0, 1.0], Rotation.concatenate([track, det]))([w])[0]
+        assert_same_rotation(q["003_cracker_box"], want)
+        q = tracker.update_from_detector(IMG, {"003_cracker_box": BOX_A}, {})  # box only: plain tracking
+        assert_same_rotation(q["003_cracker_box"], want * c)
+    with pytest.raises(ValueError, match=r"poses names \['011_banana'\], which have no box"):
+        tracker.update_from_detector(IMG, {"003_cracker_box": BOX_A}, {"011_banana": Q0[1]})
+    with pytest.raises(ValueError, match="boxes names '011_banana', which is not tracked"):
+        tracker.update_from_detector(IMG, {"011_banana": BOX_B}, {})
+
+
 def test_fusing_refines_tracks_and_detections_in_one_call(monkeypatch):
     shared = session(objects=("003_cracker_box", "011_banana"))
     calls = []
