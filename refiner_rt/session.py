@@ -59,8 +59,8 @@ from refiner_rt.geometry import (  # noqa: F401  (re-exported under their old na
     view_boxes,
     view_offsets,
 )
-from refiner_rt.preprocess import (MAX_BOX_COORDINATE, ROLL_TURNS, crop_to_square, resize_crop, validate_boxes,
-                                   validate_image)
+from refiner_rt.preprocess import (MAX_BOX_COORDINATE, ROLL_STEP_DEG, ROLL_TURNS, canonical_roll, crop_to_square,
+                                   resize_crop, validate_boxes, validate_image)
 from refiner_rt.distortion import crop_undistorted, undistort_boxes, validate_D
 
 __all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "default_session_options", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS", "SETTLE_DEG",
@@ -341,6 +341,11 @@ class RefinerSession:
             ``threads`` is ignored and :attr:`threads` reports the options' intra-op thread count).
         object_id: the YCB id (or object name) the caller will refine. When given, the model must have been
             trained for it (metadata ``objects``), so one object is never refined with another's model.
+        roll_step_deg: for a model with the canonical roll (metadata ``roll = "canonical"``): the crop is turned by
+            the roll angle rounded to a multiple of this many degrees (:data:`refiner_rt.preprocess.ROLL_STEP_DEG`,
+            1), so that a small change of ``q_in`` leaves the crop as it was and the output moves smoothly with it;
+            ``0`` turns it by the exact angle, as the training does (:func:`refiner_rt.preprocess.canonical_roll`).
+            In ``[0, 90)``; other models ignore it.
 
     Loading checks the whole contract before the first call: the metadata (:func:`refiner_rt.metadata.parse_metadata`:
     known values in sane ranges), the graph's inputs and outputs (:func:`refiner_rt.metadata.check_graph`: names,
@@ -371,7 +376,7 @@ class RefinerSession:
     """
 
     def __init__(self, model, threads: int = 1, providers=None, session_options: ort.SessionOptions | None = None,
-                 object_id: str | None = None):
+                 object_id: str | None = None, roll_step_deg: float = ROLL_STEP_DEG):
         if isinstance(model, (bytes, bytearray)):
             source, self.model_path = bytes(model), None
             self._label = "<model bytes>"
@@ -393,6 +398,9 @@ class RefinerSession:
                 raise ModelError(f"{path}: the file is empty (0 bytes), not an ONNX model")
         else:
             raise TypeError(f"model must be a path or the ONNX model's bytes; got {type(model).__name__}")
+        if (isinstance(roll_step_deg, bool) or not isinstance(roll_step_deg, (int, float, np.integer, np.floating))
+                or not 0 <= roll_step_deg < 90):
+            raise ValueError(f"roll_step_deg must be a number of degrees in [0, 90); got {roll_step_deg!r}")
         if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 0:
             raise ValueError(f"threads must be an integer >= 0 (0 = all cores); got {threads!r}")
         # 0 is resolved here: onnxruntime's own default counts physical cores and ignores the CPU affinity, so
@@ -425,6 +433,10 @@ class RefinerSession:
         self._rgb = self.contract.channel_order == "RGB"
         self._ray = self.contract.rotation_frame == "ray"
         self._roll = ROLL_TURNS.get(self.contract.roll)  # the turn of each crop before each pass, or None
+        self.roll_step_deg = float(roll_step_deg)
+        if self._roll is canonical_roll:
+            step = self.roll_step_deg
+            self._roll = lambda crops, q, out=None: canonical_roll(crops, q, out, step_deg=step)
         self._trial_run()
         self._local = threading.local()  # per-thread reusable buffers (see _buffers)
         if object_id is not None:
@@ -446,7 +458,7 @@ class RefinerSession:
                 inputs a few degrees off (the coarse refiner's output, the previous video frame's); a
                 :class:`refiner_rt.RefinerCascade` runs the two in turn.
             threads: as for the constructor.
-            **kwargs: ``providers`` / ``session_options``, as for the constructor.
+            **kwargs: ``providers`` / ``session_options`` / ``roll_step_deg``, as for the constructor.
 
         The shipped models were trained in the viewing-ray frame: pass the camera intrinsics ``K`` to
         :meth:`refine`. Their object frame is the YCB google_16k scan frame (see :mod:`refiner_rt.pretrained`).
