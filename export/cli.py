@@ -76,9 +76,10 @@ _NOISY_LOGGERS = ("torch.onnx._internal.exporter._registration",)
     type=click.Choice(SCHEMES),
     default=None,
     help=f"INT8 scheme: dynamic-int8 (MatMul/Gemm, activations quantised per call; no calibration), "
-    f"static-qdq-int8 (MatMul/Gemm with calibrated activation ranges) or static-qdq-int8-conv (also the convolutions "
+    f"static-qdq-int8 (MatMul/Gemm with calibrated activation ranges), static-qdq-int8-conv (also the convolutions "
     f"with 16+ input channels, per-channel 7-bit weights: the fast one for deep image stages such as the shipped "
-    f"five-block refiner; give --calib).  [default: {DEFAULT_SCHEME}; with --calib static-qdq-int8-conv for a "
+    f"five-block refiner; give --calib) or static-qdq-int8-conv-float-pose (the same with the layers that q_in "
+    f"reaches left fp32: outputs that move smoothly with q_in).  [default: {DEFAULT_SCHEME}; with --calib static-qdq-int8-conv for a "
     f"model with two or more such convolutions, else static-qdq-int8]",
 )
 @click.option(

@@ -17,8 +17,8 @@ DEFAULT_LRN_LOWERING = "decomposed"
 DEFAULT_SCHEME = "dynamic-int8"
 MAX_MEAN_DEG = 2.0   # bound on the mean INT8-vs-fp32 geodesic difference of q_out (degrees)
 MAX_MAX_DEG = 15.0   # bound on the largest difference (degrees)
-SCHEMES = ("dynamic-int8", "static-qdq-int8", "static-qdq-int8-conv")
-CALIBRATED_SCHEMES = ("static-qdq-int8", "static-qdq-int8-conv")  # need calibration crops (a dataset's, for a model in use)
+SCHEMES = ("dynamic-int8", "static-qdq-int8", "static-qdq-int8-conv", "static-qdq-int8-conv-float-pose")
+CALIBRATED_SCHEMES = ("static-qdq-int8", "static-qdq-int8-conv", "static-qdq-int8-conv-float-pose")  # need calibration crops (a dataset's, for a model in use)
 # static-qdq-int8-conv (export.quantize): the convolutions with at least CONV_MIN_CHANNELS input channels are
 # quantised (the first, on the 3-channel image, stays fp32), and the fully connected layers with at least
 # CONV_SCHEME_FC_MIN_WEIGHTS weights, "static"ally or "dynamic"ally; 7-bit weights when CONV_SCHEME_REDUCE_RANGE.

@@ -23,6 +23,10 @@ Schemes (the value written to the metadata key ``quantization``; every other key
       (``reduce_range``), which keeps onnxruntime's u8s8 kernels from saturating on CPUs without VNNI. Calibrate
       it on a dataset's training crops for a model that will be used. Measured in
       ``benchmarks/studies/int8_convs`` (speed, per-operator profile and held-out accuracy of the shipped models).
+    * ``"static-qdq-int8-conv-float-pose"``: ``"static-qdq-int8-conv"`` with every layer that ``q_in`` reaches
+      (:func:`pose_dependent`: the head, where the pose features join the image's) left fp32, so only the image
+      stage is quantised and the output moves with ``q_in`` as smoothly as fp32's; the shipped refiners' head's first
+      layer is then an fp32 ``MatMul`` (``benchmarks/studies/int8_smooth``: smoothness, speed and held-out error).
 
 Why dynamic is the default for ``refiner-rt export --int8`` without a dataset (measured for the two-block refiners
 on an earlier 2-core EPYC with AVX-512 VNNI, onnxruntime 1.31; speed: bare ``session.run`` at batch 1 on 1 thread, interleaved medians, random-weight
@@ -128,6 +132,7 @@ __all__ = [
     "int8_path_for",
     "quantize_model",
     "large_fully_connected",
+    "pose_dependent",
     "random_calibration",
     "wide_conv_chain",
 ]
@@ -420,7 +425,7 @@ class _CalibrationReader(CalibrationDataReader):
 
 
 def _quantize_dynamic(src: Path, dst: Path, calibration: Calibration | None, *, reduce_range: bool = True,
-                      fc_min_weights: int = 0) -> None:
+                      fc_min_weights: int = 0, float_pose: bool = False) -> None:
     """Dynamic INT8 on ``MatMul``/``Gemm``: all of them, or those with at least ``fc_min_weights`` weights
     (:func:`large_fully_connected`). ``reduce_range`` (default): 7-bit weights, since 8-bit ones saturate the 16-bit
     pair sums of AVX2's u8s8 kernels (see Portability above)."""
@@ -428,7 +433,11 @@ def _quantize_dynamic(src: Path, dst: Path, calibration: Calibration | None, *, 
     if fc_min_weights:
         # onnxruntime's dynamic quantiser first rewrites each Gemm as a MatMul named "<gemm>_MatMul" (plus an Add)
         # and then selects nodes by name: both names are given.
-        nodes = [m for n in large_fully_connected(onnx.load(str(src)), fc_min_weights) for m in (n, f"{n}_MatMul")]
+        proto = onnx.load(str(src))
+        chosen = large_fully_connected(proto, fc_min_weights)
+        if float_pose:
+            chosen = [n for n in chosen if n not in pose_dependent(proto)]
+        nodes = [m for n in chosen for m in (n, f"{n}_MatMul")]
     quantize_dynamic(src, dst, op_types_to_quantize=list(QUANTIZED_OP_TYPES), weight_type=QuantType.QInt8,
                      reduce_range=reduce_range, nodes_to_quantize=nodes)
 
@@ -444,6 +453,24 @@ def large_fully_connected(proto: onnx.ModelProto, min_weights: int = CONV_SCHEME
     return [n.name for n in proto.graph.node
             if n.op_type in QUANTIZED_OP_TYPES and len(n.input) > 1 and len(weights.get(n.input[1], [])) == 2
             and weights[n.input[1]][0] * weights[n.input[1]][1] >= min_weights]
+
+
+def pose_dependent(proto: onnx.ModelProto) -> set[str]:
+    """Names of the nodes whose output depends on the graph input ``q_in`` (the coarse rotation): the pose input
+    stage and everything after the point where it joins the image features (in the refiners, the head).
+
+    Quantising any of them makes the output a staircase in ``q_in``: a dynamically quantised layer rounds its input
+    (pose features included) to a grid set by each call's own range, so a change of ``q_in`` by a thousandth of a
+    degree moves the output by nothing or by a whole step (up to 0.08 degrees in the shipped refiners, whose head's
+    first layer is quantised so; ``benchmarks/studies/int8_smooth``).
+    """
+    depends = {INPUT_QUATERNION}
+    names = set()
+    for node in proto.graph.node:  # ONNX graphs are topologically sorted
+        if any(name in depends for name in node.input):
+            names.add(node.name)
+            depends.update(node.output)
+    return names
 
 
 def _quantize_static_qdq(src: Path, dst: Path, calibration: Calibration) -> None:
@@ -492,16 +519,20 @@ def wide_conv_chain(proto: onnx.ModelProto, min_channels: int = CONV_MIN_CHANNEL
 def _quantize_static_qdq_conv(src: Path, dst: Path, calibration: Calibration, *,
                               min_channels: int = CONV_MIN_CHANNELS, fc: str = CONV_SCHEME_FC,
                               fc_min_weights: int = CONV_SCHEME_FC_MIN_WEIGHTS,
-                              reduce_range: bool = CONV_SCHEME_REDUCE_RANGE) -> None:
+                              reduce_range: bool = CONV_SCHEME_REDUCE_RANGE, float_pose: bool = False) -> None:
     """Static QDQ (per-channel int8 weights, uint8 activations, min/max calibration) on the wide convolutions
     (:func:`wide_conv_chain`); the large fully connected layers (:func:`large_fully_connected`) ``fc="static"``
     in the same pass or ``fc="dynamic"`` (a dynamic pass over the result). ``reduce_range``: 7-bit weights
-    (onnxruntime's remedy for the saturation of its u8s8 kernels on CPUs without VNNI)."""
+    (onnxruntime's remedy for the saturation of its u8s8 kernels on CPUs without VNNI). ``float_pose``: the fully
+    connected layers that ``q_in`` reaches (:func:`pose_dependent`: the head, after the pose features join) stay
+    fp32, so that only the image stage is quantised."""
     if fc not in ("static", "dynamic"):
         raise ValueError(f"fc must be 'static' or 'dynamic'; got {fc!r}")
     proto = onnx.load(str(src))
     nodes = wide_conv_chain(proto, min_channels)
     large_fc = large_fully_connected(proto, fc_min_weights)
+    if float_pose:
+        large_fc = [n for n in large_fc if n not in pose_dependent(proto)]
     if not nodes and not large_fc:
         raise ValueError(
             f"static-qdq-int8-conv quantises convolutions with at least {min_channels} input channels and fully "
@@ -513,13 +544,15 @@ def _quantize_static_qdq_conv(src: Path, dst: Path, calibration: Calibration, *,
         nodes += large_fc
         op_types += list(QUANTIZED_OP_TYPES)
     if not nodes:  # no conv is wide enough: only the large fully connected layers, dynamically
-        _quantize_dynamic(src, dst, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights)
+        _quantize_dynamic(src, dst, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights,
+                          float_pose=float_pose)
         return
     if fc == "dynamic" and large_fc:
         # The dynamic pass first: after the static one, onnxruntime's dynamic quantiser leaves a graph with QDQ
         # nodes alone (its FC layers would stay fp32). Convolutions keep their names through it.
         mid = dst.with_name(dst.stem + ".dynamic.onnx")
-        _quantize_dynamic(src, mid, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights)
+        _quantize_dynamic(src, mid, None, reduce_range=reduce_range, fc_min_weights=fc_min_weights,
+                          float_pose=float_pose)
         src = mid
     quantize_static(
         src,
@@ -550,7 +583,9 @@ def calibrated_scheme_for(fp32_path) -> str:
 
 
 _QUANTIZERS = {"dynamic-int8": _quantize_dynamic, "static-qdq-int8": _quantize_static_qdq,
-               "static-qdq-int8-conv": _quantize_static_qdq_conv}
+               "static-qdq-int8-conv": _quantize_static_qdq_conv,
+               "static-qdq-int8-conv-float-pose": lambda src, dst, calibration: _quantize_static_qdq_conv(
+                   src, dst, calibration, float_pose=True)}
 
 
 def _not_preprocess_advice(record: logging.LogRecord) -> bool:

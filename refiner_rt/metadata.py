@@ -57,7 +57,7 @@ REQUIRED_KEYS = (
 
 CHANNEL_ORDERS = ("BGR", "RGB")
 ROTATION_FRAMES = ("camera", "ray")
-QUANTIZATIONS = ("none", "dynamic-int8", "static-qdq-int8", "static-qdq-int8-conv")
+QUANTIZATIONS = ("none", "dynamic-int8", "static-qdq-int8", "static-qdq-int8-conv", "static-qdq-int8-conv-float-pose")
 # Sane ranges, refused outside them on load (and by the training config). input_size: the paper's networks take 64
 # (shallow) and 224 (VGG-M); a 1024 crop is 3 MB per box. crop_context: the window is max(w, h) * context; past 4
 # the object fills under a quarter of the crop, and a huge or infinite value makes every crop black.
@@ -78,8 +78,8 @@ class ModelContract:
             frame aligned with the viewing ray through the box centre; needs K at run time).
         objects: YCB ids the weights were trained for.
         train_noise: the coarse-pose noise used in training, e.g. ``"uniform:0:30"``.
-        quantization: ``"none"``, ``"dynamic-int8"``, ``"static-qdq-int8"`` or ``"static-qdq-int8-conv"`` (the
-            scheme of :mod:`export.quantize` that made the model).
+        quantization: ``"none"``, ``"dynamic-int8"``, ``"static-qdq-int8"``, ``"static-qdq-int8-conv"`` or
+            ``"static-qdq-int8-conv-float-pose"`` (the scheme of :mod:`export.quantize` that made the model).
         checkpoint_sha256: SHA-256 of the checkpoint the model was exported from.
         version: refiner-rt version that exported the model.
         extra: every other metadata key, as written.

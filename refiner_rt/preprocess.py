@@ -43,6 +43,7 @@ __all__ = [
     "canonical_roll",
     "quarter_roll",
     "ROLL_TURNS",
+    "ROLL_STEP_DEG",
     "validate_image",
     "validate_boxes",
 ]
@@ -315,6 +316,14 @@ def resize_crop(crop: np.ndarray, size: int, out=None, crop_filter: str = "none"
 # definition in PyTorch). Its ONNX graph is the network alone: the runtime makes the turn here, one small warp per
 # crop, before each pass.
 _AXIS_NEAR_RAY = 0.25  # sin(30 deg) ** 2: the z axis's image length below which the x axis is used
+# The runtime turns each crop by the roll angle rounded to this many degrees (the rotation turned by the same rounded
+# angle, so crop and rotation still agree). Turned by the exact angle, the crop is resampled at every change of the
+# coarse pose, however small, and its uint8 pixels step by whole grey levels: a 1e-4-degree change of q_in moved the
+# shipped INT8 refiners' output by 0.08 degrees on average (fp32: 0.0014), 0.29 at most. Rounded, a small change of
+# q_in leaves the crop as it was and reaches the network through its rotation input only, where both move the output
+# by about the change itself; the crop changes when the angle crosses a step. The network then sees the axis up to half
+# a step off up, which it did not train on; the held-out error did not change (benchmarks/studies/int8_smooth).
+ROLL_STEP_DEG = 1.0
 
 
 def roll_angle(w: float, x: float, y: float, z: float) -> float:
@@ -333,14 +342,18 @@ def roll_angles(q_wxyz) -> np.ndarray:
     return np.array([roll_angle(*row) for row in np.asarray(q_wxyz, dtype=np.float64).tolist()])
 
 
-def canonical_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Each ``S x S`` crop turned about its centre so that the axis of :func:`roll_angle` points up, and its rotation
-    turned about the viewing ray with it: ``(crops (N, S, S, 3) uint8, q (N, 4) float64 wxyz)``.
+def canonical_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None,
+                   step_deg: float = ROLL_STEP_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """Each ``S x S`` crop turned about its centre so that the axis of :func:`roll_angle` points up (to within half of
+    ``step_deg``), and its rotation turned about the viewing ray with it: ``(crops (N, S, S, 3) uint8, q (N, 4) float64
+    wxyz)``.
 
     The turn is the training's (``models.fusion.canonical_roll``): bilinear, corners filled by reflection about the
     crop's edges, the output pixel at offset ``d`` from the centre taking the input at ``R(psi) d``, ``psi`` the roll
-    angle; the rotation becomes ``q_z(-psi) * q``. Here in uint8, with OpenCV's fixed-point weights: within one grey
-    level of the float turn. ``out``: an optional preallocated ``(N, S, S, 3)`` uint8 array.
+    angle rounded to a multiple of ``step_deg`` degrees (:data:`ROLL_STEP_DEG`; ``0``: the exact angle, as in
+    training); the rotation becomes ``q_z(-psi) * q``, so the turned crop and rotation agree whatever the rounding.
+    Here in uint8, with OpenCV's fixed-point weights: within one grey level of the float turn. ``out``: an optional
+    preallocated ``(N, S, S, 3)`` uint8 array.
     """
     crops = np.asarray(crops)
     out = np.empty_like(crops) if out is None else out
@@ -351,8 +364,11 @@ def canonical_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None) -> 
     pad = math.ceil(centre * (math.sqrt(2.0) - 1.0)) + 2
     padded = np.empty((size + 2 * pad, size + 2 * pad, crops.shape[3]), dtype=crops.dtype)
     q_turned = []
+    step = math.radians(step_deg)
     for i, (w, x, y, z) in enumerate(np.asarray(q_wxyz, dtype=np.float64).tolist()):
         psi = roll_angle(w, x, y, z)
+        if step:
+            psi = round(psi / step) * step
         c, s = math.cos(psi), math.sin(psi)
         m = np.array([[c, -s, centre * (1.0 - c + s) + pad], [s, c, centre * (1.0 - s - c) + pad]])
         cv2.copyMakeBorder(crops[i], pad, pad, pad, pad, cv2.BORDER_REFLECT, dst=padded)

@@ -173,3 +173,36 @@ def test_turning_qdq_propagation_off_changes_no_output(fp32, tmp_path, scheme):
     sess = RefinerSession(path)
     got = sess._session.run(["q_out"], {"image": images, "q_in": q_in.astype(np.float32)})[0]
     np.testing.assert_array_equal(got, expected)
+
+
+def test_float_pose_scheme_leaves_every_layer_that_q_in_reaches_in_fp32(fp32, tmp_path):
+    """``static-qdq-int8-conv-float-pose``: the convolutions are quantised as in the conv scheme, but no integer or
+    quantising node depends on q_in, so with the crop fixed a 1e-4-degree change of q_in moves q_out by about that
+    much (the conv scheme with the head quantised moves it by nothing or by a whole step)."""
+    scheme = "static-qdq-int8-conv-float-pose"
+    src = tmp_path / "src.onnx"
+    onnx.save(q8._without_value_info(onnx.load(str(fp32))), str(src))
+    calibration = q8.random_calibration(CONFIG["input_size"], n=16)
+    # The tiny head input layer (12,288 weights) counts as large at this threshold, as the shipped head's does at 64k.
+    stepped, smooth = tmp_path / "conv.onnx", tmp_path / "float_pose.onnx"
+    q8._quantize_static_qdq_conv(src, stepped, calibration, fc_min_weights=12288)
+    q8._quantize_static_qdq_conv(src, smooth, calibration, fc_min_weights=12288, float_pose=True)
+    quantising = {"DynamicQuantizeLinear", "MatMulInteger", "QuantizeLinear", "DequantizeLinear", "ConvInteger"}
+    for path, expect_pose_quantised in ((stepped, True), (smooth, False)):
+        proto = onnx.load(str(path))
+        pose = q8.pose_dependent(proto)
+        kinds = {n.op_type for n in proto.graph.node if n.name in pose}
+        assert bool(kinds & quantising) == expect_pose_quantised, kinds
+        assert sum(n.op_type == "QuantizeLinear" for n in proto.graph.node) > 0  # the convolutions still are
+    # The scheme's name goes through quantize_model and into the metadata.
+    report = q8.quantize_model(fp32, tmp_path / "m.int8.onnx", scheme=scheme, calibration=calibration)
+    assert report.agreement.passed and RefinerSession(report.path).contract.quantization == scheme
+    images, q_in = random_inputs(CONFIG["input_size"], 32, seed=3)
+    rng = np.random.default_rng(0)
+    axes = rng.standard_normal((32, 3))
+    q2 = rq.multiply(q_in.astype(np.float64), rq.from_axis_angle(axes / np.linalg.norm(axes, axis=1, keepdims=True),
+                                                                 1e-4)).astype(np.float32)
+    for path, bound in ((smooth, 0.01), (report.path, 0.01)):
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        a, b = (sess.run(None, {"image": images, "q_in": q})[0].astype(np.float64) for q in (q_in, q2))
+        assert rq.geodesic_angle(rq.normalize(a), rq.normalize(b)).max() < bound

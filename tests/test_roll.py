@@ -96,7 +96,7 @@ def test_the_runtime_turn_is_the_training_turn():
     q = _wxyz(Rotation.random(64, random_state=5))
     crops = _smooth_crops(64, 48, 0)
     np.testing.assert_allclose(roll_angles(q.double().numpy()), roll_angle(q.double()).numpy(), atol=1e-9)
-    turned, q_turned = runtime_roll(crops, q.numpy())
+    turned, q_turned = runtime_roll(crops, q.numpy(), step_deg=0)  # the exact angle, as the training
     ref, q_ref = canonical_roll(torch.tensor(crops).permute(0, 3, 1, 2).float(), q)
     assert turned.dtype == np.uint8 and turned.shape == crops.shape
     diff = np.abs(turned.astype(np.float32) - ref.permute(0, 2, 3, 1).numpy())
@@ -123,7 +123,7 @@ def test_canonical_roll_network_keeps_the_contract_and_exports_the_turn_for_the_
     assert report.max_abs_dq <= 1e-4
     proto = onnx.load(str(report.path))
     assert "GridSample" not in {node.op_type for node in proto.graph.node}
-    sess = RefinerSession(report.path)
+    sess = RefinerSession(report.path, roll_step_deg=0)  # the exact turn, as the PyTorch network makes it
     assert sess.contract.roll == "canonical" and sess.metadata["refiner_rt.format"] == FORMAT_ROLL
     crops = _smooth_crops(40, 32, 1)
     q_in = _wxyz(Rotation.random(40, random_state=2))
@@ -283,3 +283,46 @@ def test_roll_bins_measures_the_roll_and_the_axis_to_the_ray_as_scipy_does():
     z = r.as_matrix()[:, :, 2]
     np.testing.assert_allclose(got["axis"], np.degrees(np.arccos(np.abs(z[:, 2]))), atol=1e-3)  # float32 rows
     np.testing.assert_allclose(got["roll"], np.degrees(roll_angle(_wxyz(r).double()).abs().numpy()), atol=1e-4)
+
+
+def test_the_runtime_turn_rounds_the_roll_so_a_small_change_of_the_pose_keeps_the_crop():
+    """With ``step_deg`` the crop is turned by the roll angle rounded to that step, its rotation by the same angle:
+    the turned axis points within half a step of up, and a 1e-4-degree change of the pose leaves the crop unchanged
+    (unless the angle crosses a step) while the rotation moves by exactly that change."""
+    import math
+
+    from refiner_rt import quaternion as rq
+    from refiner_rt.preprocess import ROLL_STEP_DEG, roll_angles
+    from refiner_rt.preprocess import canonical_roll as runtime_roll
+
+    q = _wxyz(Rotation.random(64, random_state=7)).double().numpy()
+    crops = _smooth_crops(64, 48, 3)
+    rng = np.random.default_rng(0)
+    axes = rng.standard_normal((64, 3))
+    q2 = rq.multiply(q, rq.from_axis_angle(axes / np.linalg.norm(axes, axis=1, keepdims=True), 1e-4))
+    for step in (0.5, ROLL_STEP_DEG, 2.0):
+        turned, q_turned = runtime_roll(crops, q, step_deg=step)
+        turned2, q_turned2 = runtime_roll(crops, q2, step_deg=step)
+        psi = np.degrees(roll_angles(q))
+        residual = np.degrees(roll_angles(q_turned))
+        np.testing.assert_allclose(residual, psi - step * np.round(psi / step), atol=1e-5)  # the rounded turn
+        assert np.abs(residual).max() <= step / 2 + 1e-5
+        crossing = np.floor(psi / step + 0.5) != np.floor(np.degrees(roll_angles(q2)) / step + 0.5)
+        assert crossing.sum() == 0, step  # none of these 64 lies within 1e-4 degree of a step's edge
+        np.testing.assert_array_equal(turned, turned2)
+        moved = rq.geodesic_angle(q_turned, q_turned2)
+        np.testing.assert_allclose(moved, 1e-4, rtol=1e-3)
+    # step 0 is the exact turn: the axis up, and the crop resampled at the smallest change
+    turned, q_turned = runtime_roll(crops, q, step_deg=0)
+    assert np.abs(np.degrees(roll_angles(q_turned))).max() < 1e-5
+    assert not np.array_equal(turned, runtime_roll(crops, q2, step_deg=0)[0])
+    assert math.isclose(ROLL_STEP_DEG, 1.0)
+
+
+def test_the_session_refuses_a_bad_roll_step():
+    from refiner_rt import RefinerSession
+    from tests.onnx_fixtures import constant_model
+
+    for bad in (-1, 90, float("nan"), "1", True):
+        with pytest.raises(ValueError, match="roll_step_deg must be a number of degrees in \\[0, 90\\)"):
+            RefinerSession(constant_model([1, 0, 0, 0]), roll_step_deg=bad)

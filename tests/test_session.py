@@ -974,3 +974,52 @@ def test_the_fast_box_path_takes_exactly_the_boxes_validate_boxes_takes(boxes, h
         assert fast is None
     else:
         assert fast is not None
+
+
+# ------------------------------------------------------------------------------ RefineResult.score
+def test_score_falls_with_the_last_correction_and_the_spread_of_the_views():
+    """score = exp(-(angle of q_out + views' spread) / SCORE_SCALE_DEG): known values on constant models, and a
+    crop-dependent model whose views disagree scores below its own one-view refinement."""
+    from refiner_rt.session import SCORE_SCALE_DEG
+
+    image = np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    boxes = [[20.0, 30.0, 90.0, 100.0], [60.0, 10.0, 150.0, 110.0]]
+    q_in = rq.from_axis_angle([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], [10.0, 40.0])
+    scores = []
+    for angle in (2.0, 20.0):
+        sess = RefinerSession(fx.constant_model(rq.from_axis_angle([0.0, 1.0, 0.0], angle)))
+        for views in (1, 4):
+            res = sess.refine(image, boxes, q_in, views=views)
+            np.testing.assert_allclose(res.correction_deg, angle, atol=1e-4)
+            np.testing.assert_allclose(res.score, np.exp(-angle / SCORE_SCALE_DEG), rtol=1e-5)
+            assert (res.views_spread_deg is None) == (views == 1)
+        scores.append(res.score)
+    assert np.all(scores[0] > scores[1])
+    sess = RefinerSession(fx.channel_mean_model())
+    one, four = sess.refine(image, boxes, q_in), sess.refine(image, boxes, q_in, views=4)
+    assert np.all(four.views_spread_deg > 0) and np.all(four.score < np.exp(-four.correction_deg / SCORE_SCALE_DEG))
+    assert one.score.shape == (2,) and np.all((0 < one.score) & (one.score <= 1))
+    settled = sess.refine(image, boxes, q_in, views=4, iterations=3, settle_deg=1.0)
+    assert settled.views_spread_deg.shape == (2,)
+
+
+def test_score_orders_true_poses_above_poses_60_degrees_off_on_the_samples():
+    """Shipped INT8 refiners, two passes, on the sample frames: from the true pose each instance scores higher than
+    from a pose 60 degrees off, and the mean score follows the refined error down."""
+    from refiner_rt.demo import load_samples
+
+    rng = np.random.default_rng(0)
+    good, bad, err_good, err_bad = [], [], [], []
+    for frame in load_samples():
+        image = frame.image()
+        for obj in frame.objects:
+            sess = RefinerSession.pretrained(obj.object_id)
+            off = rq.multiply(obj.q_gt, rq.sample_rotation_noise(1, "uniform", 60, 60 + 1e-9, rng=rng)[0])
+            for q, scores, errors in ((obj.q_gt, good, err_good), (off, bad, err_bad)):
+                res = sess.refine(image, obj.box_xyxy[None], q[None], K=frame.K, iterations=2)
+                scores.append(float(res.score[0]))
+                errors.append(float(rq.geodesic_angle(res.q_refined, obj.q_gt[None])[0]))
+    good, bad = np.array(good), np.array(bad)
+    assert len(good) >= 25
+    assert np.mean(good > bad) >= 0.9, (good, bad)
+    assert good.mean() > bad.mean() and np.mean(err_good) < np.mean(err_bad)
