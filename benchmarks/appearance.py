@@ -241,7 +241,7 @@ def _named_folder(item: str) -> tuple[str, Path]:
 
 def main(argv=None) -> int:
     from benchmarks.pretrained import machine
-    from benchmarks.real import _positive_int, shipped_paths
+    from benchmarks.real import _positive_int, chosen_models
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--real", type=Path, help="a BOP folder of real frames (real_ycbv_dev/test): the gap and stress")
@@ -262,15 +262,7 @@ def main(argv=None) -> int:
         ap.error("nothing to measure: give --real and/or --rendered NAME=DIR")
     if args.real is not None and not args.real.is_dir():
         ap.error(f"--real {args.real}: no such folder")
-    if args.model:
-        models = {}
-        for item in args.model:
-            obj, sep, path = item.partition("=")
-            if not sep or not Path(path).is_file():
-                ap.error(f"--model expects OBJ=PATH to an ONNX file; got {item!r}")
-            models[obj] = Path(path)
-    else:
-        models = shipped_paths(int8=not args.fp32)
+    models = chosen_models(args.model, args.fp32, ap.error)
     t0 = time.perf_counter()
     doc: dict = {"models": "custom" if args.model else ("shipped fp32" if args.fp32 else "shipped INT8"),
                  "draws": args.draws, "seed": args.seed, "noise": "uniform:0:30"}

@@ -38,6 +38,20 @@ def shipped_paths(int8: bool = True) -> dict[str, Path]:
     return {m.object_id: Path(m.path(int8=int8)) for m in pretrained_models()}
 
 
+def chosen_models(items: list[str], fp32: bool, error) -> dict[str, Path]:
+    """``{object: ONNX path}`` from ``--model OBJ=PATH`` items, else the shipped files (fp32 or INT8); ``error``
+    (``ArgumentParser.error``) is called with the message for a malformed item or a missing file."""
+    if not items:
+        return shipped_paths(int8=not fp32)
+    models = {}
+    for item in items:
+        obj, sep, path = item.partition("=")
+        if not sep or not Path(path).is_file():
+            error(f"--model expects OBJ=PATH to an ONNX file; got {item!r}")
+        models[obj] = Path(path)
+    return models
+
+
 def run(models: dict[str, Path], data: Path, draws: int = 10, seed: int = 2024, threads: int = 1,
         progress: bool = False) -> dict:
     """Every model on its object's instances in ``data``; objects with no instance there are listed as skipped."""
@@ -132,15 +146,7 @@ def main(argv=None) -> int:
         args.json = args.json or DEFAULT_JSON
     if not args.data.is_dir():
         ap.error(f"--data {args.data}: no such folder")
-    if args.model:
-        models = {}
-        for item in args.model:
-            obj, sep, path = item.partition("=")
-            if not sep or not Path(path).is_file():
-                ap.error(f"--model expects OBJ=PATH to an ONNX file; got {item!r}")
-            models[obj] = Path(path)
-    else:
-        models = shipped_paths(int8=not args.fp32)
+    models = chosen_models(args.model, args.fp32, ap.error)
     from benchmarks.pretrained import machine
 
     t0 = time.perf_counter()
