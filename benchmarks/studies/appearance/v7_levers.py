@@ -1,0 +1,213 @@
+"""Version 7 pilot: does a training lever make the shipped refiner robust to appearance? Three seeds per row.
+
+Every row continues one object's version-6 model (its fp32 file in the package, recovered as
+``benchmarks/pretrained.py build`` does) for ``--samples`` samples on the robot-layout renders with the version-6
+recipe (``robot-roll-v6``: the fusion network with the canonical roll, box and colour jitter, new backgrounds for half
+the crops, float32, one thread), changing one thing:
+
+===========  ===================================================================================================
+lever        training
+===========  ===================================================================================================
+``control``  the version-6 recipe as it is: the same amount of further training, so a lever's gain is not the
+             gain of training longer
+``photo``    plus camera-like photometric augmentation at the probabilities the BOP winners use
+             (:data:`PHOTO`: CosyPose's and GDRNPP's lists, the strengths of models.augment)
+===========  ===================================================================================================
+
+Each row is trained with ``--seeds`` (three by default: a seed alone moves a row by up to 3 degrees at this size),
+exported (fp32) and scored where appearance is the problem, which is where the choice is made:
+
+- the photometric stress test of :mod:`benchmarks.appearance` on the real dev frames (19 camera effects, the cost
+  against the clean frames; the frames only measure, the cost is what is compared),
+- the Cycles validation set and its TinyRenderer twin (``--cycles``, ``--tiny``: the ratio), and fresh robot-layout
+  renders (``--fresh``), one coarse input per instance for the renders, 10 per instance for the frames;
+- the real dev frames (``--real``) are reported beside, never chosen on.
+
+Usage (from the repository root; resumable: a finished row is kept in the JSON, a trained checkpoint is reused)::
+
+    python benchmarks/studies/appearance/v7_levers.py --robot data/ycb9_robot --real REAL \\
+        --cycles data/ycb9_robot_cycles_val_s43 --tiny data/ycb9_robot_tiny_val_s43 \\
+        --fresh data/ycb9_robot_fresh_s41 --objects 006_mustard_bottle,011_banana \\
+        --run ~/.cache/refiner-rt/runs/v7_levers --samples 60000 \\
+        --json benchmarks/studies/appearance/v7_levers.json
+    python benchmarks/studies/appearance/v7_levers.py --table benchmarks/studies/appearance/v7_levers.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[3]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.study_cli import write_json  # noqa: E402
+
+# CosyPose trains on renders with blur (p 0.4), sharpness, contrast and colour (0.3 each) and brightness (0.5);
+# GDRNPP adds noise, JPEG-like degradation and colour casts at about 0.3 each. models.augment's strengths are a
+# working camera's (narrower than theirs); the probabilities are theirs.
+PHOTO = {"downscale": 0.2, "motion_blur": 0.2, "blur": 0.4, "sensor_noise": 0.3, "white_balance": 0.3,
+         "brightness": 0.5, "gamma": 0.3, "contrast": 0.3, "colour": 0.3, "sharpness": 0.3, "jpeg": 0.3}
+LEVERS = {"control": {}, "photo": PHOTO}
+
+
+def row_folder(run: Path, lever: str, seed: int) -> Path:
+    return run / f"{lever}_seed{seed}"
+
+
+def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, seed: int) -> tuple[Path, dict]:
+    """Train ``obj`` for ``lever`` with ``seed`` (reusing its checkpoint when there) and export it (fp32)."""
+    from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
+    from export.onnx_export import export_checkpoint
+
+    folder = row_folder(run, lever, seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    cache = run / "cache"
+    (run / "init").mkdir(exist_ok=True)
+    init, _ = recover_shipped(obj, data, run / "init", cache, any_version=True)
+    cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init,
+                        photometric=LEVERS[lever], seed=seed)
+    t0 = time.perf_counter()
+    ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
+    train_s = time.perf_counter() - t0
+    onnx = folder / f"{obj}.onnx"
+    if not onnx.is_file():
+        export_checkpoint(ckpt, onnx)
+    row = json.loads((folder / f"{obj}.train.json").read_text())["rows"][-1]
+    return onnx, {"command": _card_command(cmd), "train_s": round(train_s, 1),
+                  **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "wall_s")}}
+
+
+def score(onnx: Path, obj: str, real: Path, rendered: dict[str, Path], work: Path) -> dict:
+    """The stress test on ``real`` (clean, worst and mean cost), and each rendered set's mean and drift."""
+    from benchmarks.appearance import run_rendered, run_stress
+
+    stress = run_stress({obj: onnx}, real, work, draws=10, seed=2024, progress=False)
+    out = {"real": {"mean_deg": round(stress["clean_deg"], 3), "drift_mean_deg": round(stress["clean_drift_deg"], 3)},
+           "stress": {"worst_case": stress["worst_case"], "worst_cost_deg": round(stress["worst_cost_deg"], 3),
+                      "mean_cost_deg": round(stress["mean_cost_deg"], 3),
+                      "cases": {c["case"]: round(c["cost_deg"], 3) for c in stress["cases"]}}}
+    sets = run_rendered({obj: onnx}, rendered, draws=1, seed=2024)["sets"]
+    for name, s in sets.items():
+        out[name] = {"mean_deg": round(s["mean_deg"], 3), "drift_mean_deg": round(s["drift_mean_deg"], 3),
+                     "instances": s["instances"]}
+    if "cycles" in sets and "tiny" in sets:
+        out["cycles_ratio"] = round(sets["cycles"]["mean_deg"] / sets["tiny"]["mean_deg"], 3)
+    return out
+
+
+METRICS = (("real", "mean_deg", "dev real"), ("real", "drift_mean_deg", "dev drift"),
+           ("stress", "worst_cost_deg", "stress worst"), ("stress", "mean_cost_deg", "stress mean"),
+           ("cycles", "mean_deg", "Cycles val"), ("tiny", "mean_deg", "tiny twin"),
+           ("fresh", "mean_deg", "fresh robot"))
+
+
+def table(doc: dict) -> str:
+    """Markdown: per object and lever the median over seeds (min-max) of each measure, then per lever the change
+    against ``control`` averaged over objects (medians over seeds)."""
+    rows = doc["rows"]
+    objects = sorted({r["object"] for r in rows})
+    levers = [lv for lv in ("v6", *LEVERS) if any(r["lever"] == lv for r in rows)]
+    head = "| object | lever | seeds | " + " | ".join(m[2] for m in METRICS) + " |"
+    lines = [head, "|---|---|---:|" + "---:|" * len(METRICS)]
+    med: dict = {}
+    for obj in objects:
+        for lv in levers:
+            got = [r for r in rows if r["object"] == obj and r["lever"] == lv]
+            if not got:
+                continue
+            cells = []
+            for part, key, label in METRICS:
+                vals = [r[part][key] for r in got if part in r]
+                if not vals:
+                    cells.append("-")
+                    continue
+                med[(obj, lv, label)] = statistics.median(vals)
+                cells.append(f"{statistics.median(vals):.2f}" + (f" ({min(vals):.2f}-{max(vals):.2f})"
+                                                                  if len(vals) > 1 else ""))
+            lines.append(f"| {obj} | `{lv}` | {len(got)} | " + " | ".join(cells) + " |")
+    lines += ["", "| lever | objects | " + " | ".join(f"{m[2]}: change" for m in METRICS) + " |",
+              "|---|---:|" + "---:|" * len(METRICS)]
+    for lv in levers:
+        if lv == "control":
+            continue
+        got = [o for o in objects if (o, lv, METRICS[0][2]) in med and (o, "control", METRICS[0][2]) in med]
+        if not got:
+            continue
+        cells = []
+        for _, _, label in METRICS:
+            d = [med[(o, lv, label)] - med[(o, "control", label)] for o in got
+                 if (o, lv, label) in med and (o, "control", label) in med]
+            cells.append(f"{sum(d) / len(d):+.2f}" if d else "-")
+        lines.append(f"| `{lv}` | {len(got)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--table", type=Path, metavar="JSON", help="print the Markdown table of this record and stop")
+    ap.add_argument("--robot", type=Path, help="training scenes, robot layout (what version 6 trained on)")
+    ap.add_argument("--real", type=Path, help="real frames (BOP): the stress test; measured only")
+    ap.add_argument("--cycles", type=Path, help="the Cycles validation set (robot layout, never trained on)")
+    ap.add_argument("--tiny", type=Path, help="its TinyRenderer twin (the same arrangements)")
+    ap.add_argument("--fresh", type=Path, help="fresh robot-layout renders no model trained on")
+    ap.add_argument("--objects", default="006_mustard_bottle,011_banana", help="comma-separated YCB ids")
+    ap.add_argument("--levers", default="v6," + ",".join(LEVERS),
+                    help=f"comma-separated, of v6 (the shipped fp32 model, no training), {', '.join(LEVERS)}")
+    ap.add_argument("--seeds", default="0,1,2", help="training seeds of every trained row (comma-separated)")
+    ap.add_argument("--run", type=Path, help="scratch folder of checkpoints and crop caches (keep it outside the "
+                    "work tree: a later session resumes from it)")
+    ap.add_argument("--samples", type=int, default=60_000, help="training samples per row")
+    ap.add_argument("--sizes", type=int, default=16_000, help="training crops per object the split is drawn with "
+                    "(default: the recipe's, every crop of the robot set)")
+    ap.add_argument("--work", type=Path, help="stressed copies of --real (default: benchmarks.appearance's cache)")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    if args.table:
+        print(table(json.loads(args.table.read_text())))
+        return 0
+    missing = [f"--{k}" for k in ("robot", "real", "cycles", "tiny", "fresh", "run", "json") if getattr(args, k) is None]
+    if missing:
+        ap.error(f"{', '.join(missing)} required (or --table JSON)")
+    from benchmarks.appearance import DEFAULT_WORK
+    from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
+
+    levers = args.levers.split(",")
+    bad = [lv for lv in levers if lv not in ("v6", *LEVERS)]
+    if bad:
+        ap.error(f"--levers: unknown {bad}; expected of v6, {', '.join(LEVERS)}")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    rendered = {"cycles": args.cycles, "tiny": args.tiny, "fresh": args.fresh}
+    doc = json.loads(args.json.read_text()) if args.json.is_file() else {"rows": []}
+    doc.update(samples=args.samples, photo=PHOTO, robot=args.robot.name, rendered={k: v.name for k, v in rendered.items()})
+    done = {(r["object"], r["lever"], r.get("seed")) for r in doc["rows"]}
+    # seeds outermost: the first complete comparison (one seed of every lever) comes first
+    plan = [(obj, "v6", None) for obj in args.objects.split(",") if "v6" in levers]
+    plan += [(obj, lv, s) for s in seeds for obj in args.objects.split(",") for lv in levers if lv != "v6"]
+    for obj, lever, seed in plan:
+        if (obj, lever, seed) in done:
+            continue
+        t0 = time.perf_counter()
+        if lever == "v6":
+            onnx, record = WEIGHTS_DIR / model_file_name(obj, int8=False), {}
+        else:
+            onnx, record = train_row(lever, obj, args.robot, args.run, args.samples, args.sizes, seed)
+        row = {"object": obj, "lever": lever, **({} if seed is None else {"seed": seed}), **record,
+               **score(onnx, obj, args.real, rendered, args.work or DEFAULT_WORK)}
+        row["row_s"] = round(time.perf_counter() - t0, 1)
+        doc["rows"].append(row)
+        write_json(args.json, doc)
+        print(f"[{obj}] {lever} seed {seed}: stress worst {row['stress']['worst_cost_deg']:+.2f}, Cycles "
+              f"{row['cycles']['mean_deg']:.2f} / tiny {row['tiny']['mean_deg']:.2f}, fresh {row['fresh']['mean_deg']:.2f}, "
+              f"dev {row['real']['mean_deg']:.2f} ({row['row_s']:.0f} s)", flush=True)
+    print(table(doc))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
