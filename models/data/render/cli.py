@@ -131,6 +131,13 @@ def _default_objects(models_dir: Path | None) -> tuple[str, ...]:
 @click.option("--scale", "cycles_scale", type=click.FloatRange(0.1, 1.0), default=0.5, show_default=True,
               help="With --engine cycles: render at this fraction of the image size, then resize (the crops need no "
                    "more).")
+@click.option("--region", "cycles_region", is_flag=True,
+              help="With --engine cycles: also render each object's region alone at the refiner's crop scale (its "
+                   "64-pixel crop from about 1.3 times that) over the whole frame at --scale: crops as sharp as a full-size "
+                   "render's for far objects too; try --scale 0.25 with it.")
+@click.option("--object-appearance", type=click.FloatRange(0.0, 1.0), default=0.0, show_default=True,
+              help="Vary each object's appearance per scene, both engines: its texture's gain (up to x1.5 at 1) and "
+                   "colour (up to 16%), and its specularity; 0 keeps the meshes as they are (earlier sets resume).")
 @click.option("--blender-python", type=click.Path(dir_okay=False, path_type=Path),
               help="With --engine cycles: the Python interpreter that has bpy (default: $REFINER_RT_BLENDER_PYTHON, "
                    "else .venv-blender/bin/python). bpy needs numpy < 2, so it lives apart from refiner-rt: "
@@ -141,8 +148,8 @@ def _default_objects(models_dir: Path | None) -> tuple[str, ...]:
               help="With --preview and no --out: the dataset to preview.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first_scene, objects, frames_per_scene, width,
-               height, camera, layout, engine, cycles_samples, cycles_scale, blender_python, preview_png, preview_data,
-               quiet):
+               height, camera, layout, engine, cycles_samples, cycles_scale, cycles_region, object_appearance, blender_python,
+               preview_png, preview_data, quiet):
     """Render BOP-format scenes of YCB objects, or your own, on the CPU (pybullet TinyRenderer, or Blender Cycles).
 
     Each scene is one settled tabletop arrangement seen along a smooth camera path, like a
@@ -153,6 +160,8 @@ def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     if out is None and not (preview_png and preview_data):
         raise click.UsageError("give --out DIR to render, or --preview PNG --data DIR to preview a dataset")
+    if cycles_region and engine != "cycles":
+        raise click.UsageError("--region renders with Cycles: add --engine cycles")
     if out is not None:
         if models_dir is None:
             models_dir = None if builtin else default_models_dir()
@@ -181,7 +190,9 @@ def render_cmd(out, frames, models_dir, mesh_unit, builtin, seed, workers, first
         cfg = RenderConfig.for_layout(
             layout, width=width, height=height, K=tuple(map(tuple, K)), frames_per_scene=frames_per_scene,
             objects=tuple(objects), objects_per_scene=(min(3, len(objects)), min(6, len(objects))), engine=engine,
-            **({"cycles_samples": cycles_samples, "cycles_scale": cycles_scale} if engine == "cycles" else {}),
+            **({"cycles_samples": cycles_samples, "cycles_scale": cycles_scale, "cycles_region": cycles_region}
+               if engine == "cycles" else {}),
+            object_appearance=object_appearance,
             **cameras)
         # `kill PID` stops a render as Ctrl-C does: the pool's workers are terminated with it (rather than left
         # writing to a closed pipe), and the finished scenes are kept for a rerun to resume.

@@ -62,6 +62,13 @@ class RenderConfig:
             :mod:`models.data.render.cycles`); the same scenes and ground truth either way.
         cycles_samples: Cycles samples per pixel (then OpenImageDenoise).
         cycles_scale: Cycles renders at this fraction of ``width`` x ``height``, then resizes.
+        cycles_region: Cycles renders each object's region alone, at the refiner's crop scale, over a coarse
+            render of the whole frame (:mod:`models.data.render.cycles`): crops as sharp as a full-size render's
+            for the pixels a crop needs, whatever the object's distance.
+        object_appearance: strength in [0, 1] of a per-scene change of each object's appearance, as a mesh of
+            another print run or another light would give (:func:`models.data.render.scene.object_appearance`):
+            its texture's gain and colour, and its specularity; 0 (the default) leaves the meshes as they are and
+            draws nothing, so the data sets rendered before it stay reproducible.
     """
 
     width: int = 640
@@ -88,6 +95,8 @@ class RenderConfig:
     engine: str = "tiny"
     cycles_samples: int = 16
     cycles_scale: float = 0.5
+    cycles_region: bool = False
+    object_appearance: float = 0.0
 
     def __post_init__(self):
         if self.layout not in LAYOUTS:
@@ -98,6 +107,10 @@ class RenderConfig:
             raise ValueError(f"cycles_samples must be an integer >= 1; got {self.cycles_samples!r}")
         if not 0.1 <= self.cycles_scale <= 1.0:
             raise ValueError(f"cycles_scale must be in [0.1, 1]; got {self.cycles_scale!r}")
+        if not (isinstance(self.object_appearance, (int, float)) and 0.0 <= self.object_appearance <= 1.0):
+            raise ValueError(f"object_appearance must be a strength in [0, 1]; got {self.object_appearance!r}")
+        if self.cycles_region and self.engine != "cycles":
+            raise ValueError("cycles_region needs engine 'cycles'")
 
     @classmethod
     def for_layout(cls, layout: str, **kw) -> "RenderConfig":
@@ -116,6 +129,10 @@ class RenderConfig:
         d["K"] = [list(r) for r in self.K]
         d["objects"] = list(self.objects)
         d["cameras"] = [[list(r) for r in K] for K in self.cameras]
+        if not self.object_appearance:  # as the data sets before it recorded it (they resume with the same record)
+            d.pop("object_appearance")
+        if not self.cycles_region:
+            d.pop("cycles_region")
         if self.engine == "tiny":  # as the data sets before the Cycles engine recorded it
             for key in ("engine", "cycles_samples", "cycles_scale"):
                 d.pop(key)

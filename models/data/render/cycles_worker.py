@@ -5,13 +5,16 @@ the package: ``bpy`` needs ``numpy < 2`` and lives in an interpreter of its own.
 library. The job (all lengths in metres, matrices row-major 4x4, world frame z up):
 
 * ``objects``: ``{"obj": OBJ path, "texture": image path, "matrix": mesh-to-world, "roughness", "specular"}`` (the
-  OBJ's material, or the texture where it names none; its coordinates kept as they are: forward ``Y``, up ``Z``);
+  OBJ's material, or the texture where it names none; its coordinates kept as they are: forward ``Y``, up ``Z``),
+  optionally ``"gain_rgb"``: a colour multiplied into the base colour (the object's appearance in this scene);
 * ``table``: ``{"half": half side, "texture": image path, "roughness"}``, a textured square at z = 0 (or null);
 * ``transparent``: objects on a transparent film, written RGBA (to check the images against the ground truth);
 * ``world``: ``{"hdr": file name in Blender's studiolights/world, "strength", "rotation"}``: light and background;
 * ``lights``: area lights ``{"matrix", "size", "power" (W), "colour"}``;
 * ``camera``: ``{"K": 3x3, "width", "height", "scale"}`` (the image is rendered at ``scale`` of the size);
-* ``frames``: ``{"cam_to_world"}`` per frame (Blender's camera: looking down its -z, y up);
+* ``frames``: ``{"cam_to_world"}`` per frame (Blender's camera: looking down its -z, y up), optionally
+  ``"regions"``: ``{"percentage", "border": [x0, y0, x1, y1]}`` rendered alone after the frame (the border in the
+  pixels of the image at that percentage, top-left origin), written ``NNNNNN_rK.png``;
 * ``samples``, ``seed``, ``threads``, ``out`` (folder of ``NNNNNN.png``).
 """
 
@@ -62,6 +65,23 @@ def _import_object(spec):
                 tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
             _set_input(bsdf, ("Roughness",), spec["roughness"])
             _set_input(bsdf, ("Specular IOR Level", "Specular"), spec["specular"])
+            if spec.get("gain_rgb"):
+                _multiply_base_colour(tree, bsdf, spec["gain_rgb"])
+
+
+def _multiply_base_colour(tree, bsdf, gain):
+    """The base colour (the texture's, or the constant) times ``gain`` (r, g, b): a vector multiply between them."""
+    mul = tree.nodes.new("ShaderNodeVectorMath")
+    mul.operation = "MULTIPLY"
+    mul.inputs[1].default_value = tuple(gain)
+    base = bsdf.inputs["Base Color"]
+    if base.is_linked:
+        link = base.links[0]
+        tree.links.new(link.from_socket, mul.inputs[0])
+        tree.links.remove(link)
+    else:
+        mul.inputs[0].default_value = tuple(base.default_value)[:3]
+    tree.links.new(mul.outputs["Vector"], base)
 
 
 def _table(spec):
@@ -125,6 +145,21 @@ def _camera(spec):
     return ob
 
 
+def _render_region(scene, region, path):
+    """One region alone: the border (pixels of the image at the region's percentage, top-left origin) as Blender's
+    fractions (bottom-left origin), nudged inside so that its integer pixel bounds are the ones given."""
+    r = scene.render
+    r.resolution_percentage = region["percentage"]
+    w, h = r.resolution_x * region["percentage"] // 100, r.resolution_y * region["percentage"] // 100
+    x0, y0, x1, y1 = region["border"]
+    eps = 1e-4
+    r.border_min_x, r.border_max_x = (x0 + eps) / w, (x1 + eps) / w
+    r.border_min_y, r.border_max_y = (h - y1 + eps) / h, (h - y0 + eps) / h
+    r.use_border = r.use_crop_to_border = True
+    r.filepath = path
+    bpy.ops.render.render(write_still=True)
+
+
 def main(path):
     job = json.loads(open(path).read())
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -140,6 +175,7 @@ def main(path):
     scene.cycles.max_bounces = 4
     scene.render.threads_mode = "FIXED"
     scene.render.threads = max(1, job["threads"])
+    scene.render.use_persistent_data = True  # the scene's BVH and textures kept between a frame's renders
     scene.render.image_settings.file_format = "PNG"
     transparent = bool(job.get("transparent"))  # objects only, on a transparent film (alignment checks)
     scene.render.image_settings.color_mode = "RGBA" if transparent else "RGB"
@@ -154,10 +190,15 @@ def main(path):
         _light(spec, i)
     cam = _camera(job["camera"])
     os.makedirs(job["out"], exist_ok=True)
+    full = scene.render.resolution_percentage
     for i, frame in enumerate(job["frames"]):
         cam.matrix_world = Matrix(frame["cam_to_world"])
+        scene.render.use_border = scene.render.use_crop_to_border = False
+        scene.render.resolution_percentage = full
         scene.render.filepath = os.path.join(job["out"], f"{i:06d}.png")
         bpy.ops.render.render(write_still=True)
+        for k, region in enumerate(frame.get("regions", ())):
+            _render_region(scene, region, os.path.join(job["out"], f"{i:06d}_r{k}.png"))
     print(json.dumps({"frames": len(job["frames"]), "blender": bpy.app.version_string}))
 
 

@@ -121,6 +121,25 @@ def _scene_rng(seed: int, scene: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), int(scene), 0x5EED])
 
 
+def object_appearance(strength: float, seed: int, scene: int, bodies: dict[int, str]) -> dict[int, dict]:
+    """Per body of scene ``scene``, how its mesh looks in this scene (``RenderConfig.object_appearance``):
+    ``{"gain_bgr": [3 floats], "specular": s}``; ``{}`` when ``strength`` is 0.
+
+    The texture's gain is drawn log-uniformly in ``exp(+-0.4 strength)`` (0.67-1.49 at 1), each channel's factor
+    in ``exp(+-0.15 strength)`` on top (a colour shift of up to 16%), the specular coefficient in ``[0, strength]``
+    (the TinyRenderer engine's; Cycles draws its own roughness and specularity per object). The draws come from a
+    generator of their own, so a scene's arrangement, cameras and light do not depend on ``strength``.
+    """
+    if not strength:
+        return {}
+    rng = np.random.default_rng([int(seed), int(scene), 0xA99E])
+    out = {}
+    for body in sorted(bodies):
+        gain = np.exp(rng.uniform(-0.4, 0.4) * strength) * np.exp(rng.uniform(-0.15, 0.15, 3) * strength)
+        out[body] = {"gain_bgr": [float(g) for g in gain], "specular": float(rng.uniform(0.0, strength))}
+    return out
+
+
 def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> tuple[dict[int, str], np.ndarray]:
     """Drop objects on a textured table in a textured room and let them settle.
 

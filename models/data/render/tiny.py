@@ -15,7 +15,7 @@ import numpy as np
 from .bop_writer import finish_scene, frame_ground_truth
 from .camera import camera_path, projection_matrix_gl, view_matrix_gl
 from .config import TABLE_HALF, RenderConfig
-from .scene import _scene_rng, _World, build_scene, scene_camera
+from .scene import _scene_rng, _World, build_scene, object_appearance, scene_camera
 
 
 def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
@@ -203,6 +203,11 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
     noise_std = rng.uniform(*cfg.noise_std)
     blur = rng.uniform(*cfg.blur_sigma)
     poses_w = {b: world.mesh_pose(b) for b in bodies}
+    looks = object_appearance(cfg.object_appearance, seed, scene, bodies)
+    for b, look in looks.items():
+        pb.changeVisualShape(b, -1, specularColor=[look["specular"]] * 3, physicsClientId=c)
+    # seg value -> the texture gain of that body (the rendered colour is texture x light: the same as a texture gain)
+    gain_lut = {b: np.asarray(look["gain_bgr"], np.float32) for b, look in looks.items()}
     gt, info, cam = {}, {}, {}
     visible = {}
     for im, (R_cw, t_cw) in enumerate(camera_path(cfg, rng, centre, cfg.frames_per_scene)):
@@ -211,7 +216,11 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
         )
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(H, W, 4)[..., :3]
         seg = np.asarray(seg).reshape(H, W)
-        img = np.where((seg >= 0)[..., None], rgb[..., ::-1].astype(np.float32), backdrop.draw(R_cw, t_cw))
+        obj_px = rgb[..., ::-1].astype(np.float32)
+        for b, gain in gain_lut.items():
+            hit = seg == b
+            obj_px[hit] *= gain
+        img = np.where((seg >= 0)[..., None], obj_px, backdrop.draw(R_cw, t_cw))
         img = tone(img)
         if blur > 0.3:
             img = cv2.GaussianBlur(img, (0, 0), blur)
@@ -227,6 +236,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
         cam[im] = {"cam_K": K.flatten().tolist(), "depth_scale": 1.0}
     meta = {"seed": seed, "scene": scene, "objects": sorted(set(bodies.values())), "light": light, "tone": tone.as_dict(),
             "table_gloss": backdrop.gloss, "shadows": cfg.shadows,
+            **({"object_appearance": [{"object": bodies[b], **look} for b, look in looks.items()]} if looks else {}),
             "noise_std": noise_std, "blur_sigma": blur, "meshes": {o: str(m.obj_path) for o, m in world.meshes.items()
                                                                    if o in bodies.values()}}
     finish_scene(tmp, final, gt, info, cam, meta)
