@@ -12,6 +12,8 @@ lever        training
              gain of training longer
 ``photo``    plus camera-like photometric augmentation at the probabilities the BOP winners use
              (:data:`PHOTO`: CosyPose's and GDRNPP's lists, the strengths of models.augment)
+``aa``       the network's crop filter ``antialias`` (block averages before the crop's bilinear shrink,
+             docs/design.md §3) in training as at run time; version 6 had it at run time only
 ===========  ===================================================================================================
 
 Each row is trained with ``--seeds`` (three by default: a seed alone moves a row by up to 3 degrees at this size),
@@ -53,7 +55,8 @@ from benchmarks.study_cli import write_json  # noqa: E402
 # working camera's (narrower than theirs); the probabilities are theirs.
 PHOTO = {"downscale": 0.2, "motion_blur": 0.2, "blur": 0.4, "sensor_noise": 0.3, "white_balance": 0.3,
          "brightness": 0.5, "gamma": 0.3, "contrast": 0.3, "colour": 0.3, "sharpness": 0.3, "jpeg": 0.3}
-LEVERS = {"control": {}, "photo": PHOTO}
+LEVERS = {"control": {}, "photo": PHOTO, "aa": {}}
+CONFIG = {"aa": {"crop_filter": "antialias"}}  # network config keys a lever sets
 
 
 def row_folder(run: Path, lever: str, seed: int) -> Path:
@@ -68,11 +71,25 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     folder = row_folder(run, lever, seed)
     folder.mkdir(parents=True, exist_ok=True)
     cache = run / "cache"
-    (run / "init").mkdir(exist_ok=True)
-    init, _ = recover_shipped(obj, data, run / "init", cache, any_version=True)
+    weights = None
+    if CONFIG.get(lever, {}).get("crop_filter"):  # the shipped weights with the lever's crop filter to start from
+        from export.crop_filter import with_crop_filter
+        from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
+
+        weights = run / f"shipped_{CONFIG[lever]['crop_filter']}"
+        weights.mkdir(parents=True, exist_ok=True)
+        name = model_file_name(obj, int8=False)
+        if not (weights / name).is_file():
+            with_crop_filter(WEIGHTS_DIR / name, weights / name, CONFIG[lever]["crop_filter"])
+    init_dir = run / ("init" if weights is None else f"init_{weights.name}")
+    init_dir.mkdir(exist_ok=True)
+    init, _ = recover_shipped(obj, data, init_dir, cache, weights=weights, any_version=True)
     # the version-6 split of the same set (its validation and test scenes stay out of training)
     cmd = train_command(data, obj, folder, samples, sizes, cache, init=init,
                         photometric=LEVERS[lever], seed=seed)
+    if lever in CONFIG:
+        at = cmd.index("--config") + 1
+        cmd[at] = json.dumps({**json.loads(cmd[at]), **CONFIG[lever]})
     t0 = time.perf_counter()
     ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
     train_s = time.perf_counter() - t0
