@@ -78,6 +78,9 @@ def mlp(widths: Sequence[int], *, relu_last: bool) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+PER_CROP_EPS = 0.02  # [0, 1] units: below a grey level's spread of 5, a crop's contrast is not amplified further
+
+
 class InputNormalization(nn.Module):
     """uint8 NHWC image -> normalised float NCHW tensor, inside the graph.
 
@@ -88,14 +91,17 @@ class InputNormalization(nn.Module):
         channel_order: ``"BGR"`` or ``"RGB"``: the order of the image's channels.
         mean_rgb: per-channel mean in RGB order, ``[0, 1]`` units.
         std_rgb: per-channel standard deviation in RGB order, ``[0, 1]`` units, all > 0.
+        per_crop: normalise each crop by its own per-channel mean and standard deviation instead of
+            ``mean_rgb``/``std_rgb`` (the network config's ``input_norm: "per_crop"``).
 
     Shape:
         - input: ``(N, S, S, 3)`` uint8, NHWC, ``channel_order``.
         - output: ``(N, 3, S, S)`` float32, NCHW, same channel order.
     """
 
-    def __init__(self, channel_order: str, mean_rgb: Sequence[float], std_rgb: Sequence[float]):
+    def __init__(self, channel_order: str, mean_rgb: Sequence[float], std_rgb: Sequence[float], per_crop: bool = False):
         super().__init__()
+        self.per_crop = bool(per_crop)
         mean = torch.tensor(mean_rgb, dtype=torch.float32)
         std = torch.tensor(std_rgb, dtype=torch.float32)
         if channel_order == "BGR":
@@ -105,7 +111,16 @@ class InputNormalization(nn.Module):
         self.register_buffer("shift", (-mean / std).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return image.permute(0, 3, 1, 2).to(self.scale.dtype) * self.scale + self.shift
+        x = image.permute(0, 3, 1, 2).to(self.scale.dtype)
+        if not self.per_crop:
+            return x * self.scale + self.shift
+        # Per crop and channel: (x - mean) / (std + eps), in [0, 1] units. Invariant to a per-channel gain and offset
+        # (exposure, white balance, contrast, brightness) up to clipping; eps keeps a flat crop finite.
+        x = x * (1.0 / 255.0)
+        mean = x.mean(dim=(2, 3), keepdim=True)
+        centred = x - mean
+        std = (centred * centred).mean(dim=(2, 3), keepdim=True).sqrt()
+        return centred / (std + PER_CROP_EPS)
 
 
 @torch.library.custom_op("refiner_rt::local_response_norm", mutates_args=())

@@ -56,6 +56,8 @@ def _quadratic_form_matrix() -> torch.Tensor:
 
 _QUADRATIC_FORM = _quadratic_form_matrix()
 
+INPUT_NORMS = ("dataset", "per_crop")
+
 
 def quaternion_to_matrix_flat(q: torch.Tensor) -> torch.Tensor:
     """Row-major rotation matrices of unit quaternions.
@@ -217,6 +219,10 @@ class FusionRefiner(Refiner):
           unchanged by the turn, so the contract is the same. Ray frame only: the roll is about the viewing ray.
           ``"quarter"``: the same in quarter turns (:func:`quarter_roll`): views within 45 degrees of that roll are
           left as they are, the others turned by 90, 180 or 270 degrees without resampling.
+        * ``input_norm`` (``"dataset"``, default: ``mean_rgb``/``std_rgb``; or ``"per_crop"``: each crop by its own
+          per-channel mean and standard deviation, inside the graph, so a camera's exposure, white balance and
+          contrast, which change a channel by a gain and an offset, do not reach the network; the runtime contract
+          is unchanged).
 
     Shape:
         - image: ``(N, S, S, 3)`` uint8, NHWC, ``channel_order`` (default BGR).
@@ -235,6 +241,7 @@ class FusionRefiner(Refiner):
         "pose_widths": [64, 512],
         "head_widths": [256, 64],
         "roll": "none",
+        "input_norm": "dataset",
     }
 
     @classmethod
@@ -262,6 +269,8 @@ class FusionRefiner(Refiner):
             raise ValueError(f"config['fusion'] must be 'product' or 'concat'; got {cfg['fusion']!r}")
         if cfg["roll"] not in ("none", *ROLLS):
             raise ValueError(f"config['roll'] must be one of {('none', *ROLLS)}; got {cfg['roll']!r}")
+        if cfg["input_norm"] not in INPUT_NORMS:
+            raise ValueError(f"config['input_norm'] must be one of {INPUT_NORMS}; got {cfg['input_norm']!r}")
         return cfg
 
     def __init__(self, **config):
@@ -270,7 +279,8 @@ class FusionRefiner(Refiner):
         self.config = cfg
         self.input_size = cfg["input_size"]
         self.channel_order = cfg["channel_order"]
-        self.normalize = InputNormalization(cfg["channel_order"], cfg["mean_rgb"], cfg["std_rgb"])
+        self.normalize = InputNormalization(cfg["channel_order"], cfg["mean_rgb"], cfg["std_rgb"],
+                                            per_crop=cfg["input_norm"] == "per_crop")
         self.features, _ = self.build_feature_stage(cfg)
         d = cfg["fuse_width"]
         n_pose_in = 9 if cfg["pose_input"] == "matrix" else 4

@@ -345,3 +345,36 @@ def test_fusion_absolute_output_is_the_exact_correction():
     assert (q_out[:, 0] >= 0).all()
     q_refined = Rotation.from_quat(np.roll(q_in.double().numpy(), -1, axis=1)) * Rotation.from_quat(np.roll(q_out, -1, axis=1))
     np.testing.assert_allclose(q_refined.as_matrix(), r_est, atol=1e-4)
+
+
+def test_per_crop_normalisation_equals_numpy_reference_and_ignores_gain_and_offset():
+    rng = np.random.default_rng(3)
+    image = rng.integers(40, 160, size=(2, 16, 16, 3)).astype(np.uint8)
+    norm = InputNormalization("BGR", IMAGENET_MEAN_RGB, IMAGENET_STD_RGB, per_crop=True)
+    got = norm(torch.from_numpy(image)).numpy()
+    x = image.transpose(0, 3, 1, 2) / 255.0  # the reference: per crop and channel, population std
+    want = (x - x.mean(axis=(2, 3), keepdims=True)) / (x.std(axis=(2, 3), keepdims=True) + 0.02)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    # a per-channel gain and offset (exposure, white balance, contrast) that stays inside 0..255: same input to the
+    # network up to the eps (std / (std + eps) moves by about 4% here) and the uint8 rounding; the dataset
+    # normalisation moves by more than 0.3
+    gain, offset = np.array([1.4, 1.0, 0.8]), np.array([-20.0, 5.0, 10.0])
+    shifted = np.clip(np.rint(image * gain + offset), 0, 255).astype(np.uint8)
+    assert shifted.min() > 0 and shifted.max() < 255
+    moved = norm(torch.from_numpy(shifted)).numpy()
+    assert np.abs(moved - got).max() < 0.1
+    plain = InputNormalization("BGR", IMAGENET_MEAN_RGB, IMAGENET_STD_RGB)
+    assert np.abs(plain(torch.from_numpy(shifted)).numpy() - plain(torch.from_numpy(image)).numpy()).max() > 0.3
+
+
+def test_fusion_input_norm_config():
+    model = models.build_refiner("fusion", input_norm="per_crop", **small_config("fusion"))
+    assert model.config["input_norm"] == "per_crop" and model.normalize.per_crop
+    assert models.build_refiner("fusion").config["input_norm"] == "dataset"
+    with pytest.raises(ValueError, match="input_norm"):
+        models.build_refiner("fusion", input_norm="gray")
+    image, q = random_inputs(model, 3)
+    out = model.eval()(image, q)
+    assert out.shape == (3, 4) and torch.isfinite(out).all()
+    flat = torch.full_like(image, 77)  # a flat crop: zero spread, finite by the eps
+    assert torch.isfinite(model(flat, q)).all()
