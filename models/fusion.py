@@ -178,18 +178,25 @@ def quarter_roll(image: torch.Tensor, q_in: torch.Tensor) -> tuple[torch.Tensor,
 ROLLS = {"canonical": canonical_roll, "quarter": quarter_roll}
 
 
+# Config keys of the fusion network that change no weight: a network may go on with another value of them.
+WEIGHTLESS_KEYS = ("roll", "input_norm")
+
+
 def with_roll(model, config: dict):
-    """``model`` rebuilt with ``config`` when the two differ only in the fusion network's ``roll`` (the turn changes no
-    weight, so a network trained without it may go on with it, and back), its weights kept; else ``model`` as it is
-    (the caller's own checks then refuse another network)."""
+    """``model`` rebuilt with ``config`` when the two differ only in the fusion network's weightless keys
+    (:data:`WEIGHTLESS_KEYS`: the input turn ``roll`` and the input normalisation ``input_norm``, which change no
+    weight, so a network trained without them may go on with them, and back), its weights kept; else ``model`` as it
+    is (the caller's own checks then refuse another network)."""
     mine = getattr(model, "config", None)
-    if getattr(model, "arch", None) != "fusion" or not mine or "roll" not in config:
+    if getattr(model, "arch", None) != "fusion" or not mine:
         return model
-    if {**mine, "roll": config["roll"]} != {**mine, **config} or mine.get("roll") == config["roll"]:
+    mine = {**FusionRefiner.default_config(), **mine}  # a checkpoint from before a key existed has its default
+    change = {k: config[k] for k in WEIGHTLESS_KEYS if k in config and config[k] != mine.get(k)}
+    if not change or {**mine, **change} != {**mine, **config}:
         return model
     from models.registry import build_refiner
 
-    turned = build_refiner("fusion", **{**mine, "roll": config["roll"]})
+    turned = build_refiner("fusion", **{**mine, **change})
     turned.load_state_dict(model.state_dict())
     return turned.train(model.training)
 

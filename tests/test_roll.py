@@ -326,3 +326,17 @@ def test_the_session_refuses_a_bad_roll_step():
     for bad in (-1, 90, float("nan"), "1", True):
         with pytest.raises(ValueError, match="roll_step_deg must be a number of degrees in \\[0, 90\\)"):
             RefinerSession(constant_model([1, 0, 0, 0]), roll_step_deg=bad)
+
+
+def test_a_network_goes_on_with_per_crop_input_norm_and_the_roll_at_once_with_the_same_weights():
+    from models.fusion import with_roll
+
+    torch.manual_seed(0)
+    plain = models.build_refiner("fusion", input_size=32, **SMALL)
+    changed = with_roll(plain, {**plain.config, "roll": "canonical", "input_norm": "per_crop"})
+    assert changed.config["roll"] == "canonical" and changed.config["input_norm"] == "per_crop"
+    assert changed.normalize.per_crop
+    for name, value in plain.state_dict().items():
+        assert torch.equal(changed.state_dict()[name], value), name
+    wider = with_roll(plain, {**plain.config, "input_norm": "per_crop", "fuse_width": 64})
+    assert wider is plain  # another network as well: left to the caller's checks, which refuse it
