@@ -60,8 +60,9 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.errors import TRAINING_INSTALL, ModelError
-from refiner_rt.preprocess import crop_batch, validate_boxes
-from refiner_rt.session import MAX_BATCH, available_cores
+from refiner_rt.checks import MAX_BATCH, validate_boxes
+from refiner_rt.preprocess import crop_batch
+from refiner_rt.session import available_cores
 
 log = logging.getLogger(__name__)
 
