@@ -850,9 +850,6 @@ def bench_command(build_models=None) -> click.Command:
     return bench_cmd
 
 
-bench_cmd = bench_command()  # `refiner-rt bench`; the random-weight networks come from the training package
-
-
 def _training_builder():
     """``export.bench_models.build_default_models``: the training package's builder of the random-weight networks
     (a source checkout's; the runtime wheel does not carry it)."""

@@ -15,7 +15,7 @@ from export.defaults import DEFAULT_SCHEME
 from test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
 from refiner_rt import bench
 from refiner_rt import pretrained as pt
-from refiner_rt.cli import LAZY_COMMANDS, main
+from refiner_rt.cli import RUNTIME_COMMANDS, main
 
 
 def _graph_model(nodes, inits, inputs, outputs, path):
@@ -307,7 +307,7 @@ def test_the_runtime_bench_imports_no_training_code():
 
     source = Path(bench.__file__).read_text()
     assert not re.search(r"^\s*(import|from) (models|export)\b", source, re.M)
-    assert LAZY_COMMANDS["bench"][0] == "refiner_rt.bench:bench_cmd"
+    assert RUNTIME_COMMANDS["bench"].target == "refiner_rt.cli.bench:bench_cmd"
     assert callable(bench_models.build_default_models)
 
 

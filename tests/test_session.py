@@ -263,7 +263,7 @@ def test_loads_from_path_and_reports_metadata(tmp_path):
 
 
 def test_importing_runtime_does_not_import_torch():
-    code = "import sys, refiner_rt; from refiner_rt import RefinerSession, quaternion, cli, bench, info; assert 'torch' not in sys.modules, 'torch imported'"
+    code = "import sys, refiner_rt; from refiner_rt import RefinerSession, quaternion, cli, bench; from refiner_rt.cli import info; assert 'torch' not in sys.modules, 'torch imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
