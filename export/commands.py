@@ -1,6 +1,8 @@
-"""The exporter's ``refiner-rt export`` subcommand, plugged into the runtime's command line through the entry point
-group ``refiner_rt.commands`` (``pyproject.toml``) as a :class:`refiner_rt.cli.LazyCommand`: listed by
-``refiner-rt --help`` without importing torch. Torch-free by design.
+"""The exporter's ``refiner-rt`` subcommands, plugged into the runtime's command line through the entry point group
+``refiner_rt.commands`` (``pyproject.toml``) as :class:`refiner_rt.cli.LazyCommand` s: listed by ``refiner-rt --help``
+without importing torch. ``bench`` takes the place of the runtime's own where this package is installed: the same
+command, with the paper's networks built, PyTorch eager rows and the roofline (:mod:`export.bench`). Torch-free by
+design.
 """
 
 from __future__ import annotations
@@ -8,3 +10,5 @@ from __future__ import annotations
 from refiner_rt.cli import LazyCommand
 
 export = LazyCommand("export.cli:export_cmd", "Export a checkpoint to ONNX (parity-checked against PyTorch).")
+bench = LazyCommand("export.bench:bench_cmd",
+                    "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8.")

@@ -237,7 +237,7 @@ def test_the_training_commands_are_plugged_in_by_entry_points_not_named_by_the_r
 
     declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"][
         "entry-points"][ENTRY_POINT_GROUP]
-    assert set(declared) == {"export", "train", "render", "eval"}
+    assert set(declared) == {"export", "train", "render", "eval", "bench"}
     installed = {name: ep.value for name, ep in plugged_commands().items()}
     assert installed == declared, "the installed metadata is stale: rerun pip install -e ."
     assert not any(c.target.split(".")[0] in ("models", "export", "benchmarks") for c in RUNTIME_COMMANDS.values())

@@ -70,7 +70,9 @@ def missing_message(command: str, module: str | None, provider: str | None = Non
 
 class LazyGroup(click.Group):
     """A click group that imports a subcommand's module only when that subcommand runs: ``lazy_commands``
-    (``{name: LazyCommand}``) and, with ``plugins``, the commands of :data:`ENTRY_POINT_GROUP`."""
+    (``{name: LazyCommand}``) and, with ``plugins``, the commands of :data:`ENTRY_POINT_GROUP`. A plugged-in command
+    named like one of ``lazy_commands`` takes its place where its package is installed (the training package's
+    ``bench`` is the runtime's with more rows), and the group's own runs where it is not."""
 
     def __init__(self, *args, lazy_commands: dict | None = None, plugins: bool = False, **kwargs):
         super().__init__(*args, **kwargs)
@@ -78,24 +80,43 @@ class LazyGroup(click.Group):
         self.plugins = plugins
 
     def _plugged(self) -> dict:
-        return {name: ep for name, ep in plugged_commands().items() if name not in self.lazy_commands} \
-            if self.plugins else {}
+        return plugged_commands() if self.plugins else {}
+
+    def _names(self) -> set:
+        return set(self.lazy_commands) | set(self._plugged())
+
+    def _target(self, name: str):
+        """What ``name`` runs, not loaded yet: a :class:`LazyCommand` (or a click command), None if unknown.
+
+        Raises:
+            ModuleNotFoundError: a plugged-in command whose package is not installed, with no command of the
+                group's own by that name.
+        """
+        ep = self._plugged().get(name)
+        if ep is not None:
+            try:
+                return ep.load()
+            except ModuleNotFoundError:
+                if name not in self.lazy_commands:
+                    raise
+        return self.lazy_commands.get(name)
+
+    def _provider(self, name: str) -> str | None:
+        """The top-level package that plugs command ``name`` in (None for the group's own commands)."""
+        ep = self._plugged().get(name)
+        return None if ep is None else ep.value.split(":")[0].split(".")[0]
 
     def list_commands(self, ctx):
-        return sorted(set(super().list_commands(ctx)) | set(self.lazy_commands) | set(self._plugged()))
+        return sorted(set(super().list_commands(ctx)) | self._names())
 
     def get_command(self, ctx, cmd_name):
-        target = self.lazy_commands.get(cmd_name)
+        if cmd_name not in self._names():
+            return super().get_command(ctx, cmd_name)
         try:
-            if target is None and cmd_name in self._plugged():
-                target = self._plugged()[cmd_name].load()
-            if isinstance(target, LazyCommand):
-                return target.load()
+            target = self._target(cmd_name)
+            return target.load() if isinstance(target, LazyCommand) else target
         except ModuleNotFoundError as exc:
             raise click.ClickException(missing_message(cmd_name, exc.name, self._provider(cmd_name))) from exc
-        if isinstance(target, click.Command):
-            return target
-        return super().get_command(ctx, cmd_name)
 
     def invoke(self, ctx):
         # Safety nets, so that no subcommand prints a traceback for these: a model that cannot be used; and a
@@ -109,26 +130,19 @@ class LazyGroup(click.Group):
             name = ctx.invoked_subcommand or "this command"  # set by the group's invoke once the command is found
             raise click.ClickException(missing_message(name, exc.name, self._provider(name))) from None
 
-    def _provider(self, name: str) -> str | None:
-        """The top-level package that plugs command ``name`` in (None for the group's own commands)."""
-        ep = self._plugged().get(name)
-        return None if ep is None else ep.value.split(":")[0].split(".")[0]
-
     def _help_of(self, name: str) -> str:
-        """A command's one-line help without importing its module: a :class:`LazyCommand`'s own; a plugged-in one's
-        from its entry point's object (a :class:`LazyCommand`, in a module that imports nothing heavy)."""
-        target = self.lazy_commands.get(name)
-        if target is None:
-            try:
-                target = self._plugged()[name].load()
-            except ModuleNotFoundError as exc:
-                return missing_message(name, exc.name, self._provider(name)).split(":")[0] + "."
+        """A command's one-line help without importing its module: a :class:`LazyCommand`'s own (a plugged-in one's
+        from a module of its package that imports nothing heavy)."""
+        try:
+            target = self._target(name)
+        except ModuleNotFoundError as exc:
+            return missing_message(name, exc.name, self._provider(name)).split(":")[0] + "."
         if isinstance(target, LazyCommand):
             return target.help
         return target.get_short_help_str() if isinstance(target, click.Command) else ""
 
     def format_commands(self, ctx, formatter):
-        rows = [(name, self._help_of(name)) for name in sorted(set(self.lazy_commands) | set(self._plugged()))]
+        rows = [(name, self._help_of(name)) for name in sorted(self._names())]
         if rows:
             with formatter.section("Commands"):
                 formatter.write_dl(rows)
@@ -142,7 +156,3 @@ def main():
     Conventions: quaternions wxyz (scalar first), rotations object-to-camera,
     images HxWx3 uint8 BGR, boxes (x1, y1, x2, y2) in pixels, angles in degrees.
     """
-
-
-if __name__ == "__main__":
-    main()
