@@ -45,6 +45,7 @@ __all__ = [
     "crop_window",
     "crop_matrix",
     "crop_to_square",
+    "crop_to_square_reference",
     "crop_batch",
     "resize_crop",
     "roll_angle",
@@ -156,6 +157,42 @@ def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFA
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=(0, 0, 0),
     )
+
+
+def crop_to_square_reference(image: np.ndarray, box_xyxy, size: int, context: float = DEFAULT_CONTEXT) -> np.ndarray:
+    """:func:`crop_to_square`'s reference (``crop_filter="none"``): the crop rule written out, one pixel at a time,
+    bilinear sampling in float64. Slow; for tests, which check the fast OpenCV warp against it (OpenCV's bilinear
+    weights are fixed-point, 1/32 steps: the two agree within a few grey levels).
+
+    Args:
+        image: ``H x W x C`` array (any dtype; read as float).
+        box_xyxy: ``(x1, y1, x2, y2)`` in pixels, continuous coordinates.
+        size: output side ``S``.
+        context: window side = ``max(w, h) * context``.
+
+    Returns:
+        ``S x S x C`` float64 crop, zeros where the window leaves the image.
+    """
+    x1, y1, x2, y2 = box_xyxy
+    side = max(x2 - x1, y2 - y1) * context
+    x0, y0 = (x1 + x2) / 2 - side / 2, (y1 + y2) / 2 - side / 2
+    h, w = image.shape[:2]
+    out = np.zeros((size, size, image.shape[2]))
+    for v in range(size):
+        for u in range(size):
+            # continuous sample point -> index coordinates (pixel i centred at i + 0.5)
+            xs = x0 + (u + 0.5) * side / size - 0.5
+            ys = y0 + (v + 0.5) * side / size - 0.5
+            xi, yi = int(np.floor(xs)), int(np.floor(ys))
+            fx, fy = xs - xi, ys - yi
+            acc = np.zeros(image.shape[2])
+            for dy, wy in ((0, 1 - fy), (1, fy)):
+                for dx, wx in ((0, 1 - fx), (1, fx)):
+                    yy, xx = yi + dy, xi + dx
+                    if 0 <= yy < h and 0 <= xx < w:
+                        acc += wy * wx * image[yy, xx]
+            out[v, u] = acc
+    return out
 
 
 def crop_batch(image: np.ndarray, boxes_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None,

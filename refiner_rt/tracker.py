@@ -119,7 +119,7 @@ class RefinerTracker:
 
     Args:
         session: the refiner(s). A :class:`RefinerSession` refines every object (each object id must be one of its
-            model's objects); a string loads that shipped model with :meth:`RefinerSession.pretrained` (INT8, one
+            model's objects); a string loads that shipped model with :func:`refiner_rt.load` (INT8, one
             thread) for every object; a mapping ``object id -> RefinerSession or pretrained name`` gives each object
             its own (a name is loaded once and shared by the objects that name it).
         K: ``(3, 3)`` camera intrinsics in pixels, ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (the shipped models
