@@ -25,8 +25,8 @@ from refiner_rt.geometry import MAX_VIEWS
 __all__ = ["SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS", "MAX_BOX_COORDINATE", "MIN_BOX_SIDE",
            "MIN_INSIDE_FRACTION", "K_MIN_FOCAL", "K_MAX_ABS", "DISTORTION_LENGTHS", "Q_ORDERS", "validate_image",
            "validate_boxes", "boxes_rows", "inside_fraction", "validate_K", "check_principal_point", "validate_D",
-           "as_wxyz", "validate_settle", "validate_iterations", "validate_views", "check_batch", "validate_threads",
-           "check_coarse_rows"]
+           "as_wxyz", "validate_rotations", "validate_settle", "validate_iterations", "validate_views", "check_batch",
+           "validate_threads", "check_coarse_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -328,6 +328,23 @@ def check_principal_point(K: np.ndarray, image_shape) -> None:
                 "image's K may lie there: then this is expected)", float(cx), float(cy), w, h)
 
 
+
+
+def validate_rotations(q, n: int, other: str) -> np.ndarray:
+    """``q_in_wxyz`` (``wxyz`` quaternions, one per entry of the argument named ``other``, of which there are ``n``)
+    as ``(n, 4)`` float64 unit quaternions, ``w >= 0``. ``[]`` is no rotations; a single ``(4,)`` one is ``(1, 4)``.
+    :meth:`refiner_rt.RefinerSession.refine` takes the fast path on Python floats first
+    (:func:`refiner_rt.quaternion.normalize_rows`) and this for anything unusual, which it names."""
+    if isinstance(q, (list, tuple, np.ndarray)) and len(q) == 0 and np.ndim(q) == 1:
+        q = np.zeros((0, 4))  # [] : no rotations (as boxes_xyxy=[] is no boxes)
+    q = rq.as_quaternion(q, "q_in_wxyz")
+    if q.ndim == 1:
+        q = q[None]
+    if q.ndim != 2:
+        raise ValueError(f"q_in_wxyz must have shape (N, 4), wxyz; got shape {q.shape}")
+    if len(q) != n:
+        raise ValueError(f"q_in_wxyz has {len(q)} rotations but {other} has {n}: expected one rotation per box")
+    return rq.normalize(q)
 
 
 def validate_iterations(iterations) -> int:

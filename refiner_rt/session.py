@@ -66,6 +66,7 @@ from refiner_rt.checks import (  # noqa: F401  (limits re-exported: refiner_rt.s
     validate_image,
     validate_iterations,
     validate_K,
+    validate_rotations,
     validate_settle,
     validate_threads,
     validate_views,
@@ -515,32 +516,20 @@ class RefinerSession:
     # ------------------------------------------------------------------ internals
     def _q_in(self, q, n: int, other: str) -> tuple[np.ndarray, list | None]:
         """Validated, unit, canonical ``q_in`` as ``(float64 (n, 4) array, rows)``; rows (Python floats) only for
-        ``0 < n <= SMALL_BATCH`` well-formed input, else None. Anything unusual takes :meth:`_validate_q`, which
-        raises the detailed errors."""
+        ``0 < n <= SMALL_BATCH`` well-formed input, else None. Anything unusual takes
+        :func:`refiner_rt.checks.validate_rotations`, which raises the detailed errors."""
         if 0 < n <= SMALL_BATCH:
             arr = q
             if not isinstance(q, np.ndarray):
                 try:
                     arr = np.asarray(q)
-                except (ValueError, TypeError):  # ragged: _validate_q names it
-                    return self._validate_q(q, n, other), None
+                except (ValueError, TypeError):  # ragged: validate_rotations names it
+                    return validate_rotations(q, n, other), None
             if arr.dtype.kind in "fiu" and arr.shape == (n, 4):
                 rows = rq.normalize_rows(arr.astype(np.float64, copy=False).tolist())
                 if rows is not None:
                     return np.array(rows), rows
-        return self._validate_q(q, n, other), None
-
-    def _validate_q(self, q, n: int, other: str) -> np.ndarray:
-        if isinstance(q, (list, tuple, np.ndarray)) and len(q) == 0 and np.ndim(q) == 1:
-            q = np.zeros((0, 4))  # [] : no rotations (as boxes_xyxy=[] is no boxes)
-        q = rq.as_quaternion(q, "q_in_wxyz")
-        if q.ndim == 1:
-            q = q[None]
-        if q.ndim != 2:
-            raise ValueError(f"q_in_wxyz must have shape (N, 4), wxyz; got shape {q.shape}")
-        if len(q) != n:
-            raise ValueError(f"q_in_wxyz has {len(q)} rotations but {other} has {n}: expected one rotation per box")
-        return rq.normalize(q)
+        return validate_rotations(q, n, other), None
 
     def _buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Views of ``n`` crops and ``n`` float32 ``q_in`` rows in this thread's reusable buffers (grown when
