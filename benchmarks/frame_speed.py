@@ -36,7 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from refiner_rt import RefinerSession  # noqa: E402
-from refiner_rt.bench import FRAME_K, machine_info, synthetic_frame  # noqa: E402
+from export.bench import machine_info  # noqa: E402
+from refiner_rt.bench import FRAME_K, synthetic_frame  # noqa: E402
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
 from refiner_rt.session import available_cores, default_session_options  # noqa: E402
 

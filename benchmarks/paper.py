@@ -519,7 +519,7 @@ def run_experiment(name: str, args, argv: list[str]) -> None:
 
 
 def write_result(name: str, exp: Experiment, results: dict, budget: dict, wall_s: float, argv: list[str], args) -> None:
-    from refiner_rt.bench import machine_info
+    from export.bench import machine_info
 
     primary = primary_setting(exp)
     first = results.get("paper") or results["improved"]

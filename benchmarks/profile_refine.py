@@ -41,7 +41,8 @@ import onnxruntime as ort
 
 from refiner_rt import RefinerSession
 from refiner_rt.session import DISABLED_OPTIMIZERS
-from refiner_rt.bench import frame_K, machine_info, synthetic_frame
+from export.bench import machine_info
+from refiner_rt.bench import frame_K, synthetic_frame
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION
 from refiner_rt.preprocess import crop_to_square, validate_boxes
 

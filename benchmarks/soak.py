@@ -109,7 +109,7 @@ def main(argv=None) -> int:
                "--warmup", str(args.warmup), "--every", str(args.every), "--callers", str(args.callers)]
         out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     result = json.loads(out.strip().splitlines()[-1])
-    from refiner_rt.bench import machine_info  # here, not in the measured process: it looks for torch's version
+    from export.bench import machine_info  # here, not in the measured process: it looks for torch's version
 
     result["machine"] = machine_info()
     s = summarize(result, args.warmup)

@@ -11,8 +11,8 @@ __version__ = "0.1.0"
 
 from refiner_rt.errors import ModelError, ModelNotFoundError
 
-__all__ = ["ModelError", "ModelNotFoundError", "RefinerSession", "RefineResult", "RefinerCascade", "RefinerTracker",
-           "SETTLE_DEG", "quaternion", "pretrained_models", "__version__"]
+__all__ = ["ModelError", "ModelNotFoundError", "Refiner", "load", "RefinerSession", "RefineResult", "RefinerCascade",
+           "RefinerTracker", "SETTLE_DEG", "quaternion", "pretrained_models", "__version__"]
 
 
 def __getattr__(name):
@@ -21,6 +21,10 @@ def __getattr__(name):
         from refiner_rt import session
 
         return getattr(session, name)
+    if name in ("Refiner", "load"):
+        from refiner_rt import refiner
+
+        return getattr(refiner, name)
     if name == "RefinerCascade":
         from refiner_rt.cascade import RefinerCascade
 

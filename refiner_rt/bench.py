@@ -1,5 +1,4 @@
-"""CPU speed benchmark behind ``refiner-rt bench --cpu``: the full ``refine()`` path, models side by side, each row
-next to its roofline bound.
+"""The runtime's CPU timer behind ``refiner-rt bench --cpu``: the full ``refine()`` path of ONNX models, side by side.
 
 What is timed is what robot code pays per call: crop every box out of a 640x480 BGR frame with the
 shared crop rule, run the network, compose ``q_in * q_out`` in float64 (models trained in the viewing-ray frame
@@ -7,37 +6,20 @@ get the frame's ``K``, as robot code gives it). Models are measured interleaved 
 that drift of a shared machine hits all of them alike, and every ratio comes from one run. Reported: median (p50)
 and p90 latency per call and refinements per second (``batch / p50``).
 
-With no ``--model``, it times:
+With no ``--model``, it times the shipped refiners (trained weights; INT8 and fp32): by default one representative
+object, the first shipped (every shipped model has the same architecture, so they run at the same speed;
+``--shipped all`` times each, ``--shipped none`` none), and the paper's networks, :data:`DEFAULT_ARCHS` (``shallow``,
+the paper's network; ``vggm``, its deep variant) and any ``--variant`` configs, built with random weights.
 
-* the shipped refiners (trained weights; INT8 and fp32): by default one representative object, the first
-  shipped (every shipped model has the same architecture, so they run at the same speed; ``--shipped all`` times
-  each, ``--shipped none`` none);
-* the paper's networks, :data:`DEFAULT_ARCHS` (``shallow``, the paper's network; ``vggm``, its deep variant) and any
-  ``--variant`` configs, built with random weights and exported (speed does not depend on the weight values), each
-  in fp32 and, quantised in the same run with :mod:`export.quantize`'s default scheme, in INT8. This needs the
-  training extra (torch); without it (a runtime-only install) only the shipped models are timed, and the output says
-  so. The built networks are also timed in PyTorch eager mode (batches up to :data:`TORCH_MAX_BATCH`) for the
-  onnxruntime/PyTorch ratio.
+This module times ONNX files through ``refine()`` and nothing else. What needs the training package comes from a
+:class:`BenchExtension`: the training package's (``export.bench``, which plugs its ``bench`` command into
+``refiner-rt`` in a full install) builds the paper's networks with random weights (and their INT8), times them in
+PyTorch eager mode too, and puts each row beside its roofline bound. In a runtime-only install only the shipped
+models and ``--model`` files are timed, and the output says so.
 
 Every row says which weights it has (``weights``: ``trained``, ``random`` or ``user-supplied``), and onnxruntime rows
 give their speed over the paper's shallow network (``ratio_over_shallow``) at the same threads and batch, INT8
 over INT8 and fp32 over fp32.
-
-Roofline (when the ``onnx`` package is installed): a lower bound on the time of one inference from the
-machine's measured limits (see :class:`MachineLimits`):
-
-    t_memory  = weight bytes per call / memory bandwidth     (every weight is read once per call, any batch)
-    t_compute = batch * (fp32 FLOPs / fp32 peak + int8 ops / int8 peak)   (per crop, peaks at the row's threads)
-    bound     = batch / max(t_memory, t_compute)  refinements/s
-
-The limits are measured inside every (threads, batch) cell, interleaved round by round with the models, so a
-machine loaded by other work lowers the limits and the models alike; each limit is the best of its rounds (the
-least disturbed), each model the median of its calls. Each row reports ``roofline_ratio = fps / bound``: 1.0 would
-be the hardware limit for that inference. The bound covers the network only (not cropping or composition), counts
-weights but not activations, and assumes weights come from DRAM, so a model whose weights stay in the L2/L3 caches
-between calls can beat it. A ratio above 1 therefore says the bound was not a bound (limits under-measured, or
-weights served from cache), not that the model beat the hardware: such a row gets no ratio (``None``, and "n/a" in
-the table), and ``roofline_note`` says why.
 """
 
 from __future__ import annotations
@@ -60,8 +42,9 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.errors import TRAINING_INSTALL, ModelError
-from refiner_rt.preprocess import crop_batch, validate_boxes
-from refiner_rt.session import MAX_BATCH, available_cores
+from refiner_rt.checks import MAX_BATCH, validate_boxes
+from refiner_rt.preprocess import crop_batch
+from refiner_rt.session import available_cores
 
 log = logging.getLogger(__name__)
 
@@ -77,9 +60,6 @@ def frame_K(sess):
 
 
 DEFAULT_ARCHS = ("shallow", "vggm")  # the paper's networks, random weights; the shipped refiners join them
-TORCH_MAX_BATCH = 8  # PyTorch eager VGG-M takes ~2 s per call at batch 32: only smaller batches are timed
-BANDWIDTH_BUFFER_MB = 256  # much larger than the L3 caches of the CPUs the project runs on (32 MB)
-PEAK_MATMUL_SIZE = 1024  # M = N = K of the matrix products that measure the compute peaks
 
 
 @dataclass
@@ -164,9 +144,8 @@ def cpu_flags() -> list[str]:
 
 
 def machine_info() -> dict:
-    """CPU model, its vector-instruction flags, core count and library versions of this machine; with torch
-    installed also the instruction set torch dispatches to (``torch.backends.cpu.get_cpu_capability()``, e.g.
-    ``"AVX2"``, ``"AVX512"``), else None."""
+    """CPU model, its vector-instruction flags, core count and library versions of this machine (``torch`` and
+    ``cpu_capability`` None: the runtime never imports torch; ``export.bench.machine_info`` fills them in)."""
     import onnxruntime
 
     cpu = platform.processor() or "unknown"
@@ -187,13 +166,7 @@ def machine_info() -> dict:
         "onnxruntime": onnxruntime.__version__,
         "platform": platform.platform(),
     }
-    try:
-        import torch
-
-        info["torch"] = torch.__version__
-        info["cpu_capability"] = torch.backends.cpu.get_cpu_capability()
-    except ModuleNotFoundError:
-        info["torch"] = info["cpu_capability"] = None
+    info["torch"] = info["cpu_capability"] = None
     return info
 
 
@@ -209,265 +182,9 @@ def synthetic_frame(batch: int, seed: int = 0):
     return image, boxes, q_in
 
 
-# ---------------------------------------------------------------------------------------------------- roofline
-@dataclass(frozen=True)
-class MachineLimits:
-    """The machine's measured limits for the roofline.
-
-    Attributes:
-        bandwidth: DRAM bandwidth in bytes/s: ``numpy.copyto`` of a buffer much larger than L3
-            (:data:`BANDWIDTH_BUFFER_MB`), counting the bytes read plus the bytes written (STREAM's "copy"
-            convention), one thread.
-        peak_fp32: ``{threads: FLOP/s}`` of onnxruntime's fp32 ``MatMul`` on 1024x1024 matrices (the MLAS kernels
-            the models use).
-        peak_int8: ``{threads: ops/s}`` of onnxruntime's ``MatMulInteger`` (uint8 x int8, the kernels of the
-            quantised layers) on 1024x1024 matrices. Measured, not derived from the fp32 peak.
-    """
-
-    bandwidth: float
-    peak_fp32: dict
-    peak_int8: dict
-
-    def as_dict(self) -> dict:
-        return {
-            "bandwidth_gbs": self.bandwidth / 1e9,
-            "peak_fp32_gflops": {str(k): v / 1e9 for k, v in self.peak_fp32.items()},
-            "peak_int8_gops": {str(k): v / 1e9 for k, v in self.peak_int8.items()},
-        }
-
-
-@dataclass(frozen=True)
-class ModelCost:
-    """What one inference of a model must move and compute.
-
-    Attributes:
-        weight_bytes: bytes of all initializers (weights, biases, scales) as stored in the graph.
-        flops: fp32 FLOPs per crop (2 per multiply-add of convolutions and fully connected layers).
-        int8_ops: int8 operations per crop (2 per multiply-add of the quantised layers).
-        quantization: the model's metadata ``quantization`` (``"none"`` when absent).
-    """
-
-    weight_bytes: int
-    flops: float
-    int8_ops: float
-    quantization: str = "none"
-
-
-def _copy_runner(megabytes: int):
-    """A callable that copies a ``megabytes`` buffer once, and the bytes it moves (read + written)."""
-    n = megabytes * 2**20
-    src = np.ones(n, dtype=np.uint8)
-    dst = np.zeros(n, dtype=np.uint8)  # touched: no page faults in the timed copies
-    return (lambda: np.copyto(dst, src)), 2 * n
-
-
-def measure_bandwidth(megabytes: int = BANDWIDTH_BUFFER_MB, repeats: int = 5) -> float:
-    """DRAM bandwidth in bytes/s: median of ``repeats`` numpy copies of a buffer, (read + written bytes) / time."""
-    copy, nbytes = _copy_runner(megabytes)
-    return nbytes / statistics.median(_time_calls(copy, repeats))
-
-
-def _matmul_model(int8: bool, size: int) -> bytes:
-    from onnx import TensorProto, helper, numpy_helper
-
-    rng = np.random.default_rng(0)
-    if int8:
-        b = rng.integers(-127, 128, (size, size), dtype=np.int8)
-        a_type, node = TensorProto.UINT8, helper.make_node("MatMulInteger", ["a", "b"], ["y"])
-        y_type = TensorProto.INT32
-    else:
-        b = rng.standard_normal((size, size)).astype(np.float32)
-        a_type, node, y_type = TensorProto.FLOAT, helper.make_node("MatMul", ["a", "b"], ["y"]), TensorProto.FLOAT
-    graph = helper.make_graph(
-        [node], "peak",
-        [helper.make_tensor_value_info("a", a_type, [size, size])],
-        [helper.make_tensor_value_info("y", y_type, [size, size])],
-        initializer=[numpy_helper.from_array(b, "b")],
-    )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
-    model.ir_version = 8
-    return model.SerializeToString()
-
-
-def _matmul_runner(int8: bool, threads: int, size: int):
-    """A callable that runs one ``size``-cubed fp32 ``MatMul`` or int8 ``MatMulInteger`` in onnxruntime, and its
-    operation count (2 per multiply-add)."""
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.log_severity_level = 3
-    sess = ort.InferenceSession(_matmul_model(int8, size), options, providers=["CPUExecutionProvider"])
-    rng = np.random.default_rng(1)
-    a = rng.integers(0, 256, (size, size), dtype=np.uint8) if int8 else rng.standard_normal((size, size)).astype(np.float32)
-    feed = {"a": a}
-    sess.run(None, feed)
-    return (lambda: sess.run(None, feed)), 2.0 * size**3
-
-
-def measure_peak(int8: bool, threads: int, size: int = PEAK_MATMUL_SIZE, repeats: int = 7) -> float:
-    """Operations per second of onnxruntime's fp32 ``MatMul`` or int8 ``MatMulInteger`` (2 ops per multiply-add)."""
-    run, ops = _matmul_runner(int8, threads, size)
-    return ops / statistics.median(_time_calls(run, repeats))
-
-
-def measure_limits(thread_counts) -> MachineLimits:
-    """Bandwidth once, fp32 and int8 peaks for each thread count, measured back to back (not interleaved with
-    models: :class:`LimitProbe` is what the benchmark uses)."""
-    return MachineLimits(
-        bandwidth=measure_bandwidth(),
-        peak_fp32={n: measure_peak(False, n) for n in thread_counts},
-        peak_int8={n: measure_peak(True, n) for n in thread_counts},
-    )
-
-
-class LimitProbe:
-    """The roofline's limit measurements as runners that take turns with the models in
-    :func:`measure_interleaved`, so that the limits and the models of one cell see the same machine.
-
-    Args:
-        megabytes: size of the copied buffer (bandwidth).
-        size: side of the matrices (peaks).
-    """
-
-    BANDWIDTH, FP32, INT8 = "limit:bandwidth", "limit:fp32", "limit:int8"
-
-    def __init__(self, megabytes: int = BANDWIDTH_BUFFER_MB, size: int = PEAK_MATMUL_SIZE):
-        self._copy = _copy_runner(megabytes)
-        self._size = size
-        self._matmuls: dict = {}
-
-    def runners(self, threads: int) -> dict:
-        """``{key: callable}`` for the bandwidth and the fp32 and int8 peaks at ``threads`` threads."""
-        for int8 in (False, True):
-            if (int8, threads) not in self._matmuls:
-                self._matmuls[(int8, threads)] = _matmul_runner(int8, threads, self._size)
-        return {self.BANDWIDTH: self._copy[0], self.FP32: self._matmuls[(False, threads)][0],
-                self.INT8: self._matmuls[(True, threads)][0]}
-
-    def limits(self, threads: int, latencies: dict) -> MachineLimits:
-        """The limits from the latencies :func:`measure_interleaved` measured for :meth:`runners`: each the best
-        (fastest) of its calls, the one least disturbed by other work."""
-        best = {key: min(latencies[key]) for key in (self.BANDWIDTH, self.FP32, self.INT8)}
-        return MachineLimits(
-            bandwidth=self._copy[1] / best[self.BANDWIDTH],
-            peak_fp32={threads: self._matmuls[(False, threads)][1] / best[self.FP32]},
-            peak_int8={threads: self._matmuls[(True, threads)][1] / best[self.INT8]},
-        )
-
-
-_CONV_OPS = {"Conv": 1, "ConvInteger": 1, "QLinearConv": 3}  # op -> index of the weight input
-_MATMUL_OPS = {"Gemm": (0, 1), "MatMul": (0, 1), "MatMulInteger": (0, 1), "QLinearMatMul": (0, 3), "QGemm": (0, 3)}
-_INT8_OPS = {"ConvInteger", "QLinearConv", "MatMulInteger", "QLinearMatMul", "QGemm"}
-
-
-def model_cost(path) -> ModelCost:
-    """Weight bytes and per-crop operations of an ONNX refiner, counted from its graph (batch fixed to 1).
-
-    Convolutions count ``output elements * (C_in / group * kH * kW)`` multiply-adds; ``Gemm``/``MatMul`` count
-    ``rows * K * N``. A layer is int8 when its operator is (``MatMulInteger``, ``QLinearConv``...) or, in QDQ
-    graphs, when its weight comes through ``DequantizeLinear``. Everything else (pooling, elementwise) is ignored.
-    """
-    import onnx
-    from onnx import helper, shape_inference
-
-    proto = onnx.load(str(path))
-    graph = proto.graph
-    weight_bytes = 0
-    shapes: dict[str, list] = {}
-    for t in graph.initializer:
-        itemsize = np.dtype(helper.tensor_dtype_to_np_dtype(t.data_type)).itemsize
-        weight_bytes += int(np.prod(t.dims, dtype=np.int64)) * itemsize
-        shapes[t.name] = list(t.dims)
-        if len(t.raw_data) > 4096:  # weights: shape inference needs their dims only (and is 500x faster without)
-            t.ClearField("raw_data")
-    for value in graph.input:
-        value.type.tensor_type.shape.dim[0].dim_value = 1
-    inferred = shape_inference.infer_shapes(proto, data_prop=True).graph
-    for value in [*inferred.value_info, *inferred.input, *inferred.output]:
-        dims = [d.dim_value if d.HasField("dim_value") else None for d in value.type.tensor_type.shape.dim]
-        shapes.setdefault(value.name, dims)
-    dequantized = {o: n.input[0] for n in graph.node if n.op_type == "DequantizeLinear" for o in n.output}
-    flops = int8_ops = 0.0
-    for node in graph.node:
-        if node.op_type in _CONV_OPS:
-            w = shapes.get(dequantized.get(node.input[_CONV_OPS[node.op_type]], node.input[_CONV_OPS[node.op_type]]))
-            out = shapes.get(node.output[0])
-            if not w or not out or None in out:
-                continue
-            macs = float(np.prod(out)) * float(np.prod(w[1:]))
-            weight_input = node.input[_CONV_OPS[node.op_type]]
-        elif node.op_type in _MATMUL_OPS:
-            ia, ib = _MATMUL_OPS[node.op_type]
-            a, b = shapes.get(node.input[ia]), shapes.get(node.input[ib])
-            if not a or not b or None in a or None in b:
-                continue
-            trans_b = any(at.name == "transB" and at.i for at in node.attribute)
-            k, n = (b[-1], b[-2]) if trans_b else (b[-2], b[-1])
-            macs = float(np.prod(a[:-1])) * k * n
-            weight_input = node.input[ib]
-        else:
-            continue
-        if node.op_type in _INT8_OPS or weight_input in dequantized:
-            int8_ops += 2 * macs
-        else:
-            flops += 2 * macs
-    quantization = next((p.value for p in proto.metadata_props if p.key == "quantization"), "none")
-    return ModelCost(weight_bytes=weight_bytes, flops=flops, int8_ops=int8_ops, quantization=quantization)
-
-
-def roofline_bound(cost: ModelCost, batch: int, threads: int, limits: MachineLimits) -> tuple[float, str]:
-    """``(refinements/s, "memory" | "compute")``: the roofline bound of one call at ``batch`` crops."""
-    t_memory = cost.weight_bytes / limits.bandwidth
-    t_compute = batch * (cost.flops / limits.peak_fp32[threads] + cost.int8_ops / limits.peak_int8[threads])
-    return batch / max(t_memory, t_compute, 1e-12), "memory" if t_memory >= t_compute else "compute"
-
-
-def describe_roofline(label: str, cost: ModelCost, limits: MachineLimits, threads) -> str:
-    """One line for people: what bounds this model, at batch 1, per thread count."""
-    t_mem = cost.weight_bytes / limits.bandwidth
-    parts = []
-    for n in threads:
-        t_cpu = cost.flops / limits.peak_fp32[n] + cost.int8_ops / limits.peak_int8[n]
-        parts.append(f"{n} thr {t_cpu * 1e3:.3f} ms")
-    ops = f"{cost.flops / 1e6:.1f} MFLOP fp32" + (f" + {cost.int8_ops / 1e6:.1f} Mop int8" if cost.int8_ops else "")
-    return (
-        f"  {label} ({cost.quantization}): weights {cost.weight_bytes / 1e6:.1f} MB/call -> {t_mem * 1e3:.3f} ms; "
-        f"{ops} per crop -> {', '.join(parts)} at batch 1"
-    )
-
-
 # ---------------------------------------------------------------------------------------------------- runners
-class TorchRefiner:
-    """The refine() path with a PyTorch eager network instead of onnxruntime (for the ratio row).
-
-    Same crop rule and composition as :class:`refiner_rt.RefinerSession`; only the network call differs.
-    """
-
-    def __init__(self, model, threads: int):
-        import torch
-
-        self.torch = torch
-        self.model = model.eval()
-        self.threads = threads
-        self.size = int(model.input_size)
-        self.context = float(getattr(model, "config", {}).get("crop_context", 1.2))
-        self._buffer = np.zeros((0, self.size, self.size, 3), dtype=np.uint8)
-
-    def refine(self, image, boxes, q_in):
-        torch = self.torch
-        boxes = validate_boxes(boxes, image.shape)
-        q_in = rq.normalize(q_in)
-        if len(self._buffer) < len(boxes):
-            self._buffer = np.zeros((len(boxes), self.size, self.size, 3), dtype=np.uint8)
-        crops = crop_batch(image, boxes, self.size, self.context, out=self._buffer)
-        with torch.inference_mode():
-            q_out = self.model(torch.from_numpy(crops), torch.from_numpy(q_in.astype(np.float32))).numpy()
-        return rq.normalize(rq.multiply(q_in, rq.normalize(q_out.astype(np.float64))))
-
-
-def _time_calls(fn, n: int) -> list[float]:
+def time_calls(fn, n: int) -> list[float]:
+    """Wall seconds of ``n`` calls of ``fn``, one by one."""
     out = []
     for _ in range(n):
         t0 = time.perf_counter()
@@ -487,14 +204,14 @@ def measure_interleaved(runners: dict, seconds: float, rounds: int = 5, min_call
     for name, fn in runners.items():
         warm = []
         while len(warm) < 3 and sum(warm) < 0.3:
-            warm += _time_calls(fn, 1)
+            warm += time_calls(fn, 1)
         per_call[name] = max(statistics.median(warm), 1e-6)
     plan = {name: max(min_calls, int(seconds / t)) for name, t in per_call.items()}
     lat = {name: [] for name in runners}
     for r in range(rounds):
         for name, fn in runners.items():
             n = plan[name] // rounds + (1 if r < plan[name] % rounds else 0)
-            lat[name].extend(_time_calls(fn, n))
+            lat[name].extend(time_calls(fn, n))
     return lat
 
 
@@ -540,58 +257,79 @@ def parse_variant(text: str) -> tuple[str, str, dict]:
 
 
 # ---------------------------------------------------------------------------------------------------- benchmark
+class BenchExtension:
+    """What a package adds to ``refiner-rt bench``; this base adds nothing (the runtime's own bench). The training
+    package's subclass (``export.bench``) builds the paper's networks with random weights, times them in PyTorch
+    eager mode and measures the roofline. Each hook is called by :func:`bench_command` and :func:`run_bench`."""
+
+    def machine_info(self, info: dict) -> dict:
+        """The machine's description (:func:`machine_info`), completed."""
+        return info
+
+    def build_models(self, specs, workdir: Path, int8: bool, echo) -> list[BenchModel]:
+        """Random-weight networks for ``specs`` (``(label, arch, config)``), exported to ONNX in ``workdir``."""
+        raise click.ClickException(
+            f"building the random-weight models needs the training package: {TRAINING_INSTALL}; or time the "
+            "shipped models alone (--archs '') or your own files (--model)")
+
+    def start(self, bench_models: list[BenchModel], with_torch: bool, echo) -> str:
+        """Called once before timing; returns what the timing line adds (empty: nothing)."""
+        return ""
+
+    def cell_runners(self, bench_models: list[BenchModel], threads: int, batch: int, image, boxes, q_in) -> dict:
+        """Callables timed in the cell with the models: keys ``(runtime, model index)`` make rows; other keys are
+        the extension's own measurements, handed back to :meth:`finish_cell`."""
+        return {}
+
+    def finish_cell(self, threads: int, latencies: dict, cell: list) -> None:
+        """Complete the cell's rows (``[(model index, BenchRow)]``) from its latencies."""
+
+    def summary(self, rows: list[BenchRow], bench_models: list[BenchModel]) -> list[str]:
+        """Lines printed above the table."""
+        return []
+
+
 def run_bench(
     bench_models: list[BenchModel],
     batches=(1, 8, 32),
     threads=(1, 0),
     seconds: float = 1.0,
-    with_torch: bool = True,
-    probe: LimitProbe | None = None,
-    costs: dict | None = None,
+    extension: BenchExtension | None = None,
     progress=None,
 ) -> list[BenchRow]:
-    """Measure every (batch, threads) cell for every model; returns the rows with ratios and bounds filled in.
+    """Measure every (batch, threads) cell for every model; returns the rows with their ratios filled in.
 
     Args:
-        bench_models: the models (PyTorch eager is timed for those that carry a network, when ``with_torch``).
+        bench_models: the models; each is timed through :meth:`refiner_rt.RefinerSession.refine` (or a cascade's).
         batches: boxes per call.
         threads: thread counts; ``0`` means all available cores.
-        seconds: approximate time spent per model and cell (the limit measurements get the same).
-        with_torch: time PyTorch eager too (batches up to :data:`TORCH_MAX_BATCH`).
-        probe: measures the machine's limits for the roofline, interleaved with the models in every cell; or None.
-        costs: ``{model index: ModelCost}`` for the roofline, or None.
+        seconds: approximate time spent per model and cell.
+        extension: what else each cell times, interleaved with the models (:meth:`BenchExtension.cell_runners`),
+            and what it adds to the cell's rows (:meth:`BenchExtension.finish_cell`); None: nothing.
         progress: optional callable advanced by one after each cell.
     """
     from refiner_rt.session import RefinerSession
 
+    extension = extension or BenchExtension()
     rows: list[BenchRow] = []
     for nthreads in threads:
         n = nthreads or available_cores()
         sessions = [RefinerSession(m.path, threads=n) for m in bench_models]
         refiners = [s if m.fine_path is None else _cascade(s, m, n) for s, m in zip(sessions, bench_models)]
-        torch_runners = {}
-        if with_torch and any(m.torch_model is not None for m in bench_models):
-            import torch
-
-            torch.set_num_threads(n)
-            torch_runners = {i: TorchRefiner(m.torch_model, n) for i, m in enumerate(bench_models) if m.torch_model is not None}
         for batch in batches:
             image, boxes, q_in = synthetic_frame(batch)
             runners = {("onnxruntime", i): (lambda s=s, K=frame_K(sessions[i]): s.refine(image, boxes, q_in, K=K))
                        for i, s in enumerate(refiners)}
-            if batch <= TORCH_MAX_BATCH:
-                runners.update({("torch", i): (lambda r=r: r.refine(image, boxes, q_in)) for i, r in torch_runners.items()})
-            if probe is not None and costs:
-                runners.update(probe.runners(n))
+            runners.update(extension.cell_runners(bench_models, n, batch, image, boxes, q_in))
             latencies = measure_interleaved(runners, seconds)
-            limits = probe.limits(n, latencies) if probe is not None and costs else None
+            cell = []
             for key, values in latencies.items():
                 if not isinstance(key, tuple):
-                    continue  # a limit measurement
+                    continue  # the extension's own measurement (a machine limit)
                 runtime, i = key
                 m, contract = bench_models[i], sessions[i].contract
                 p50 = _percentile(values, 50)
-                row = BenchRow(
+                cell.append((i, BenchRow(
                     arch=contract.arch,
                     runtime=runtime,
                     threads=n,
@@ -604,10 +342,9 @@ def run_bench(
                     quantization=contract.quantization if runtime == "onnxruntime" else "none",
                     weights=m.weights,
                     config=dict(m.config),
-                )
-                if limits is not None and i in costs:
-                    _fill_roofline(row, costs[i], limits)
-                rows.append(row)
+                )))
+            extension.finish_cell(n, latencies, cell)
+            rows += [row for _, row in cell]
             if progress:
                 progress()
     _fill_ratios(rows)
@@ -624,24 +361,6 @@ def _cascade(coarse, m: BenchModel, threads: int):
 
     fine = RefinerSession(m.fine_path, threads=threads)
     return RefinerCascade(coarse, fine, gate_deg=1e-9 if m.cascade_path == "coarse" else 30.0, coarse_gate_deg=30.0)
-
-
-def _fill_roofline(row: BenchRow, cost: ModelCost, limits: MachineLimits) -> None:
-    """The row's bound from its cell's limits, and its ratio when that is a sane one (at most 1)."""
-    n, batch = row.threads, row.batch
-    row.weight_bytes = cost.weight_bytes
-    row.flops_per_call, row.int8_ops_per_call = cost.flops * batch, cost.int8_ops * batch
-    row.bound_fps, row.bound = roofline_bound(cost, batch, n, limits)
-    row.bandwidth_gbs = limits.bandwidth / 1e9
-    row.peak_fp32_gflops, row.peak_int8_gops = limits.peak_fp32[n] / 1e9, limits.peak_int8[n] / 1e9
-    ratio = row.fps / row.bound_fps
-    if ratio <= 1.0:
-        row.roofline_ratio = ratio
-    else:
-        row.roofline_note = (
-            f"ran at {ratio:.2f}x its bound: the bound is not one here (limits under-measured on a busy machine, "
-            "or weights served from cache rather than DRAM), so no ratio is given"
-        )
 
 
 def _fill_ratios(rows: list[BenchRow]) -> None:
@@ -724,24 +443,6 @@ def _variants(ctx, param, value):
     return [parse_variant(v) for v in value]
 
 
-def _roofline_inputs(bench_models, echo):
-    """A :class:`LimitProbe` and per-model costs, or ``(None, None)`` without the ``onnx`` package."""
-    try:
-        import onnx  # noqa: F401  (graph parsing and the peak-measuring graphs)
-    except ModuleNotFoundError:
-        echo("Roofline skipped: it needs the 'onnx' package to read the graphs.")
-        return None, None
-    costs = {}
-    for i, m in enumerate(bench_models):
-        if m.fine_path is not None:
-            continue  # a cascade is several networks: no single-graph bound
-        try:
-            costs[i] = model_cost(m.path)
-        except Exception as exc:  # onnx's shape inference on a graph it cannot follow: that row goes without a bound
-            echo(f"Roofline skipped for {m.label}: its graph cannot be costed ({type(exc).__name__}: {exc})")
-    return LimitProbe(), costs
-
-
 def _shipped_option(ctx, param, value):
     value = str(value).strip()
     if value in ("", "none"):
@@ -751,10 +452,11 @@ def _shipped_option(ctx, param, value):
     return [v.strip() for v in value.split(",") if v.strip()]
 
 
-def bench_command(build_models=None) -> click.Command:
-    """The ``refiner-rt bench`` command. ``build_models(specs, workdir, int8=, echo=)`` builds the random-weight
-    models timed when no ``--model`` is given; the training side supplies it (``export.bench_models``), since the
-    runtime never imports training code. Without it only the shipped models and ``--model`` files can be timed."""
+def bench_command(extension: BenchExtension | None = None) -> click.Command:
+    """The ``refiner-rt bench`` command, with what ``extension`` adds (:class:`BenchExtension`; None: the runtime's
+    own: the shipped models and ``--model`` files). The training package builds its own with its extension, since
+    the runtime never imports training code."""
+    extension = extension or BenchExtension()
 
     @click.command("bench")
     @click.option("--cpu", "cpu", is_flag=True, default=True, help="Benchmark on the CPU (the only device supported; default).")
@@ -789,17 +491,18 @@ def bench_command(build_models=None) -> click.Command:
     @click.option("--batch", "batches", default="1,8,32", show_default=True, callback=_int_list, help="Boxes per refine() call.")
     @click.option("--threads", "threads", default="1,all", show_default=True, callback=_threads_list, help="Thread counts ('all' = every core).")
     @click.option("--seconds", default=1.0, show_default=True, type=click.FloatRange(0.05, 600), help="Measuring time per model and cell (at least 3 calls).")
-    @click.option("--torch/--no-torch", "with_torch", default=True, show_default=True, help=f"Also time PyTorch eager for the built models at batches up to {TORCH_MAX_BATCH} (when torch is installed).")
+    @click.option("--torch/--no-torch", "with_torch", default=True, show_default=True, help="Also time PyTorch eager for the built models at small batches (when torch is installed).")
     @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write the rows (with the run's context) as a JSON list.")
     def bench_cmd(cpu, model_paths, shipped, archs, variants, with_int8, batches, threads, seconds, with_torch, json_path):
         """CPU speed of the full refine() path (crop + inference + compose): the shipped refiners beside the paper's
-        networks, fp32 and INT8, each row next to its roofline bound (measured interleaved with the models)."""
+        networks, fp32 and INT8 (with the training package: also PyTorch eager, and each row next to its roofline
+        bound measured interleaved with the models)."""
         if 0 in batches:
             raise click.BadParameter("batch sizes must be >= 1", param_hint="--batch")
         if max(batches) > MAX_BATCH:
             raise click.BadParameter(f"batch sizes must be at most {MAX_BATCH} (RefinerSession's MAX_BATCH crops per call)",
                                      param_hint="--batch")
-        machine = machine_info()
+        machine = extension.machine_info(machine_info())
 
         def echo(msg):
             click.echo(msg, err=True)
@@ -807,12 +510,11 @@ def bench_command(build_models=None) -> click.Command:
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="refiner-rt-bench-") as tmp:
             bench_models, weights = _prepare_models(model_paths, shipped, archs, variants, with_int8, Path(tmp), echo,
-                                                     build_models)
-            probe, costs = _roofline_inputs(bench_models, echo)
+                                                     extension)
+            also = extension.start(bench_models, with_torch, echo)
             echo(
                 f"Timing refine() on a {FRAME_W}x{FRAME_H} frame: {len(bench_models)} model(s), batches {batches}, "
-                f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell"
-                + (" (and per roofline limit, measured in every cell)" if probe is not None else "")
+                f"threads {[t or 'all' for t in threads]}, ~{seconds:g} s per model and cell" + also
             )
             # A bar on a terminal only: elsewhere click prints its bare label, a stray "cells" line in the output.
             stream = contextlib.nullcontext(sys.stderr) if sys.stderr.isatty() else open(os.devnull, "w")  # noqa: SIM115
@@ -820,9 +522,8 @@ def bench_command(build_models=None) -> click.Command:
                                                          label="timing cells (threads x batches)",
                                                          file=bar_stream) as bar:
                 try:
-                    rows = run_bench(
-                        bench_models, batches, threads, seconds, with_torch, probe, costs, progress=lambda: bar.update(1)
-                    )
+                    rows = run_bench(bench_models, batches, threads, seconds, extension,
+                                     progress=lambda: bar.update(1))
                 except ModelError as exc:  # a model that loaded but fails when it runs
                     raise click.ClickException(str(exc)) from None
         wall = time.perf_counter() - t0
@@ -831,13 +532,8 @@ def bench_command(build_models=None) -> click.Command:
                    f" (torch dispatch: {machine['cpu_capability'] or 'n/a'}), onnxruntime {machine['onnxruntime']}, "
                    f"torch {machine['torch']}")
         click.echo(f"Weights: {weights}. Full refine() path, medians over interleaved rounds; wall {wall:.0f} s.")
-        if probe is not None:
-            click.echo(_describe_limits(rows))
-            thread_counts = sorted({r.threads for r in rows if r.bandwidth_gbs is not None})
-            if thread_counts:
-                first = _cell_limits(rows, thread_counts)
-                click.echo("\n".join(describe_roofline(m.label, costs[i], first, thread_counts)
-                                     for i, m in enumerate(bench_models) if i in costs))
+        for line in extension.summary(rows, bench_models):
+            click.echo(line)
         click.echo(format_table(rows))
         if json_path:
             # A list of rows (what machines read); each row carries the run's context.
@@ -849,26 +545,10 @@ def bench_command(build_models=None) -> click.Command:
     return bench_cmd
 
 
-bench_cmd = bench_command()  # `refiner-rt bench`; the random-weight networks come from the training package
-
-
-def _training_builder():
-    """``export.bench_models.build_default_models``: the training package's builder of the random-weight networks
-    (a source checkout's; the runtime wheel does not carry it)."""
-    try:  # by name: the runtime never imports the training package statically
-        build_default_models = importlib.import_module("export.bench_models").build_default_models
-    except ModuleNotFoundError as exc:
-        raise click.ClickException(
-            f"building the random-weight models needs the training package ({exc.name!r} is missing): "
-            f"{TRAINING_INSTALL}; or time the shipped models alone (--archs '') or your own files (--model)"
-        ) from None
-    return build_default_models
-
-
 def _prepare_models(model_paths, shipped, archs: str, variants, with_int8: bool, workdir: Path, echo,
-                    build_models=None) -> tuple[list, str]:
+                    extension: BenchExtension) -> tuple[list, str]:
     """The models to time and a note on their weights: the given files; or the shipped models and random-weight
-    builds (and their INT8)."""
+    builds (and their INT8) by ``extension``."""
     if model_paths:
         from refiner_rt.session import RefinerSession
 
@@ -899,10 +579,8 @@ def _prepare_models(model_paths, shipped, archs: str, variants, with_int8: bool,
              f"shipped models (--model FILE times others; the training extra builds the paper's networks).")
         notes.append(f"{', '.join(labels)} not timed (needs torch)")
     elif specs:
-        if build_models is None:
-            build_models = _training_builder()
         echo(f"Building random-weight models {labels} (speed does not depend on weight values)...")
-        built = build_models(specs, workdir, int8=with_int8, echo=echo)
+        built = extension.build_models(specs, workdir, int8=with_int8, echo=echo)
         notes.append(f"{', '.join(labels)}: random weights (speed does not depend on weight values)")
     bench_models = shipped_models + built
     if not bench_models:
@@ -945,39 +623,3 @@ def _shipped_models(selection) -> tuple[list, str]:
         return out, (f"shipped {ids}: trained weights, INT8 and fp32 (one representative of the {len(available)} "
                      f"shipped refiners, which share one architecture; --shipped all times each)")
     return out, f"shipped {ids}: trained weights, INT8 and fp32"
-
-
-def _cell_limits(rows: list[BenchRow], thread_counts) -> MachineLimits:
-    """Per thread count, the limits of that thread count's first cell with a bound (for the summary lines)."""
-    first = {}
-    for r in rows:
-        if r.bandwidth_gbs is not None and r.threads not in first:
-            first[r.threads] = r
-    return MachineLimits(
-        bandwidth=min(r.bandwidth_gbs for r in first.values()) * 1e9,
-        peak_fp32={n: first[n].peak_fp32_gflops * 1e9 for n in thread_counts if n in first},
-        peak_int8={n: first[n].peak_int8_gops * 1e9 for n in thread_counts if n in first},
-    )
-
-
-def _describe_limits(rows: list[BenchRow]) -> str:
-    cells = {}
-    for r in rows:
-        if r.bandwidth_gbs is not None:
-            cells.setdefault((r.threads, r.batch), r)
-    if not cells:
-        return "Roofline: no row could be costed."
-    bw = [r.bandwidth_gbs for r in cells.values()]
-    peaks = "; ".join(
-        f"{n} thr: fp32 {min(c.peak_fp32_gflops for (t, _), c in cells.items() if t == n):.0f}-"
-        f"{max(c.peak_fp32_gflops for (t, _), c in cells.items() if t == n):.0f} GFLOP/s, int8 "
-        f"{min(c.peak_int8_gops for (t, _), c in cells.items() if t == n):.0f}-"
-        f"{max(c.peak_int8_gops for (t, _), c in cells.items() if t == n):.0f} Gop/s"
-        for n in sorted({t for t, _ in cells})
-    )
-    return (
-        f"Roofline: measured in each of the {len(cells)} cells, interleaved with the models (best of its rounds): "
-        f"bandwidth {min(bw):.1f}-{max(bw):.1f} GB/s (numpy copy of {BANDWIDTH_BUFFER_MB} MB, read + write); "
-        f"onnxruntime MatMul peaks {peaks}. Bound = batch / max(weight bytes / bandwidth, batch x ops / peak); "
-        "inference only, weights assumed to come from DRAM; a row that beats its bound gets no ratio."
-    )

@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from refiner_rt import quaternion as rq
-from refiner_rt.geometry import MAX_VIEWS
-from refiner_rt.session import MAX_BATCH, RefineResult, RefinerSession, _validate_settle, settle_keeps
+from refiner_rt.checks import MAX_BATCH, MAX_VIEWS, check_coarse_rows, validate_settle
+from refiner_rt.session import RefineResult, RefinerSession, settle_keeps
 
 __all__ = ["RefinerCascade", "CascadeResult", "DEFAULT_GATE_DEG", "DEFAULT_COARSE_GATE_DEG", "DEFAULT_COARSE_VIEWS",
            "DEFAULT_FINE_VIEWS", "shipped_gate", "long_way"]
@@ -112,6 +112,9 @@ class RefinerCascade:
         TypeError / ValueError: not sessions, sessions whose crop contracts differ, or a bad gate or view count.
     """
 
+    #: :class:`refiner_rt.Refiner`'s capability: the passes and views are fixed here, not per :meth:`refine` call.
+    per_call_passes = False
+
     def __init__(self, coarse: RefinerSession, fine: RefinerSession, *, gate_deg: float | None = DEFAULT_GATE_DEG,
                  coarse_gate_deg: float | None = DEFAULT_COARSE_GATE_DEG, coarse_views: int = DEFAULT_COARSE_VIEWS,
                  fine_views: int = DEFAULT_FINE_VIEWS, settle_deg: float | None = None):
@@ -130,7 +133,7 @@ class RefinerCascade:
         self.coarse, self.fine = coarse, fine
         self.gate_deg, self.coarse_gate_deg = gate_deg, coarse_gate_deg
         self.coarse_views, self.fine_views = coarse_views, fine_views
-        self.settle_deg = _validate_settle(settle_deg)  # its second coarse pass is the cascade's own
+        self.settle_deg = validate_settle(settle_deg)  # its second coarse pass is the cascade's own
 
     @classmethod
     def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, **kwargs) -> "RefinerCascade":
@@ -153,9 +156,11 @@ class RefinerCascade:
         """The crop contract both refiners share (the coarse model's :class:`refiner_rt.metadata.Contract`)."""
         return self.coarse.contract
 
-    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, K=None, *, q_order: str = "wxyz", D=None,
+    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, *, K=None, D=None, q_order: str = "wxyz",
                coarse=None) -> CascadeResult:
-        """Refine ``N`` objects of one image, as :meth:`RefinerSession.refine` (same arguments, same checks).
+        """Refine ``N`` objects of one image, as :meth:`RefinerSession.refine` (the same arguments, keyword-only
+        after ``q_in_wxyz``, and the same checks; the passes and views were fixed when the cascade was built, so
+        ``iterations``, ``views`` and ``settle_deg`` are not among them: :attr:`per_call_passes` is False).
         Each refiner's call crops ``N`` times its views: ``N`` is at most ``MAX_BATCH // max(coarse_views,
         fine_views)`` (256 with the defaults).
 
@@ -176,13 +181,7 @@ class RefinerCascade:
         mid = self.coarse.refine(image_bgr, boxes_xyxy, q_in_wxyz, K=K, q_order=q_order, D=D,
                                  views=self.coarse_views)
         n = len(mid)
-        forced = np.zeros(n, dtype=bool)
-        if coarse is not None:
-            forced = np.asarray(coarse)
-            if forced.dtype != bool or forced.shape != (n,):
-                raise ValueError(f"coarse must be None or ({n},) bools, one per box; got "
-                                 f"{'dtype ' + str(forced.dtype) if forced.dtype != bool else 'shape'} "
-                                 f"{forced.shape}")
+        forced = np.zeros(n, dtype=bool) if coarse is None else check_coarse_rows(coarse, n)
         q_in = mid.q_in
         if n == 0:
             return CascadeResult(q_refined=q_in.copy(), q_out=q_in.copy(), q_in=q_in, coarse_used=forced)

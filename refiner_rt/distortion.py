@@ -22,35 +22,10 @@ import math
 import cv2
 import numpy as np
 
+from refiner_rt.checks import DISTORTION_LENGTHS, validate_D  # noqa: F401  (re-exported under their old home)
 from refiner_rt.preprocess import CROP_FILTERS, crop_matrix, prefiltered_region
 
 __all__ = ["DISTORTION_LENGTHS", "validate_D", "undistort_boxes", "crop_undistorted"]
-
-# The coefficient counts OpenCV's distortion model takes: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]].
-DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
-_D_FORM = ("OpenCV's (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tau_x, tau_y]]]]): 4, 5, 8, 12 or 14 "
-           "numbers (CameraInfo's d: plumb_bob 5, rational_polynomial 8)")
-
-
-def validate_D(D, name: str = "D") -> np.ndarray | None:
-    """``D`` as a float64 vector, or None when every coefficient is zero (the pinhole camera: no resampling).
-
-    Raises:
-        ValueError: not 4, 5, 8, 12 or 14 finite numbers.
-    """
-    if D is None:
-        return None
-    try:
-        arr = np.asarray(D, dtype=np.float64).reshape(-1) if np.ndim(D) <= 2 else None
-    except (ValueError, TypeError):
-        arr = None
-    if arr is None or arr.size not in DISTORTION_LENGTHS:
-        got = f"shape {np.shape(D)}" if arr is not None or isinstance(D, np.ndarray) else type(D).__name__
-        raise ValueError(f"{name} must be the distortion coefficients {_D_FORM}; got {got}")
-    if not all(math.isfinite(v) for v in arr.tolist()):
-        raise ValueError(f"{name} must be finite; got {arr.tolist()}")
-    return None if not arr.any() else arr
-
 
 def _undistort_points(points: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Raw-image pixel indices ``(M, 2)`` -> the pinhole image's (same ``K``), iterated to convergence."""

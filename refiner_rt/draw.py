@@ -17,12 +17,13 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
+from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import crop_matrix
 
 AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 80, 0))  # BGR of the x, y, z axes: red, green, blue
 
 __all__ = ["AXIS_COLOURS", "draw_axes_projected", "project", "centroid_translation", "translation_from_box", "outline_mask", "draw_outline", "draw_axes",
-           "crop_view"]
+           "crop_view", "annotate"]
 
 
 def project(points_m: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,3 +128,25 @@ def crop_view(image: np.ndarray, box_xyxy, size: int, context: float) -> tuple[n
         return (np.asarray(uv, dtype=np.float64) - offset) / scale
 
     return view, to_view
+
+
+def annotate(image: np.ndarray, boxes: dict, rotations: dict) -> np.ndarray:
+    """A copy of ``image`` (BGR) with each object's box and its rotation's axes drawn at the box centre.
+
+    The axes are the columns of the object-to-camera rotation matrix, drawn orthographically (camera ``x`` right,
+    ``y`` down) with half the box's shorter side as length: x red, y green, z blue.
+    """
+    out = image.copy()
+    for object_id, q in rotations.items():
+        x1, y1, x2, y2 = boxes[object_id]
+        cv2.rectangle(out, (int(x1), int(y1)), (int(x2), int(y2)), (255, 255, 255), 1, cv2.LINE_AA)
+        centre = np.array([(x1 + x2) / 2, (y1 + y2) / 2])
+        length = 0.5 * min(x2 - x1, y2 - y1)
+        R = rq.to_matrix(q)
+        for axis in np.argsort(R[2])[::-1]:  # the axis pointing farthest away first, so nearer ones stay on top
+            tip = centre + length * R[:2, axis]
+            cv2.line(out, tuple(np.round(centre).astype(int)), tuple(np.round(tip).astype(int)),
+                     AXIS_COLOURS[axis], 2, cv2.LINE_AA)
+        cv2.putText(out, object_id, (int(x1), max(int(y1) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    return out

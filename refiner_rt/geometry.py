@@ -17,7 +17,8 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 
-__all__ = ["MAX_VIEWS", "VIEW_JITTER", "ray_quaternions", "view_boxes", "view_offsets"]
+__all__ = ["MAX_VIEWS", "VIEW_JITTER", "ray_quaternions", "ray_quaternion_rows", "is_pinhole", "view_boxes",
+           "view_offsets"]
 
 # refine(views=K): the largest K, and the box jitter of the extra views as a fraction of the crop window (the
 # training's --augment box jitter, models.train.TrainConfig.box_jitter).
@@ -80,8 +81,8 @@ def ray_quaternions(K, boxes_xyxy) -> np.ndarray:
     # continuous coordinates; K follows OpenCV's convention of pixel centres at integers).
     u = 0.5 * (boxes[:, 0] + boxes[:, 2]) - 0.5
     v = 0.5 * (boxes[:, 1] + boxes[:, 3]) - 0.5
-    if _is_pinhole(K):
-        # d = K^-1 (u, v, 1) by back-substitution, the operations _ray_rows repeats on Python floats.
+    if is_pinhole(K):
+        # d = K^-1 (u, v, 1) by back-substitution, the operations ray_quaternion_rows repeats on Python floats.
         fx, s, cx, fy, cy = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2], K[..., 1, 1], K[..., 1, 2]
         y = (v - cy) / fy
         x = (u - cx - s * y) / fx
@@ -90,14 +91,14 @@ def ray_quaternions(K, boxes_xyxy) -> np.ndarray:
         d = np.einsum("...ij,...j->...i", np.linalg.inv(K), np.stack([u, v, np.ones_like(u)], axis=-1))
         x, y, z = d[..., 0], d[..., 1], d[..., 2]
     # Half-way quaternion: with n = |d|, q ~ (n + d_z, z x d) = (n + d_z, -d_y, d_x, 0) rotates z onto d
-    # (d never opposite z here). Sums in a fixed order so that _ray_rows matches bit for bit.
+    # (d never opposite z here). Sums in a fixed order so that ray_quaternion_rows matches bit for bit.
     a = np.sqrt(x * x + y * y + z * z) + z
     m = np.sqrt(a * a + y * y + x * x)
     q = np.stack([a / m, -y / m, x / m, np.zeros_like(a)], axis=-1)
     return rq.canonical(q)
 
 
-def _is_pinhole(K: np.ndarray) -> bool:
+def is_pinhole(K: np.ndarray) -> bool:
     """Whether ``K`` (``(3, 3)`` or ``(N, 3, 3)``) has the pinhole form ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``."""
     if K.ndim == 2:  # on Python floats: ~50x cheaper than three np.all calls at this size (timeit)
         rows = K.tolist()
@@ -105,9 +106,10 @@ def _is_pinhole(K: np.ndarray) -> bool:
     return bool(np.all(K[..., 1, 0] == 0.0) and np.all(K[..., 2, :2] == 0.0) and np.all(K[..., 2, 2] == 1.0))
 
 
-def _ray_rows(K: np.ndarray, rows: list) -> list:
-    """:func:`ray_quaternions` on Python floats for a pinhole ``K`` (``(3, 3)``): the same operations in the same
-    order, so the results are identical. ``w = a / m > 0`` always, so no sign flip is needed."""
+def ray_quaternion_rows(K: np.ndarray, rows: list) -> list:
+    """:func:`ray_quaternions`' fast twin on Python floats for a pinhole ``K`` (``(3, 3)``) and ``N`` boxes given as
+    lists ``[x1, y1, x2, y2]``: the same operations in the same order, so the results are identical.
+    ``w = a / m > 0`` always, so no sign flip is needed."""
     (fx, s, cx), (_, fy, cy) = K[0].tolist(), K[1].tolist()
     sqrt = math.sqrt
     out = []

@@ -26,6 +26,15 @@ import math
 import cv2
 import numpy as np
 
+from refiner_rt.checks import (  # noqa: F401  (the box and image checks, re-exported under their old home)
+    MAX_BOX_COORDINATE,
+    MIN_BOX_SIDE,
+    MIN_INSIDE_FRACTION,
+    inside_fraction,
+    validate_boxes,
+    validate_image,
+)
+
 __all__ = [
     "DEFAULT_CONTEXT",
     "CROP_FILTERS",
@@ -36,6 +45,7 @@ __all__ = [
     "crop_window",
     "crop_matrix",
     "crop_to_square",
+    "crop_to_square_reference",
     "crop_batch",
     "resize_crop",
     "roll_angle",
@@ -49,15 +59,6 @@ __all__ = [
 ]
 
 DEFAULT_CONTEXT = 1.2
-# Box coordinates beyond a million pixels (far past any camera) are refused: they would only make black crops, and
-# past ~1e154 the window's and the viewing ray's arithmetic overflows to inf.
-MAX_BOX_COORDINATE = 1e6
-# Boxes the runtime refuses because no usable crop comes from them (validate_boxes; the session's fast path checks the
-# same): a side under MIN_BOX_SIDE pixels (a sub-pixel box, or one normalised to 0..1), and a box with less than
-# MIN_INSIDE_FRACTION of its area inside the image (its crop is mostly the zero fill: a box for another image size,
-# or an object nearly out of view).
-MIN_BOX_SIDE = 2.0
-MIN_INSIDE_FRACTION = 0.25
 # How the window's pixels are filtered before the warp: "none" (bilinear only: every model before the metadata key
 # crop_filter) or "antialias" (block averages matched to the shrink, above).
 CROP_FILTERS = ("none", "antialias")
@@ -86,113 +87,6 @@ def prefiltered_region(image: np.ndarray, x_lo: float, y_lo: float, x_hi: float,
     while region.shape[0] % 2 == 0 and region.shape[1] % 2 == 0 and (x1 - x0) // region.shape[1] < f:
         region = cv2.resize(region, (region.shape[1] // 2, region.shape[0] // 2), interpolation=cv2.INTER_AREA)
     return region, x0, y0, f
-
-
-def validate_image(image, name: str = "image") -> np.ndarray:
-    """Check an ``H x W x 3`` ``uint8`` image and return it (C-contiguous, no copy when already so).
-
-    Raises:
-        TypeError: not a numpy array.
-        ValueError: wrong dtype, number of dimensions or channels, or an empty image.
-    """
-    if not isinstance(image, np.ndarray):
-        raise TypeError(f"{name} must be a numpy array of shape (H, W, 3), dtype uint8, BGR; got {type(image).__name__}")
-    if image.dtype != np.uint8:
-        raise ValueError(f"{name} must have dtype uint8 (H x W x 3, BGR); got dtype {image.dtype}")
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"{name} must have shape (H, W, 3) with 3 colour channels (BGR); got shape {image.shape}")
-    if image.shape[0] == 0 or image.shape[1] == 0:
-        raise ValueError(f"{name} must not be empty; got shape {image.shape}")
-    return np.ascontiguousarray(image)
-
-
-def validate_boxes(boxes, image_shape: tuple[int, ...] | None = None, name: str = "boxes") -> np.ndarray:
-    """Check ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels and return them as float64.
-
-    Args:
-        boxes: array-like ``(N, 4)`` (or a single ``(4,)`` box, returned as ``(1, 4)``; an empty sequence is
-            ``(0, 4)``, no boxes).
-        image_shape: ``(H, W, ...)``; when given, each box must have at least :data:`MIN_INSIDE_FRACTION` of its
-            area inside the image, and boxes normalised to 0..1 are told apart (below).
-        name: argument name used in error messages.
-
-    Raises:
-        ValueError: a ragged sequence, wrong shape, non-finite values, coordinates beyond
-            ``+-MAX_BOX_COORDINATE``, empty boxes (``x2 <= x1`` or ``y2 <= y1``), boxes narrower or lower than
-            :data:`MIN_BOX_SIDE` pixels, boxes normalised to 0..1 (every coordinate within ``[0, 1]`` while the image
-            is larger: the message says to scale them by the image size), or boxes entirely or mostly outside the
-            image (the message names the box and its share inside).
-    """
-    try:
-        arr = np.asarray(boxes)
-    except (ValueError, TypeError) as exc:  # ragged nested lists
-        raise ValueError(
-            f"{name} must be numeric (N, 4) boxes (x1, y1, x2, y2) in pixels; got a ragged sequence ({exc})"
-        ) from None
-    if arr.dtype.kind not in "fiu":
-        raise ValueError(f"{name} must be numeric (N, 4) boxes (x1, y1, x2, y2) in pixels; got dtype {arr.dtype}")
-    arr = arr.astype(np.float64)
-    if arr.ndim == 1 and arr.shape[0] == 4:
-        arr = arr[None]
-    elif arr.shape == (0,):  # [] : no boxes
-        arr = arr.reshape(0, 4)
-    if arr.ndim != 2 or arr.shape[1] != 4:
-        raise ValueError(f"{name} must have shape (N, 4) as (x1, y1, x2, y2) in pixels; got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        i = int(np.argwhere(~np.isfinite(arr).all(axis=1))[0, 0])
-        raise ValueError(f"{name}[{i}] must be finite; got {arr[i].tolist()}")
-    huge = np.abs(arr).max(axis=1) > MAX_BOX_COORDINATE
-    if np.any(huge):
-        i = int(np.argmax(huge))
-        raise ValueError(
-            f"{name}[{i}] must have coordinates within +-{MAX_BOX_COORDINATE:g} pixels; got {arr[i].tolist()}"
-        )
-    empty = (arr[:, 2] <= arr[:, 0]) | (arr[:, 3] <= arr[:, 1])
-    if np.any(empty):
-        i = int(np.argmax(empty))
-        raise ValueError(
-            f"{name}[{i}] is empty: expected x2 > x1 and y2 > y1 (xyxy pixels); got {arr[i].tolist()}"
-        )
-    if image_shape is not None:
-        h, w = int(image_shape[0]), int(image_shape[1])
-        if len(arr) and arr.min() >= 0.0 and arr.max() <= 1.0 and max(w, h) > MIN_BOX_SIDE:
-            raise ValueError(
-                f"{name} look normalised to 0..1 (every coordinate within [0, 1]) but the image is {w}x{h} pixels: "
-                f"boxes are (x1, y1, x2, y2) in pixels; scale them by (W, H, W, H) = ({w}, {h}, {w}, {h})"
-            )
-    small = (arr[:, 2] - arr[:, 0] < MIN_BOX_SIDE) | (arr[:, 3] - arr[:, 1] < MIN_BOX_SIDE)
-    if np.any(small):
-        i = int(np.argmax(small))
-        raise ValueError(
-            f"{name}[{i}] is {arr[i, 2] - arr[i, 0]:.3g} x {arr[i, 3] - arr[i, 1]:.3g} pixels: expected at least "
-            f"{MIN_BOX_SIDE:g} x {MIN_BOX_SIDE:g} (xyxy pixels, not normalised); got {arr[i].tolist()}"
-        )
-    if image_shape is not None:
-        outside = (arr[:, 2] <= 0) | (arr[:, 3] <= 0) | (arr[:, 0] >= w) | (arr[:, 1] >= h)
-        if np.any(outside):
-            i = int(np.argmax(outside))
-            raise ValueError(
-                f"{name}[{i}] lies entirely outside the {w}x{h} image: expected a box overlapping "
-                f"[0, {w}) x [0, {h}); got {arr[i].tolist()}"
-            )
-        inside = inside_fraction(arr, image_shape)
-        mostly = inside < MIN_INSIDE_FRACTION
-        if np.any(mostly):
-            i = int(np.argmax(mostly))
-            raise ValueError(
-                f"{name}[{i}] lies mostly outside the {w}x{h} image: {100 * inside[i]:.3g}% of its area is inside, "
-                f"expected at least {100 * MIN_INSIDE_FRACTION:g}% (a box for another image size?); got "
-                f"{arr[i].tolist()}"
-            )
-    return arr
-
-
-def inside_fraction(boxes: np.ndarray, image_shape: tuple[int, ...]) -> np.ndarray:
-    """``(N,)`` share of each ``(N, 4)`` non-empty box's area (``x1, y1, x2, y2`` pixels) inside the ``H x W`` image."""
-    h, w = image_shape[0], image_shape[1]
-    iw = np.clip(np.minimum(boxes[:, 2], w) - np.maximum(boxes[:, 0], 0.0), 0.0, None)
-    ih = np.clip(np.minimum(boxes[:, 3], h) - np.maximum(boxes[:, 1], 0.0), 0.0, None)
-    return (iw / (boxes[:, 2] - boxes[:, 0])) * (ih / (boxes[:, 3] - boxes[:, 1]))
 
 
 def crop_window(box_xyxy, context: float = DEFAULT_CONTEXT) -> tuple[float, float, float]:
@@ -263,6 +157,42 @@ def crop_to_square(image: np.ndarray, box_xyxy, size: int, context: float = DEFA
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=(0, 0, 0),
     )
+
+
+def crop_to_square_reference(image: np.ndarray, box_xyxy, size: int, context: float = DEFAULT_CONTEXT) -> np.ndarray:
+    """:func:`crop_to_square`'s reference (``crop_filter="none"``): the crop rule written out, one pixel at a time,
+    bilinear sampling in float64. Slow; for tests, which check the fast OpenCV warp against it (OpenCV's bilinear
+    weights are fixed-point, 1/32 steps: the two agree within a few grey levels).
+
+    Args:
+        image: ``H x W x C`` array (any dtype; read as float).
+        box_xyxy: ``(x1, y1, x2, y2)`` in pixels, continuous coordinates.
+        size: output side ``S``.
+        context: window side = ``max(w, h) * context``.
+
+    Returns:
+        ``S x S x C`` float64 crop, zeros where the window leaves the image.
+    """
+    x1, y1, x2, y2 = box_xyxy
+    side = max(x2 - x1, y2 - y1) * context
+    x0, y0 = (x1 + x2) / 2 - side / 2, (y1 + y2) / 2 - side / 2
+    h, w = image.shape[:2]
+    out = np.zeros((size, size, image.shape[2]))
+    for v in range(size):
+        for u in range(size):
+            # continuous sample point -> index coordinates (pixel i centred at i + 0.5)
+            xs = x0 + (u + 0.5) * side / size - 0.5
+            ys = y0 + (v + 0.5) * side / size - 0.5
+            xi, yi = int(np.floor(xs)), int(np.floor(ys))
+            fx, fy = xs - xi, ys - yi
+            acc = np.zeros(image.shape[2])
+            for dy, wy in ((0, 1 - fy), (1, fy)):
+                for dx, wx in ((0, 1 - fx), (1, fx)):
+                    yy, xx = yi + dy, xi + dx
+                    if 0 <= yy < h and 0 <= xx < w:
+                        acc += wy * wx * image[yy, xx]
+            out[v, u] = acc
+    return out
 
 
 def crop_batch(image: np.ndarray, boxes_xyxy, size: int, context: float = DEFAULT_CONTEXT, out=None,

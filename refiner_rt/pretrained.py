@@ -12,9 +12,9 @@ they are; only the origin differs, by a per-object offset (:mod:`refiner_rt.fram
 rotation refined by a shipped model maps that frame to the camera (``x_cam = R @ x_obj + t``).
 
 Example:
-    >>> from refiner_rt import RefinerSession, pretrained_models
+    >>> from refiner_rt import load, pretrained_models
     >>> [m.object_id for m in pretrained_models()]
-    >>> sess = RefinerSession.pretrained("003_cracker_box", int8=True, threads=1)
+    >>> sess = load("003_cracker_box", int8=True, threads=1)   # refiner_rt.refiner.load: session or cascade
 """
 
 from __future__ import annotations

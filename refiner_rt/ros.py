@@ -279,9 +279,9 @@ class RosRefiner:
                  **tracker_kwargs):
         if mode not in ("refine", "track"):
             raise ValueError(f"mode must be 'refine' or 'track'; got {mode!r}")
-        from refiner_rt.session import RefinerSession, _validate_settle
+        from refiner_rt.checks import validate_settle, validate_views
 
-        views = RefinerSession._validate_views(views)
+        views = validate_views(views)
         if views != 1 and cascade:
             raise ValueError(f"views={views} is for single refiners; a cascade averages its own coarse_views and "
                              "fine_views (four each): give one of views and cascade")
@@ -291,7 +291,7 @@ class RosRefiner:
         self.class_map = dict(class_map or {})
         self.identity_is_pose = bool(identity_is_pose)
         self.int8, self.threads, self.tracker_kwargs = int8, threads, tracker_kwargs
-        self.settle_deg = _validate_settle(settle_deg)
+        self.settle_deg = validate_settle(settle_deg)
         self.views = views
         if self.settle_deg is not None and mode == "track":
             self.tracker_kwargs = {"iterations": 2, **tracker_kwargs, "settle_deg": self.settle_deg}
@@ -317,20 +317,13 @@ class RosRefiner:
         if self._given:
             return None
         from refiner_rt.pretrained import pretrained_models
+        from refiner_rt.refiner import load
 
-        shipped = {m.object_id: m for m in pretrained_models()}
-        m = shipped.get(object_id)
-        if m is None:
+        if object_id not in {m.object_id for m in pretrained_models()}:
             model = None
-        elif self.cascade and "fine" in m.stages:
-            from refiner_rt.cascade import RefinerCascade
-
-            model = RefinerCascade.pretrained(object_id, int8=self.int8, threads=self.threads,
-                                              settle_deg=self.settle_deg)
         else:
-            from refiner_rt.session import RefinerSession
-
-            model = RefinerSession.pretrained(object_id, int8=self.int8, threads=self.threads)
+            model = load(object_id, cascade=self.cascade, int8=self.int8, threads=self.threads,
+                         settle_deg=self.settle_deg if self.cascade else None)
         self._models[object_id] = model
         return model
 
@@ -360,8 +353,6 @@ class RosRefiner:
         return self._track(image, K, D, dets)
 
     def _refine(self, image, K, D, dets: list[Detection]) -> list[RefinedPose]:
-        from refiner_rt.session import RefinerSession
-
         out = []
         by_object: dict[str, list[Detection]] = {}
         for d in dets:
@@ -371,7 +362,7 @@ class RosRefiner:
             by_object.setdefault(d.object_id, []).append(d)
         for object_id, group in by_object.items():
             model = self._model(object_id)
-            passes = {} if not isinstance(model, RefinerSession) else {"views": self.views, **(
+            passes = {} if not model.per_call_passes else {"views": self.views, **(
                 {} if self.settle_deg is None else {"iterations": 2, "settle_deg": self.settle_deg})}
             res = model.refine(image, np.array([d.box for d in group]), np.array([d.q_wxyz for d in group]), K=K,
                                D=D, **passes)

@@ -179,7 +179,7 @@ def refine_bag(bag: Path, out: Path, refiner: RosRefiner, *, image_topic: str | 
     except ModuleNotFoundError:
         raise ModuleNotFoundError(ROSBAGS_MISSING, name="rosbags") from None
     from refiner_rt.ros import image_from_msg
-    from refiner_rt.track_cli import annotate
+    from refiner_rt.draw import annotate
 
     if not np.isfinite(sync_tolerance_ms) or sync_tolerance_ms < 0:
         raise ValueError(f"sync_tolerance_ms must be a finite number of milliseconds >= 0; got {sync_tolerance_ms!r}")

@@ -30,7 +30,6 @@ finite input inside them gives a finite unit rotation. A model that cannot be re
 from __future__ import annotations
 
 import logging
-import math
 import os
 import re
 import threading
@@ -50,37 +49,38 @@ from refiner_rt.metadata import (
     check_graph,
     parse_metadata,
 )
-from refiner_rt.geometry import (  # noqa: F401  (re-exported under their old names)
+from refiner_rt.checks import (  # noqa: F401  (limits re-exported: refiner_rt.session.MAX_BATCH and the like)
+    K_MAX_ABS,
+    K_MIN_FOCAL,
+    MAX_BATCH,
+    MAX_ITERATIONS,
     MAX_VIEWS,
-    VIEW_JITTER,
-    _is_pinhole,
-    _ray_rows,
-    ray_quaternions,
-    view_boxes,
-    view_offsets,
+    SMALL_BATCH,
+    as_wxyz,
+    boxes_rows,
+    check_batch,
+    check_coarse_rows,
+    check_principal_point,
+    validate_boxes,
+    validate_D,
+    validate_image,
+    validate_iterations,
+    validate_K,
+    validate_rotations,
+    validate_settle,
+    validate_threads,
+    validate_views,
 )
-from refiner_rt.preprocess import (MAX_BOX_COORDINATE, MIN_BOX_SIDE, MIN_INSIDE_FRACTION, ROLL_STEP_DEG, ROLL_TURNS,
-                                   canonical_roll, crop_to_square,
-                                   resize_crop, validate_boxes, validate_image)
-from refiner_rt.distortion import crop_undistorted, undistort_boxes, validate_D
+from refiner_rt.geometry import ray_quaternion_rows, ray_quaternions, view_boxes, view_offsets
+from refiner_rt.preprocess import ROLL_STEP_DEG, ROLL_TURNS, canonical_roll, crop_to_square, resize_crop
+from refiner_rt.distortion import crop_undistorted, undistort_boxes
 
-__all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "default_session_options", "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS", "SETTLE_DEG", "SCORE_SCALE_DEG",
-           "K_MAX_ABS", "K_MIN_FOCAL", "available_cores", "ray_quaternions", "view_boxes", "view_offsets"]
+__all__ = ["RefinerSession", "RefineResult", "ModelError", "DISABLED_OPTIMIZERS", "default_session_options",
+           "SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS", "SETTLE_DEG", "SCORE_SCALE_DEG", "K_MAX_ABS",
+           "K_MIN_FOCAL", "available_cores", "settle_keeps", "ray_quaternions", "view_boxes", "view_offsets"]
 
 log = logging.getLogger(__name__)
 
-# Up to this many boxes, refine() validates and composes on Python floats (see the module docstring); below the
-# measured crossover with the numpy path (benchmarks/studies/speed, "Choices in the runtime").
-SMALL_BATCH = 32
-_MIN_NORM = 1e-12  # as refiner_rt.quaternion.as_quaternion: a smaller norm is a zero quaternion
-_INF = math.inf
-# Crops per call (boxes x views). Memory grows linearly with it: the crop batch takes S * S * 3 bytes per crop
-# (12 KB at 64 x 64, 147 KB at 224 x 224) and onnxruntime's activations most of the rest (the peak memory per crop
-# is measured in benchmarks/studies/speed, "Choices in the runtime"). Split larger requests into several calls;
-# large batches are not faster per box on a CPU.
-MAX_BATCH = 1024
-# iterations: each one is a network pass (the paper does 1); bounded so that a wrong value cannot run for hours.
-MAX_ITERATIONS = 16
 # refine(settle_deg=...): a later pass is kept only where it turns a result by more than this. Chosen on rendered
 # scenes the model card does not score (ycb9_calib_s22) among 1, 1.5, 2, 3, 5 and 8 degrees, for the smallest mean of
 # the errors from U(0, 30) inputs, from U(30, 60) inputs and from the true pose: the coarse refiner's minimum; the
@@ -88,10 +88,6 @@ MAX_ITERATIONS = 16
 SETTLE_DEG = 2.0
 # RefineResult.score = exp(-(degrees moved) / SCORE_SCALE_DEG): 0.9 for a pass that moves 1 degree, 0.37 for 10.
 SCORE_SCALE_DEG = 10.0
-# K: pinhole form, focal lengths in [K_MIN_FOCAL, K_MAX_ABS] pixels and |skew|, |cx|, |cy| <= K_MAX_ABS. With box
-# coordinates within MAX_BOX_COORDINATE these keep the viewing-ray maths far from overflow.
-K_MIN_FOCAL = 1e-3
-K_MAX_ABS = 1e9
 # onnxruntime graph transformers every session turns off. QDQPropagationTransformer moves the first QuantizeLinear
 # of a static-qdq-int8-conv model above the first block's max-pool, which then runs on uint8 in NCHW, much slower
 # than the fp32 max-pool it replaces (benchmarks/studies/int8_convs). Max-pooling and reshapes commute with
@@ -120,89 +116,6 @@ def available_cores() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
-
-
-def _unit_rows(rows: list) -> list | None:
-    """:func:`refiner_rt.quaternion.normalize` on Python floats: unit norm, canonical sign ``w >= 0``.
-
-    Same IEEE operations in the same order as the numpy version (sequential sum of squares, ``sqrt``,
-    division, sign key ``w``, then ``x``, ``y``, ``z`` when ``w == 0``), so the results are identical.
-
-    Args:
-        rows: ``N`` lists ``[w, x, y, z]`` of floats.
-
-    Returns:
-        ``N`` lists ``[w, x, y, z]``, or None when a row is non-finite, has a norm below 1e-12 or one whose
-        square overflows (components above ~1e154) (the caller then takes the numpy path, which raises the
-        detailed error or, for huge finite rows, scales them first).
-    """
-    sqrt = math.sqrt
-    out = []
-    for w, x, y, z in rows:
-        norm = sqrt(w * w + x * x + y * y + z * z)
-        if not _MIN_NORM <= norm < _INF:  # also False for nan (any non-finite component gives nan or inf)
-            return None
-        w, x, y, z = w / norm, x / norm, y / norm, z / norm
-        key = w if w != 0.0 else x if x != 0.0 else y if y != 0.0 else z
-        out.append([-w, -x, -y, -z] if key < 0.0 else [w, x, y, z])
-    return out
-
-
-def _multiply_rows(a: list, b: list) -> list:
-    """:func:`refiner_rt.quaternion.multiply` (Hamilton product ``a * b``, ``wxyz``) on Python floats, row by row."""
-    out = []
-    for (aw, ax, ay, az), (bw, bx, by, bz) in zip(a, b):
-        out.append([
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ])
-    return out
-
-
-def _conjugate_rows(rows: list) -> list:
-    """:func:`refiner_rt.quaternion.inverse` on Python floats: ``(w, -x, -y, -z)`` with canonical sign (same sign
-    key as the numpy version; negation is exact, so the results are identical)."""
-    out = []
-    for w, x, y, z in rows:
-        x, y, z = -x, -y, -z
-        key = w if w != 0.0 else x if x != 0.0 else y if y != 0.0 else z
-        out.append([-w, -x, -y, -z] if key < 0.0 else [w, x, y, z])
-    return out
-
-
-def _small_boxes(boxes, image_shape) -> tuple[np.ndarray, list] | None:
-    """Fast path of :func:`validate_boxes` for up to :data:`SMALL_BATCH` well-formed ``(N, 4)`` numeric boxes.
-
-    Returns:
-        ``(float64 (N, 4) array, N lists [x1, y1, x2, y2])`` when every box is finite, within
-        ``+-MAX_BOX_COORDINATE``, at least ``MIN_BOX_SIDE`` pixels on each side and at least
-        ``MIN_INSIDE_FRACTION`` inside the image (the rules of :func:`validate_boxes`); None otherwise (the caller
-        then runs :func:`validate_boxes`, which raises or converts).
-    """
-    if isinstance(boxes, np.ndarray):
-        arr = boxes
-    else:
-        try:
-            arr = np.asarray(boxes)
-        except (ValueError, TypeError):  # ragged: validate_boxes names it
-            return None
-    if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 4 or len(arr) > SMALL_BATCH:
-        return None
-    arr = arr.astype(np.float64, copy=False)
-    rows = arr.tolist()
-    h, w = image_shape[0], image_shape[1]
-    lo, hi, side, share = -MAX_BOX_COORDINATE, MAX_BOX_COORDINATE, MIN_BOX_SIDE, MIN_INSIDE_FRACTION
-    for x1, y1, x2, y2 in rows:
-        # chained comparisons are False for nan and inf, so they check finiteness too
-        if not (lo <= x1 < x2 <= hi and lo <= y1 < y2 <= hi and x2 - x1 >= side and y2 - y1 >= side and x2 > 0
-                and y2 > 0 and x1 < w and y1 < h):
-            return None
-        if x1 < 0 or y1 < 0 or x2 > w or y2 > h:  # partly outside: enough of it inside?
-            if ((min(x2, w) - max(x1, 0.0)) / (x2 - x1)) * ((min(y2, h) - max(y1, 0.0)) / (y2 - y1)) < share:
-                return None
-    return arr, rows
 
 
 @dataclass(frozen=True)
@@ -260,115 +173,11 @@ class RefineResult:
         return rq.to_matrix(self.q_refined)
 
 
-_K_FORM = "[[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels"
-Q_ORDERS = ("wxyz", "xyzw")
-
-
-def _as_wxyz(q, q_order: str, name: str = "q_in_wxyz"):
-    """``q`` (quaternions in ``q_order``, or ``(N, 3, 3)`` rotation matrices) as ``wxyz`` quaternions for
-    :meth:`RefinerSession._q_in` (and the tracker); ``wxyz`` quaternions pass through untouched (the fast path).
-    Errors name the argument ``name``."""
-    if q_order not in Q_ORDERS:
-        raise ValueError(f"q_order must be one of {', '.join(map(repr, Q_ORDERS))}; got {q_order!r}")
-    shape = np.shape(q) if isinstance(q, np.ndarray) else None
-    if shape is None:
-        try:
-            shape = np.shape(q)
-        except (ValueError, TypeError):  # ragged: _q_in names it
-            return q
-    if tuple(shape) == (3, 3):
-        raise ValueError(f"{name} has shape (3, 3): one rotation matrix, not (N, 4) quaternions; pass matrices as "
-                         "(N, 3, 3) (R[None] for one box), or convert it with refiner_rt.quaternion.from_matrix(R) "
-                         "(wxyz, object to camera)")
-    if len(shape) == 3 and shape[1:] == (3, 3):
-        R = np.asarray(q, dtype=np.float64)
-        if not np.all(np.isfinite(R)):
-            raise ValueError(f"{name} as rotation matrices (N, 3, 3) must be finite")
-        err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2)) if len(R) else np.zeros(0)
-        bad = np.flatnonzero((err > 1e-3) | (np.linalg.det(R) < 0)) if len(R) else []
-        if len(bad):
-            raise ValueError(f"{name}[{bad[0]}] is not a rotation matrix (orthonormal within 1e-3, determinant "
-                             f"+1): R R^T differs from I by {err[bad[0]]:.3g}, det {np.linalg.det(R[bad[0]]):.3g}")
-        return rq.from_matrix(rq.orthonormalize(R, method="svd"))
-    if q_order == "xyzw":
-        if len(shape) < 1 or shape[-1] != 4:
-            raise ValueError(f"{name} with q_order='xyzw' must have shape (N, 4); got shape {tuple(shape)}")
-        return rq.from_xyzw(np.asarray(q, dtype=np.float64))
-    return q
-
-
 def settle_keeps(q_before, q_after, settle_deg: float) -> np.ndarray:
     """``(N,)`` bools: which objects keep a later refinement pass under ``settle_deg`` (the one definition the
     session, :class:`refiner_rt.RefinerCascade`, ``refiner-rt eval`` and the far-inputs study use): those the pass
     turns by more than ``settle_deg`` degrees (``(N, 4)`` wxyz rotations before and after the pass)."""
     return rq.geodesic_angle(q_before, q_after) > settle_deg
-
-
-def _validate_settle(value, iterations: int | None = None) -> float | None:
-    """``settle_deg`` checked (None passes): degrees in ``(0, 180)``, and with ``iterations`` (the passes it would
-    choose among) at least two of them."""
-    if value is None:
-        return None
-    try:
-        ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)) and (
-            0 < float(value) < 180)
-    except OverflowError:  # an int too large for a float
-        ok = False
-    if not ok:
-        raise ValueError(f"settle_deg must be a number of degrees in (0, 180), or None; got {value!r}")
-    if iterations is not None and iterations < 2:
-        raise ValueError(f"settle_deg keeps a later pass where it turns the result by more than that: give "
-                         f"iterations=2 or more with it; got iterations={iterations}")
-    return float(value)
-
-
-def _validate_K(K) -> np.ndarray:
-    """``K`` as a float64 ``(3, 3)`` pinhole matrix, or a ValueError naming ``K`` (see :data:`K_MAX_ABS`)."""
-    try:
-        arr = np.asarray(K)
-    except (ValueError, TypeError):  # ragged nested lists
-        raise ValueError(f"K must be a (3, 3) numeric intrinsics matrix {_K_FORM}; got a ragged sequence") from None
-    if arr.dtype.kind not in "fiu" or arr.shape != (3, 3):
-        raise ValueError(
-            f"K must be a (3, 3) numeric intrinsics matrix {_K_FORM}; got shape {arr.shape}, dtype {arr.dtype}"
-        )
-    arr = arr.astype(np.float64, copy=False)  # read only from here on
-    values = arr.ravel().tolist()  # checked on Python floats: a few times cheaper than numpy at 9 values
-    fx, s, cx, k10, fy, cy, k20, k21, k22 = values
-    if not all(map(math.isfinite, values)):
-        raise ValueError(f"K must be finite, {_K_FORM}; got {arr.tolist()}")
-    if not (fx > 0 and fy > 0):
-        raise ValueError(f"K must have focal lengths fx > 0 and fy > 0, {_K_FORM}; got {arr.tolist()}")
-    if k10 != 0.0 or k20 != 0.0 or k21 != 0.0 or k22 != 1.0:
-        raise ValueError(f"K must have the pinhole form {_K_FORM} (an invertible camera matrix); got {arr.tolist()}")
-    if not (K_MIN_FOCAL <= fx <= K_MAX_ABS and K_MIN_FOCAL <= fy <= K_MAX_ABS and abs(s) <= K_MAX_ABS
-            and abs(cx) <= K_MAX_ABS and abs(cy) <= K_MAX_ABS):
-        raise ValueError(
-            f"K must have fx, fy in [{K_MIN_FOCAL:g}, {K_MAX_ABS:g}] pixels and |s|, |cx|, |cy| <= {K_MAX_ABS:g}; "
-            f"got {arr.tolist()}"
-        )
-    return arr
-
-
-_PRINCIPAL_POINT_WARNED: set = set()  # (cx, cy, W, H) already warned about (at most 64: no growth without bound)
-
-
-def _check_principal_point(K: np.ndarray, image_shape) -> None:
-    """Log a warning (once per principal point and image size) when ``K``'s principal point lies outside the
-    image's central half: the sign of a ``K`` for another resolution (one calibrated at twice the size puts it at
-    the image's corner, or beyond). Not refused: the ``K`` of a cropped image (a region of interest) may put it
-    anywhere, and is right."""
-    h, w = image_shape[0], image_shape[1]
-    cx, cy = K[0, 2], K[1, 2]
-    if abs(cx - 0.5 * w) <= 0.25 * w and abs(cy - 0.5 * h) <= 0.25 * h:
-        return
-    key = (float(cx), float(cy), w, h)
-    if key in _PRINCIPAL_POINT_WARNED or len(_PRINCIPAL_POINT_WARNED) >= 64:
-        return
-    _PRINCIPAL_POINT_WARNED.add(key)
-    log.warning("K's principal point (cx, cy) = (%g, %g) lies outside the central half of the %dx%d image: is K "
-                "for another resolution? Scale fx, fy, cx, cy by the image's size over the calibration's (a cropped "
-                "image's K may lie there: then this is expected)", float(cx), float(cy), w, h)
 
 
 def _ort_message(exc: Exception) -> str:
@@ -432,6 +241,9 @@ class RefinerSession:
         >>> res.q_refined  # (N, 4) wxyz, object-to-camera
     """
 
+    #: :class:`refiner_rt.Refiner`'s capability: ``iterations``, ``views`` and ``settle_deg`` are :meth:`refine`'s.
+    per_call_passes = True
+
     def __init__(self, model, threads: int = 1, providers=None, session_options: ort.SessionOptions | None = None,
                  object_id: str | None = None, roll_step_deg: float = ROLL_STEP_DEG):
         if isinstance(model, (bytes, bytearray)):
@@ -458,11 +270,9 @@ class RefinerSession:
         if (isinstance(roll_step_deg, bool) or not isinstance(roll_step_deg, (int, float, np.integer, np.floating))
                 or not 0 <= roll_step_deg < 90):
             raise ValueError(f"roll_step_deg must be a number of degrees in [0, 90); got {roll_step_deg!r}")
-        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 0:
-            raise ValueError(f"threads must be an integer >= 0 (0 = all cores); got {threads!r}")
         # 0 is resolved here: onnxruntime's own default counts physical cores and ignores the CPU affinity, so
         # under `taskset -c 0` it would start 2 threads on 1 core.
-        self.threads = int(threads) or available_cores()
+        self.threads = validate_threads(threads) or available_cores()
 
         available = ort.get_available_providers()
         providers = list(providers) if providers is not None else ["CPUExecutionProvider"]
@@ -553,11 +363,13 @@ class RefinerSession:
         return self._session.get_outputs()
 
     # ------------------------------------------------------------------ public API
-    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, iterations: int = 1, K=None, views: int = 1, *,
-               q_order: str = "wxyz", D=None, settle_deg: float | None = None) -> RefineResult:
+    def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, *, K=None, D=None, q_order: str = "wxyz", coarse=None,
+               iterations: int = 1, views: int = 1, settle_deg: float | None = None) -> RefineResult:
         """Refine the rotations of ``N`` objects seen in one image.
 
-        Safe to call from several threads at once on one session (see the class docstring).
+        Safe to call from several threads at once on one session (see the class docstring). Everything after
+        ``q_in_wxyz`` is keyword-only, as in every :class:`refiner_rt.Refiner` (:class:`refiner_rt.RefinerCascade`
+        takes the same first keywords).
 
         Args:
             image_bgr: ``H x W x 3`` ``uint8`` image, **BGR** channel order.
@@ -591,6 +403,8 @@ class RefinerSession:
                 intrinsics; ``image_bgr`` and the boxes are then the raw (distorted) image's. Each crop is sampled
                 through the distortion as the pinhole camera of ``K`` would see it, the view the network trained
                 on (:mod:`refiner_rt.distortion`). None or all zeros: a pinhole camera.
+            coarse: ``(N,)`` bools or None, as :meth:`refiner_rt.RefinerCascade.refine` takes it (rows known to be
+                coarse); checked, and without effect here: a session refines every row with its one network.
             settle_deg: with ``iterations > 1``, a later pass is kept only for the objects it turns by more than
                 this many degrees, and an object whose pass is not kept stops there (it has settled: a pass that
                 turns a result by less is the refiner's floor, not a correction). From inputs within the refiner's
@@ -605,28 +419,30 @@ class RefinerSession:
         """
         image = validate_image(image_bgr, "image_bgr")
         D = validate_D(D)
-        small = _small_boxes(boxes_xyxy, image.shape) if D is None else None
+        small = boxes_rows(boxes_xyxy, image.shape) if D is None else None
         if small is None:
             boxes = validate_boxes(boxes_xyxy, image.shape, "boxes_xyxy")
             rows = boxes
         else:
             boxes, rows = small
         if type(iterations) is not int or not 1 <= iterations <= MAX_ITERATIONS:
-            iterations = self._validate_iterations(iterations)
+            iterations = validate_iterations(iterations)
         if type(views) is not int or views != 1:
-            views = self._validate_views(views)
+            views = validate_views(views)
         if settle_deg is not None:
-            settle_deg = _validate_settle(settle_deg, iterations)
+            settle_deg = validate_settle(settle_deg, iterations)
         n = len(boxes)
+        if coarse is not None:
+            check_coarse_rows(coarse, n)
         if small is None or views > 1:
-            self._check_batch(n, views, "boxes_xyxy")
-        q_in, q_rows = self._q_in(_as_wxyz(q_in_wxyz, q_order), n, "boxes_xyxy")
+            check_batch(n, views, "boxes_xyxy")
+        q_in, q_rows = self._q_in(as_wxyz(q_in_wxyz, q_order), n, "boxes_xyxy")
         if views > 1 or settle_deg is not None:
             q_rows, small = None, None  # the averaged and the settling paths run on numpy arrays
         q_frame = None
         if K is not None:
-            K = _validate_K(K)
-            _check_principal_point(K, image.shape)
+            K = validate_K(K)
+            check_principal_point(K, image.shape)
         if D is not None:
             if K is None:
                 raise ValueError("K is required with D: the distortion coefficients are in the pixels of the "
@@ -638,7 +454,7 @@ class RefinerSession:
                     "K is required: this model was trained in the viewing-ray frame (metadata rotation_frame='ray'); "
                     "pass the (3, 3) camera intrinsics"
                 )
-            q_frame = _ray_rows(K, rows) if small is not None else ray_quaternions(K, boxes)
+            q_frame = ray_quaternion_rows(K, rows) if small is not None else ray_quaternions(K, boxes)
         size, context = self.contract.input_size, self.contract.crop_context
         if views > 1:
             rows = view_boxes(boxes, views, context)
@@ -683,11 +499,11 @@ class RefinerSession:
                 f"got {type(crops_bgr).__name__}"
                 + (f" of shape {crops_bgr.shape}" if isinstance(crops_bgr, np.ndarray) else "")
             )
-        self._check_batch(len(crops_list), 1, "crops_bgr")
+        check_batch(len(crops_list), 1, "crops_bgr")
         for i, c in enumerate(crops_list):
             validate_image(c, f"crops_bgr[{i}]")
-        q_in, q_rows = self._q_in(_as_wxyz(q_in_wxyz, q_order), len(crops_list), "crops_bgr")
-        iterations = self._validate_iterations(iterations)
+        q_in, q_rows = self._q_in(as_wxyz(q_in_wxyz, q_order), len(crops_list), "crops_bgr")
+        iterations = validate_iterations(iterations)
         crops, q_net = self._buffers(len(crops_list))
         for i, c in enumerate(crops_list):
             if c.shape[0] == self.input_size and c.shape[1] == self.input_size:
@@ -700,54 +516,20 @@ class RefinerSession:
     # ------------------------------------------------------------------ internals
     def _q_in(self, q, n: int, other: str) -> tuple[np.ndarray, list | None]:
         """Validated, unit, canonical ``q_in`` as ``(float64 (n, 4) array, rows)``; rows (Python floats) only for
-        ``0 < n <= SMALL_BATCH`` well-formed input, else None. Anything unusual takes :meth:`_validate_q`, which
-        raises the detailed errors."""
+        ``0 < n <= SMALL_BATCH`` well-formed input, else None. Anything unusual takes
+        :func:`refiner_rt.checks.validate_rotations`, which raises the detailed errors."""
         if 0 < n <= SMALL_BATCH:
             arr = q
             if not isinstance(q, np.ndarray):
                 try:
                     arr = np.asarray(q)
-                except (ValueError, TypeError):  # ragged: _validate_q names it
-                    return self._validate_q(q, n, other), None
+                except (ValueError, TypeError):  # ragged: validate_rotations names it
+                    return validate_rotations(q, n, other), None
             if arr.dtype.kind in "fiu" and arr.shape == (n, 4):
-                rows = _unit_rows(arr.astype(np.float64, copy=False).tolist())
+                rows = rq.normalize_rows(arr.astype(np.float64, copy=False).tolist())
                 if rows is not None:
                     return np.array(rows), rows
-        return self._validate_q(q, n, other), None
-
-    def _validate_q(self, q, n: int, other: str) -> np.ndarray:
-        if isinstance(q, (list, tuple, np.ndarray)) and len(q) == 0 and np.ndim(q) == 1:
-            q = np.zeros((0, 4))  # [] : no rotations (as boxes_xyxy=[] is no boxes)
-        q = rq.as_quaternion(q, "q_in_wxyz")
-        if q.ndim == 1:
-            q = q[None]
-        if q.ndim != 2:
-            raise ValueError(f"q_in_wxyz must have shape (N, 4), wxyz; got shape {q.shape}")
-        if len(q) != n:
-            raise ValueError(f"q_in_wxyz has {len(q)} rotations but {other} has {n}: expected one rotation per box")
-        return rq.normalize(q)
-
-    @staticmethod
-    def _validate_iterations(iterations) -> int:
-        if (isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer))
-                or not 1 <= iterations <= MAX_ITERATIONS):
-            raise ValueError(f"iterations must be an integer from 1 to {MAX_ITERATIONS}; got {iterations!r}")
-        return int(iterations)
-
-    @staticmethod
-    def _validate_views(views) -> int:
-        if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or not 1 <= views <= MAX_VIEWS:
-            raise ValueError(f"views must be an integer from 1 to {MAX_VIEWS}; got {views!r}")
-        return int(views)
-
-    @staticmethod
-    def _check_batch(n: int, views: int, name: str) -> None:
-        if n * views > MAX_BATCH:
-            per = f" x views={views} = {n * views} crops" if views > 1 else ""
-            raise ValueError(
-                f"{name} has {n} entries{per}: at most MAX_BATCH={MAX_BATCH} crops per call (boxes x views); "
-                "split them over several calls"
-            )
+        return validate_rotations(q, n, other), None
 
     def _buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Views of ``n`` crops and ``n`` float32 ``q_in`` rows in this thread's reusable buffers (grown when
@@ -784,7 +566,7 @@ class RefinerSession:
         """The error for a ``q_out`` batch with a non-finite or zero row (found by the fast or numpy path)."""
         out64 = out.astype(np.float64)
         with np.errstate(invalid="ignore", over="ignore"):
-            bad = ~np.isfinite(out64).all(axis=1) | ~(np.linalg.norm(out64, axis=1) >= _MIN_NORM)
+            bad = ~np.isfinite(out64).all(axis=1) | ~(np.linalg.norm(out64, axis=1) >= rq.MIN_NORM)
         i = int(np.argmax(bad))
         return ModelError(
             f"{self._label}: the network returned q_out[{i}] = {out[i].tolist()}: expected a finite, non-zero "
@@ -818,12 +600,12 @@ class RefinerSession:
             if q_rows is None:
                 frame_inv = rq.inverse(np.asarray(q_frame))
             else:
-                frame_inv = _conjugate_rows(q_frame if isinstance(q_frame, list) else q_frame.tolist())
+                frame_inv = rq.inverse_rows(q_frame if isinstance(q_frame, list) else q_frame.tolist())
         for _ in range(iterations):
             if frame_inv is None:
                 q_cur = q
             else:
-                q_cur = rq.multiply(frame_inv, q) if q_rows is None else _multiply_rows(frame_inv, q)
+                q_cur = rq.multiply(frame_inv, q) if q_rows is None else rq.multiply_rows(frame_inv, q)
             q_net[...] = q_cur if views == 1 else np.repeat(q_cur, views, axis=0)
             if turned is not None:
                 q_net[...] = self._roll(crops, q_net, out=turned)[1]
@@ -839,10 +621,10 @@ class RefinerSession:
                     f"expected {q_net.shape}"
                 )
             if q_rows is not None:
-                q_out = _unit_rows(out.tolist())
+                q_out = rq.normalize_rows(out.tolist())
                 if q_out is None:
                     raise self._bad_output(out)
-                q = _unit_rows(_multiply_rows(q, q_out))  # unit * unit: always finite and unit
+                q = rq.normalize_rows(rq.multiply_rows(q, q_out))  # unit * unit: always finite and unit
                 continue
             try:
                 q_out = rq.normalize(out.astype(np.float64))

@@ -71,21 +71,12 @@ from collections.abc import Mapping
 import numpy as np
 
 from refiner_rt import quaternion as rq
-from refiner_rt.cascade import RefinerCascade
-from refiner_rt.distortion import validate_D
-from refiner_rt.preprocess import validate_boxes, validate_image
-from refiner_rt.session import (
-    RefinerSession,
-    _as_wxyz,
-    _conjugate_rows,
-    _multiply_rows,
-    _small_boxes,
-    _unit_rows,
-    _validate_K,
-    _validate_settle,
-)
+from refiner_rt.checks import (as_wxyz, boxes_rows, validate_boxes, validate_D, validate_image, validate_iterations,
+                               validate_K, validate_settle, validate_views)
+from refiner_rt.quaternion import inverse_rows, multiply_rows, normalize_rows
+from refiner_rt.refiner import Refiner, load
 
-__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR"]
+__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "object_name"]
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +89,7 @@ TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the medoid t
 INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
 
 
-def _object_name(object_id: str) -> str:
+def object_name(object_id: str) -> str:
     """The YCB id part of an object id (``"003_cracker_box#2"`` -> ``"003_cracker_box"``)."""
     return object_id.split(INSTANCE_SEPARATOR, 1)[0]
 
@@ -108,7 +99,7 @@ class _Track:
 
     __slots__ = ("session", "q", "refined", "velocity", "missed", "history")
 
-    def __init__(self, session: RefinerSession, q: np.ndarray):
+    def __init__(self, session: Refiner, q: np.ndarray):
         self.session = session
         self.q = q  # [w, x, y, z] Python floats, unit, w >= 0: the current estimate (coarse until the first update)
         self.refined = False  # whether q came from the refiner (only then does it count for the velocity)
@@ -128,7 +119,7 @@ class RefinerTracker:
 
     Args:
         session: the refiner(s). A :class:`RefinerSession` refines every object (each object id must be one of its
-            model's objects); a string loads that shipped model with :meth:`RefinerSession.pretrained` (INT8, one
+            model's objects); a string loads that shipped model with :func:`refiner_rt.load` (INT8, one
             thread) for every object; a mapping ``object id -> RefinerSession or pretrained name`` gives each object
             its own (a name is loaded once and shared by the objects that name it).
         K: ``(3, 3)`` camera intrinsics in pixels, ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (the shipped models
@@ -179,9 +170,9 @@ class RefinerTracker:
                  lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz",
                  D=None, settle_deg: float | None = None, motion_window: int | None = None,
                  prediction_weight: float | None = None, max_correction_deg: float | None = None):
-        self.K = _validate_K(K).copy()
+        self.K = validate_K(K).copy()
         self.D = validate_D(D)
-        _as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
+        as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
         self.q_order = q_order
         if not isinstance(predict, (bool, str)):
             raise TypeError(f"predict must be False, True, 'object' or 'scene'; got {predict!r}")
@@ -228,12 +219,12 @@ class RefinerTracker:
                              "lost, or fused in every frame); choose one")
         self.lost: list[str] = []  # objects the last update flagged lost (and could not re-detect)
         self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
-        self.iterations = RefinerSession._validate_iterations(iterations)
-        self.views = RefinerSession._validate_views(views)
-        self.settle_deg = _validate_settle(settle_deg, self.iterations)
-        self._loaded: dict[str, RefinerSession] = {}  # pretrained name -> session, loaded once
-        self._default: RefinerSession | None = None
-        self._per_object: dict[str, RefinerSession] = {}
+        self.iterations = validate_iterations(iterations)
+        self.views = validate_views(views)
+        self.settle_deg = validate_settle(settle_deg, self.iterations)
+        self._loaded: dict[str, Refiner] = {}  # pretrained name -> session, loaded once
+        self._default: Refiner | None = None
+        self._per_object: dict[str, Refiner] = {}
         if isinstance(session, Mapping):
             for object_id, s in session.items():
                 self._check_id(object_id, "session")
@@ -300,7 +291,7 @@ class RefinerTracker:
                 f"({sorted(self._per_object)}); pass session= (a RefinerSession or a pretrained name)"
             )
         objects = list(sess.contract.objects)
-        if _object_name(object_id) not in objects:
+        if object_name(object_id) not in objects:
             raise ValueError(
                 f"object_id {object_id!r} is not an object its session's model was trained for (metadata objects: "
                 f"{objects}); use that object's model, or name the object '<ycb id>' or '<ycb id>#<instance>'"
@@ -367,7 +358,7 @@ class RefinerTracker:
             raise TypeError(
                 f"boxes must be a mapping {{object id: (4,) box (x1, y1, x2, y2) in pixels}}; got {type(boxes).__name__}"
             )
-        groups: dict[int, tuple[RefinerSession, list[str], list[np.ndarray]]] = {}
+        groups: dict[int, tuple[Refiner, list[str], list[np.ndarray]]] = {}
         for object_id, box in boxes.items():
             track = self._track(object_id, name="boxes")
             row = _check_box(box, image.shape, f"boxes[{object_id!r}]")
@@ -438,7 +429,7 @@ class RefinerTracker:
                 elif self.predict and track.refined:
                     # camera-frame change over missed + 1 updates: q_new * q_old^-1 (Python floats: see session.py),
                     # from the refined track alone: a fused detection's pull is a correction, not motion
-                    step = _unit_rows(_multiply_rows([q_tracked], _conjugate_rows([track.q])))[0]
+                    step = normalize_rows(multiply_rows([q_tracked], inverse_rows([track.q])))[0]
                     track.velocity = step if track.missed == 0 else _fraction(step, 1.0 / (track.missed + 1))
                 track.q, track.refined, track.missed = q, True, 0
                 out[object_id] = np.array(q)
@@ -446,7 +437,7 @@ class RefinerTracker:
             if object_id not in seen:
                 track.missed += 1
                 if turn is not None and track.refined:  # the objects not seen in this frame turn with the camera
-                    track.q = _unit_rows(_multiply_rows([turn], [track.q]))[0]
+                    track.q = normalize_rows(multiply_rows([turn], [track.q]))[0]
         self._updates += 1
         self.lost = lost
         self.redetections += len(redetected)
@@ -492,13 +483,13 @@ class RefinerTracker:
                 self.reset(object_id, q)
         return self.update(image, boxes, detector=fused or None)
 
-    def _refine(self, sess, image, rows: list, q_in, coarse: list) -> np.ndarray:
-        if isinstance(sess, RefinerCascade):
-            return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse)).q_refined
-        return sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K,
-                           views=self.views, D=self.D, settle_deg=self.settle_deg).q_refined
+    def _refine(self, sess: Refiner, image, rows: list, q_in, coarse: list) -> np.ndarray:
+        passes = ({"iterations": self.iterations, "views": self.views, "settle_deg": self.settle_deg}
+                  if sess.per_call_passes else {})  # a cascade runs the passes it was built with
+        return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse, dtype=bool),
+                           **passes).q_refined
 
-    def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list) -> list[int]:
+    def _flag_lost(self, sess: Refiner, image, ids: list, rows: list, refined: list) -> list[int]:
         """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a
         tracked (not a coarse) rotation, and moved by more than ``lost_deg`` by one more refinement."""
         if self.lost_deg is None:
@@ -506,12 +497,10 @@ class RefinerTracker:
         checked = [i for i, object_id in enumerate(ids) if self._tracks[object_id].refined]
         if not checked:
             return []
-        if isinstance(sess, RefinerCascade):  # the coarse refiner's verdict: it sees drift the fine one follows
-            again = self._refine(sess, image, [rows[i] for i in checked], np.array([refined[i] for i in checked]),
-                                 [True] * len(checked))
-        else:
-            again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
-                                K=self.K, views=self.views, D=self.D).q_refined
+        # one more pass; a cascade's coarse refiner gives the verdict (coarse=True): it sees drift the fine one follows
+        passes = {"views": self.views} if sess.per_call_passes else {}
+        again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
+                            K=self.K, D=self.D, coarse=np.ones(len(checked), dtype=bool), **passes).q_refined
         moved = rq.geodesic_angle(np.array([refined[i] for i in checked]), again)
         return [i for i, m in zip(checked, moved) if m > self.lost_deg]
 
@@ -535,7 +524,7 @@ class RefinerTracker:
             h = [(t, q) for t, q in track.history if self._updates - t <= self.motion_window]
             if len(h) < 2 or h[-1][0] - h[0][0] < max(1, self.motion_window // 2):
                 continue
-            change = _unit_rows(_multiply_rows([h[-1][1]], _conjugate_rows([h[0][1]])))[0]
+            change = normalize_rows(multiply_rows([h[-1][1]], inverse_rows([h[0][1]])))[0]
             rates.append(_fraction(change, 1.0 / (h[-1][0] - h[0][0])))
         if not rates:
             return None
@@ -558,19 +547,19 @@ class RefinerTracker:
         if self.predict == "scene":
             if turn is None or not track.refined:
                 return track.q
-            return _unit_rows(_multiply_rows([turn], [track.q]))[0]
+            return normalize_rows(multiply_rows([turn], [track.q]))[0]
         if not self.predict or track.velocity is None:
             return track.q
         step = track.velocity if track.missed == 0 else _fraction(track.velocity, track.missed + 1.0)
-        return _unit_rows(_multiply_rows([step], [track.q]))[0]
+        return normalize_rows(multiply_rows([step], [track.q]))[0]
 
     def _session_of(self, value, name: str):
-        if isinstance(value, (RefinerSession, RefinerCascade)):
+        if isinstance(value, Refiner):
             return value
         if isinstance(value, str):
             if value not in self._loaded:
                 log.debug("loading the pretrained refiner %r", value)
-                self._loaded[value] = RefinerSession.pretrained(value, int8=True, threads=1)
+                self._loaded[value] = load(value, int8=True, threads=1)
             return self._loaded[value]
         raise TypeError(f"{name} must be a RefinerSession, a RefinerCascade or a pretrained model name such as "
                         "'003_cracker_box'; "
@@ -596,7 +585,7 @@ class RefinerTracker:
         except (ValueError, TypeError):
             shape = None
         if shape == (3, 3):
-            return rq.normalize(_as_wxyz(np.asarray(q, dtype=np.float64)[None], "wxyz", name)[0]).tolist()
+            return rq.normalize(as_wxyz(np.asarray(q, dtype=np.float64)[None], "wxyz", name)[0]).tolist()
         arr = rq.as_quaternion(q, name)
         if arr.shape != (4,):
             raise ValueError(f"{name} must be one rotation: a (4,) quaternion ({self.q_order}) or a (3, 3) matrix; "
@@ -636,18 +625,18 @@ def _check_detector_weight(value) -> float | None:
 def _blend(q_track: list, q_det: list, w: float) -> list:
     """The rotation ``w`` of the way from ``q_track`` to ``q_det`` along the shortest arc, ``w >= 0`` canonical:
     ``(q_det * q_track^-1) ** w * q_track`` (unit ``[w, x, y, z]`` lists)."""
-    step = _unit_rows(_multiply_rows([q_det], _conjugate_rows([q_track])))[0]
-    return _unit_rows(_multiply_rows([_fraction(step, w)], [q_track]))[0]
+    step = normalize_rows(multiply_rows([q_det], inverse_rows([q_track])))[0]
+    return normalize_rows(multiply_rows([_fraction(step, w)], [q_track]))[0]
 
 
 def _within(q: list, p: list, max_deg: float) -> list:
     """``q``, or the rotation ``max_deg`` degrees from ``p`` toward it along the shortest arc where ``q`` is further
     (unit ``[w, x, y, z]`` lists, ``w >= 0``)."""
-    step = _unit_rows(_multiply_rows([q], _conjugate_rows([p])))[0]
+    step = normalize_rows(multiply_rows([q], inverse_rows([p])))[0]
     angle = math.degrees(2.0 * math.atan2(math.sqrt(step[1] ** 2 + step[2] ** 2 + step[3] ** 2), abs(step[0])))
     if angle <= max_deg:
         return q
-    return _unit_rows(_multiply_rows([_fraction(step, max_deg / angle)], [p]))[0]
+    return normalize_rows(multiply_rows([_fraction(step, max_deg / angle)], [p]))[0]
 
 
 def _fraction(q: list, power: float) -> list:
@@ -674,7 +663,7 @@ def _check_box(box, image_shape, name: str) -> list:
         raise ValueError(f"{name} must be one numeric box (x1, y1, x2, y2) in pixels; got {box!r}") from None
     if arr.shape != (4,):
         raise ValueError(f"{name} must be one box (x1, y1, x2, y2) in pixels, shape (4,); got shape {arr.shape}")
-    fast = _small_boxes(arr[None], image_shape)
+    fast = boxes_rows(arr[None], image_shape)
     if fast is not None:
         return fast[1][0]
     return validate_boxes(arr, image_shape, name)[0].tolist()

@@ -1,4 +1,5 @@
-"""refiner_rt.bench: operation counts and roofline bounds, interleaved timing, variants, and `refiner-rt bench` rows."""
+"""refiner_rt.bench (the runtime's timer) and export.bench (its training side: operation counts and roofline bounds,
+PyTorch eager rows): interleaved timing, variants, and `refiner-rt bench` rows."""
 
 import json
 
@@ -10,12 +11,13 @@ from onnx import TensorProto, helper, numpy_helper
 
 import onnx_fixtures as fx
 from bench_scripts import load_benchmark
+from export import bench as paper
 from export import bench_models
 from export.defaults import DEFAULT_SCHEME
 from test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
 from refiner_rt import bench
 from refiner_rt import pretrained as pt
-from refiner_rt.cli import LAZY_COMMANDS, main
+from refiner_rt.cli import RUNTIME_COMMANDS, main
 
 
 def _graph_model(nodes, inits, inputs, outputs, path):
@@ -40,7 +42,7 @@ def test_model_cost_counts_conv_and_gemm_in_fp32(tmp_path):
         [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["batch", 3, 8, 8])],
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["batch", 10])], tmp_path / "m.onnx",
     )
-    cost = bench.model_cost(path)
+    cost = paper.model_cost(path)
     assert cost.weight_bytes == w.nbytes + g.nbytes
     assert cost.flops == 2 * (8 * 8 * 6 * 3 * 25 + 384 * 10)
     assert cost.int8_ops == 0 and cost.quantization == "none"
@@ -57,23 +59,23 @@ def test_model_cost_counts_quantised_layers_as_int8(tmp_path):
         [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["batch", 64])],
         [helper.make_tensor_value_info("y", TensorProto.INT32, ["batch", 32])], tmp_path / "q.onnx",
     )
-    cost = bench.model_cost(path)
+    cost = paper.model_cost(path)
     assert cost.int8_ops == 2 * 64 * 32 and cost.flops == 0 and cost.weight_bytes == b.nbytes
 
 
 def test_roofline_bound_takes_the_slower_limit():
-    limits = bench.MachineLimits(bandwidth=10e9, peak_fp32={1: 100e9}, peak_int8={1: 400e9})
-    cost = bench.ModelCost(weight_bytes=10_000_000, flops=10e6, int8_ops=40e6)  # 1 ms memory; 0.2 ms per crop
-    fps, limit = bench.roofline_bound(cost, 1, 1, limits)
+    limits = paper.MachineLimits(bandwidth=10e9, peak_fp32={1: 100e9}, peak_int8={1: 400e9})
+    cost = paper.ModelCost(weight_bytes=10_000_000, flops=10e6, int8_ops=40e6)  # 1 ms memory; 0.2 ms per crop
+    fps, limit = paper.roofline_bound(cost, 1, 1, limits)
     assert limit == "memory" and fps == pytest.approx(1000.0)
-    fps, limit = bench.roofline_bound(cost, 10, 1, limits)  # 2 ms of compute for 10 crops
+    fps, limit = paper.roofline_bound(cost, 10, 1, limits)  # 2 ms of compute for 10 crops
     assert limit == "compute" and fps == pytest.approx(10 / 2e-3)
 
 
 def test_measured_limits_are_plausible():
-    assert bench.measure_bandwidth(megabytes=16, repeats=2) > 1e8
-    assert bench.measure_peak(int8=False, threads=1, size=128, repeats=2) > 1e8
-    assert bench.measure_peak(int8=True, threads=1, size=128, repeats=2) > 1e8
+    assert paper.measure_bandwidth(megabytes=16, repeats=2) > 1e8
+    assert paper.measure_peak(int8=False, threads=1, size=128, repeats=2) > 1e8
+    assert paper.measure_peak(int8=True, threads=1, size=128, repeats=2) > 1e8
 
 
 def test_measure_interleaved_takes_turns_and_honours_min_calls():
@@ -126,22 +128,22 @@ def test_bench_json_rows_carry_quantization_and_roofline_fields(tmp_path):
 def test_a_row_faster_than_its_bound_gets_no_ratio():
     # A bound measured on a busy machine (or weights served from cache) can lie below what the model achieved: the
     # row then says so instead of reading as more than 100% of the hardware.
-    cost = bench.ModelCost(weight_bytes=10_000_000, flops=10e6, int8_ops=0)
-    limits = bench.MachineLimits(bandwidth=10e9, peak_fp32={1: 100e9}, peak_int8={1: 400e9})  # bound: 1,000/s
+    cost = paper.ModelCost(weight_bytes=10_000_000, flops=10e6, int8_ops=0)
+    limits = paper.MachineLimits(bandwidth=10e9, peak_fp32={1: 100e9}, peak_int8={1: 400e9})  # bound: 1,000/s
     fast = bench.BenchRow(arch="a", runtime="onnxruntime", threads=1, batch=1, fps=1500.0, p50_ms=0.67, p90_ms=0.7,
                           calls=10, model="a")
-    bench._fill_roofline(fast, cost, limits)
+    paper._fill_roofline(fast, cost, limits)
     assert fast.bound_fps == pytest.approx(1000.0) and fast.roofline_ratio is None and "1.50x its bound" in fast.roofline_note
     slow = bench.BenchRow(arch="a", runtime="onnxruntime", threads=1, batch=1, fps=500.0, p50_ms=2.0, p90_ms=2.1,
                           calls=10, model="b")
-    bench._fill_roofline(slow, cost, limits)
+    paper._fill_roofline(slow, cost, limits)
     assert slow.roofline_ratio == pytest.approx(0.5) and slow.roofline_note is None
     table = bench.format_table([fast, slow])
     assert "| 50% |" in table and "n/a*" in table and "150%" not in table
 
 
 def test_limit_probe_takes_turns_with_the_models_and_keeps_the_best_round():
-    probe = bench.LimitProbe(megabytes=4, size=64)
+    probe = paper.LimitProbe(megabytes=4, size=64)
     order = []
     runners = {("onnxruntime", 0): lambda: order.append("model")}
     for key, fn in probe.runners(1).items():
@@ -300,24 +302,26 @@ def test_bench_without_torch_or_shipped_models_is_one_line(tmp_path, monkeypatch
     assert "needs torch" in res.output and "pass exported models with --model" in res.output
     assert "no shipped model" in res.output
 def test_the_runtime_bench_imports_no_training_code():
-    # The random-weight models are built on the training side (export.bench_models), looked up by name only when
-    # needed: the command lives in the runtime, which the wheel carries alone.
+    # The random-weight models, PyTorch eager and the roofline are the training side's (export.bench), which plugs
+    # its bench command in; the runtime's own times ONNX files, and the wheel carries it alone.
     import re
     from pathlib import Path
 
     source = Path(bench.__file__).read_text()
-    assert not re.search(r"^\s*(import|from) (models|export)\b", source, re.M)
-    assert LAZY_COMMANDS["bench"][0] == "refiner_rt.bench:bench_cmd"
+    assert not re.search(r"^\s*(import|from) (models|export|torch|onnx)\b", source, re.M)
+    assert RUNTIME_COMMANDS["bench"].target == "refiner_rt.cli.bench:bench_cmd"
     assert callable(bench_models.build_default_models)
+    assert paper.bench_cmd.name == "bench" and isinstance(paper.PaperBench(), bench.BenchExtension)
 
 
 def test_machine_info_records_the_cpu_vector_flags():
     import torch
 
-    info = bench.machine_info()
+    info = paper.machine_info()
     flags = info["cpu_flags"]
     assert isinstance(flags, list) and all(f.startswith(bench._SIMD_FLAG_PREFIXES) for f in flags)
     assert info["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert bench.machine_info()["cpu_capability"] is None  # the runtime's own never imports torch
 
 
 def test_soak_reports_rss_over_the_calls_from_threads_sharing_one_session(tmp_path, capsys):

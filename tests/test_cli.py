@@ -8,13 +8,16 @@ import pytest
 from click.testing import CliRunner
 
 import onnx_fixtures as fx
-from refiner_rt.cli import LAZY_COMMANDS, main
+from refiner_rt.cli import ENTRY_POINT_GROUP, RUNTIME_COMMANDS, main, plugged_commands
+
+# Every subcommand: the runtime's own and those the training package plugs in (pyproject.toml's entry points).
+COMMANDS = sorted(set(RUNTIME_COMMANDS) | set(plugged_commands()))
 
 
 def test_group_help_lists_every_command_without_importing_them():
     res = CliRunner().invoke(main, ["--help"])
     assert res.exit_code == 0
-    for name in LAZY_COMMANDS:
+    for name in COMMANDS:
         assert name in res.output
     # Listing commands must not import torch (the runtime path stays light).
     code = "import sys; from click.testing import CliRunner; from refiner_rt.cli import main; CliRunner().invoke(main, ['--help']); assert 'torch' not in sys.modules"
@@ -64,7 +67,7 @@ def test_bench_in_a_runtime_only_install_times_the_shipped_models_or_says_why_no
     assert "training package" in done.stderr and "--model" in done.stderr
 
 
-@pytest.mark.parametrize("name", sorted(LAZY_COMMANDS))
+@pytest.mark.parametrize("name", sorted(COMMANDS))
 def test_every_subcommand_help(name):
     res = CliRunner().invoke(main, [name, "--help"])
     assert res.exit_code == 0, res.output
@@ -222,4 +225,22 @@ NO_USER_FILE = {"models"}  # the package's own index: tests/test_pretrained.py f
 
 
 def test_every_subcommand_is_covered_by_a_bad_file_test():
-    assert {args[0] for args, _ in BAD_INVOCATIONS} == set(LAZY_COMMANDS) - NO_USER_FILE
+    assert {args[0] for args, _ in BAD_INVOCATIONS} == set(COMMANDS) - NO_USER_FILE
+
+
+def test_the_training_commands_are_plugged_in_by_entry_points_not_named_by_the_runtime():
+    """The runtime's command table names no training module; pyproject.toml declares the training commands, and the
+    installed metadata lists the same (else `pip install -e .` must be rerun)."""
+    import importlib.util
+    import tomllib
+    from pathlib import Path
+
+    declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"][
+        "entry-points"][ENTRY_POINT_GROUP]
+    assert set(declared) == {"export", "train", "render", "eval", "bench"}
+    installed = {name: ep.value for name, ep in plugged_commands().items()}
+    assert installed == declared, "the installed metadata is stale: rerun pip install -e ."
+    assert not any(c.target.split(".")[0] in ("models", "export", "benchmarks") for c in RUNTIME_COMMANDS.values())
+    for value in declared.values():  # each names a torch-free LazyCommand in the training package
+        module = value.split(":")[0]
+        assert importlib.util.find_spec(module) is not None, module

@@ -11,8 +11,8 @@ from scipy.ndimage import gaussian_filter
 from onnx_fixtures import contract, random_weight_model
 from refiner_rt import RefinerSession
 from refiner_rt.metadata import parse_metadata
-from refiner_rt.preprocess import crop_matrix, crop_to_square, prefiltered_region, resize_crop
-from test_preprocess import naive_crop
+from refiner_rt.preprocess import crop_matrix, crop_to_square, crop_to_square_reference, prefiltered_region, resize_crop
+
 
 RNG = np.random.default_rng(3)
 
@@ -36,7 +36,7 @@ def test_a_shrink_between_powers_of_two_is_near_an_ideal_low_pass():
     assert crop_matrix(box, size, 1.0)[0, 0] == pytest.approx(5.4)
     a = crop_to_square(img, box, size, 1.0, crop_filter="antialias").astype(float)
     sigma = 5.4 / np.sqrt(12)  # the box filter of the footprint's width
-    ideal = naive_crop(np.stack([gaussian_filter(img[..., c].astype(float), sigma, mode="nearest")
+    ideal = crop_to_square_reference(np.stack([gaussian_filter(img[..., c].astype(float), sigma, mode="nearest")
                                  for c in range(3)], -1), box, size, 1.0)
     plain = crop_to_square(img, box, size, 1.0).astype(float)
     assert np.abs(a - ideal).mean() < 0.5 * np.abs(plain - ideal).mean()

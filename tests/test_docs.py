@@ -166,7 +166,7 @@ def test_readme_stays_a_short_read_with_one_results_table():
 
 def test_readme_example_uses_a_shipped_model_with_K():
     code = _readme_python_block()
-    assert 'RefinerSession.pretrained("003_cracker_box"' in code and "K=K" in code
+    assert 'load("003_cracker_box"' in code and "K=K" in code
 
 
 def test_ci_runs_the_readme_commands():

@@ -1,4 +1,5 @@
-"""The crop rule against a slow, direct implementation of its definition."""
+"""The crop rule against its slow reference (refiner_rt.preprocess.crop_to_square_reference), a direct implementation
+of its definition."""
 
 import numpy as np
 import pytest
@@ -7,6 +8,7 @@ from refiner_rt.preprocess import (
     crop_batch,
     crop_matrix,
     crop_to_square,
+    crop_to_square_reference,
     crop_window,
     resize_crop,
     validate_boxes,
@@ -14,30 +16,6 @@ from refiner_rt.preprocess import (
 )
 
 RNG = np.random.default_rng(0)
-
-
-def naive_crop(image, box, size, context):
-    """Bilinear sampling of the crop window, written from the rule, one pixel at a time."""
-    x1, y1, x2, y2 = box
-    side = max(x2 - x1, y2 - y1) * context
-    x0, y0 = (x1 + x2) / 2 - side / 2, (y1 + y2) / 2 - side / 2
-    h, w = image.shape[:2]
-    out = np.zeros((size, size, 3))
-    for v in range(size):
-        for u in range(size):
-            # continuous sample point -> index coordinates (pixel i centred at i + 0.5)
-            xs = x0 + (u + 0.5) * side / size - 0.5
-            ys = y0 + (v + 0.5) * side / size - 0.5
-            xi, yi = int(np.floor(xs)), int(np.floor(ys))
-            fx, fy = xs - xi, ys - yi
-            acc = np.zeros(3)
-            for dy, wy in ((0, 1 - fy), (1, fy)):
-                for dx, wx in ((0, 1 - fx), (1, fx)):
-                    yy, xx = yi + dy, xi + dx
-                    if 0 <= yy < h and 0 <= xx < w:
-                        acc += wy * wx * image[yy, xx]
-            out[v, u] = acc
-    return out
 
 
 def test_pixel_aligned_box_is_an_exact_copy():
@@ -50,7 +28,7 @@ def test_matches_naive_rule_with_context_and_borders():
     img = RNG.integers(0, 256, (30, 40, 3), dtype=np.uint8)
     for box, size, ctx in [((3.2, 4.7, 20.1, 12.3), 12, 1.2), ((-5, -3, 12, 25), 9, 1.5), ((30, 20, 45, 35), 10, 1.2)]:
         fast = crop_to_square(img, box, size, ctx).astype(float)
-        ref = naive_crop(img, box, size, ctx)
+        ref = crop_to_square_reference(img, box, size, ctx)
         # OpenCV's bilinear weights are fixed-point (1/32 steps): allow a couple of grey levels.
         assert np.abs(fast - ref).max() <= 3.0, (box, np.abs(fast - ref).max())
 

@@ -241,3 +241,18 @@ def test_mean_rejects_what_it_cannot_average():
         rq.mean(random_q(3), axis=-1)
     with pytest.raises(ValueError, match="nothing to average"):
         rq.mean(np.zeros((0, 4)))
+
+
+def test_the_python_float_twins_equal_their_numpy_references_bit_for_bit():
+    """normalize_rows, multiply_rows and inverse_rows (the runtime's small-batch fast paths) against normalize,
+    multiply and inverse: the same operations in the same order, so equal exactly, w == 0 sign keys included."""
+    rng = np.random.default_rng(11)
+    a, b = rng.standard_normal((64, 4)), rng.standard_normal((64, 4))
+    a[0] = [0.0, -0.5, 0.5, 0.5]
+    a[1] = [0.0, 0.0, -1.0, 2.0]
+    a[2, 0] = -3.0
+    np.testing.assert_array_equal(np.array(rq.normalize_rows(a.tolist())), rq.normalize(a))
+    np.testing.assert_array_equal(np.array(rq.multiply_rows(a.tolist(), b.tolist())), rq.multiply(a, b))
+    unit = rq.normalize(a)
+    np.testing.assert_array_equal(np.array(rq.inverse_rows(unit.tolist())), rq.inverse(unit))
+    assert rq.normalize_rows([[0.0, 0.0, 0.0, 0.0]]) is None and rq.normalize_rows([[np.nan, 0, 0, 1]]) is None

@@ -12,7 +12,7 @@ import onnx_fixtures as fx
 from refiner_rt import RefinerSession
 from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import crop_to_square, resize_crop, validate_boxes
-from refiner_rt.session import MAX_VIEWS, VIEW_JITTER, ray_quaternions, view_boxes
+from refiner_rt.geometry import MAX_VIEWS, VIEW_JITTER, ray_quaternion_rows, ray_quaternions, view_boxes
 
 RNG = np.random.default_rng(0)
 IMG = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)
@@ -181,7 +181,7 @@ def test_ray_quaternions_of_any_intrinsics_form_agree_and_the_float_path_matches
     # one K per box
     np.testing.assert_array_equal(ray_quaternions(np.stack([K] * 20), boxes), q)
     # the Python-float twin used by refine() for small batches
-    np.testing.assert_array_equal(np.array(session_module._ray_rows(K, boxes.tolist())), q)
+    np.testing.assert_array_equal(np.array(ray_quaternion_rows(K, boxes.tolist())), q)
 
 
 def test_non_unit_q_in_is_normalised():
@@ -263,7 +263,7 @@ def test_loads_from_path_and_reports_metadata(tmp_path):
 
 
 def test_importing_runtime_does_not_import_torch():
-    code = "import sys, refiner_rt; from refiner_rt import RefinerSession, quaternion, cli, bench, info; assert 'torch' not in sys.modules, 'torch imported'"
+    code = "import sys, refiner_rt; from refiner_rt import RefinerSession, quaternion, cli, bench; from refiner_rt.cli import info; assert 'torch' not in sys.modules, 'torch imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -271,6 +271,7 @@ def test_importing_runtime_does_not_import_torch():
 import onnxruntime as ort  # noqa: E402
 from onnx import TensorProto, helper  # noqa: E402
 
+import refiner_rt.checks as checks_module  # noqa: E402
 import refiner_rt.session as session_module  # noqa: E402
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION  # noqa: E402
 
@@ -345,7 +346,8 @@ def test_python_float_and_numpy_paths_agree_exactly(monkeypatch):
     q_in[2, 0] = -2.0  # flipped to w >= 0
     sess = RefinerSession(mix_model())
     small = sess.refine(IMG, BOXES, q_in, iterations=2)
-    monkeypatch.setattr(session_module, "SMALL_BATCH", 0)
+    monkeypatch.setattr(session_module, "SMALL_BATCH", 0)  # the quaternion rows
+    monkeypatch.setattr(checks_module, "SMALL_BATCH", 0)  # the box rows
     vectorised = sess.refine(IMG, BOXES, q_in, iterations=2)
     for a, b in zip((small.q_refined, small.q_out, small.q_in), (vectorised.q_refined, vectorised.q_out, vectorised.q_in)):
         np.testing.assert_array_equal(a, b)
@@ -672,7 +674,7 @@ def test_limits_are_documented_constants_and_hold_at_their_edge():
     # the widest boxes and K the limits allow still give finite unit viewing-ray rotations, and refine() does with
     # the widest box the image allows (a quarter of it inside) and that K
     ray = RefinerSession(fx.q_echo_model(props=fx.contract(rotation_frame="ray")))
-    big = session_module.MAX_BOX_COORDINATE
+    big = checks_module.MAX_BOX_COORDINATE
     K = np.array([[session_module.K_MIN_FOCAL, session_module.K_MAX_ABS, session_module.K_MAX_ABS],
                   [0, session_module.K_MIN_FOCAL, -session_module.K_MAX_ABS], [0, 0, 1]])
     for boxes in ([[-big, -big, big, big]], [[-big, -big, 1, 1]] * 40):
@@ -951,7 +953,7 @@ def test_silent_inputs_are_caught_at_the_boundary(caplog):
         boxes = ok.copy()
         boxes[-1] = [600, 100, 760, 220]  # exactly a quarter inside: taken
         assert len(sess.refine(image, boxes, rq.identity((n,)))) == n
-    session_module._PRINCIPAL_POINT_WARNED.clear()
+    checks_module._PRINCIPAL_POINT_WARNED.clear()
     K_big = np.array([[1000.0, 0, 640.0], [0, 1000.0, 480.0], [0, 0, 1]])  # calibrated at 1280x960
     with caplog.at_level(logging.WARNING, logger="refiner_rt.session"):
         for _ in range(3):
@@ -967,7 +969,7 @@ def test_silent_inputs_are_caught_at_the_boundary(caplog):
                                                                 st.floats(0, 1))),
        h=st.integers(2, 60), w=st.integers(2, 60))
 def test_the_fast_box_path_takes_exactly_the_boxes_validate_boxes_takes(boxes, h, w):
-    fast = session_module._small_boxes(boxes, (h, w, 3))
+    fast = checks_module.boxes_rows(boxes, (h, w, 3))
     try:
         validate_boxes(boxes, (h, w, 3))
     except ValueError:

@@ -45,8 +45,9 @@ def test_the_wheel_carries_every_shipped_model_and_the_demo_samples(wheel_names)
     samples = json.loads((ROOT / "refiner_rt" / "samples" / "samples.json").read_text())
     for f in samples["frames"]:
         assert f"refiner_rt/samples/{f['file']}" in wheel_names
-    assert "refiner_rt/cli.py" in wheel_names
+    assert "refiner_rt/cli/__init__.py" in wheel_names and "refiner_rt/cli/track.py" in wheel_names
 
 
 def test_the_console_script_is_declared(wheel_names):
     assert any(n.endswith(".dist-info/entry_points.txt") for n in wheel_names)
+

@@ -46,7 +46,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from refiner_rt import RefinerSession  # noqa: E402
-from refiner_rt.bench import FRAME_K, frame_K, machine_info, synthetic_frame  # noqa: E402
+from export.bench import machine_info  # noqa: E402
+from refiner_rt.bench import FRAME_K, frame_K, synthetic_frame  # noqa: E402
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, parse_metadata  # noqa: E402
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
 from refiner_rt.session import DISABLED_OPTIMIZERS, default_session_options  # noqa: E402

@@ -91,15 +91,9 @@ def _write(out: Path, picture: np.ndarray) -> None:
 def _refiner(object_id: str, threads: int, cascade: bool):
     """The shipped INT8 refiner of ``object_id``: its :class:`refiner_rt.RefinerCascade` with ``cascade`` where a
     fine refiner ships, else its :class:`refiner_rt.RefinerSession`."""
-    from refiner_rt.pretrained import pretrained_model
+    from refiner_rt.refiner import load
 
-    if cascade and "fine" in pretrained_model(object_id).stages:
-        from refiner_rt.cascade import RefinerCascade
-
-        return RefinerCascade.pretrained(object_id, int8=True, threads=threads)
-    from refiner_rt.session import RefinerSession
-
-    return RefinerSession.pretrained(object_id, int8=True, threads=threads)
+    return load(object_id, cascade=cascade, int8=True, threads=threads)
 
 
 def _samples(out: Path, seed: int, threads: int, cascade: bool = False) -> None:
@@ -181,9 +175,7 @@ def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: 
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
     q_ref = res.q_refined[0]
-    from refiner_rt.cascade import RefinerCascade
-
-    ran = ("the coarse and fine refiners" if isinstance(sess, RefinerCascade) else
+    ran = ("the coarse and fine refiners" if not sess.per_call_passes else
            "one pass" + (", no fine refiner ships for it" if cascade else ""))
     click.echo(f"{object_id}: coarse q (wxyz) {np.array2string(q_in, precision=4, separator=', ')}")
     click.echo(f"{object_id}: refined q (wxyz) {np.array2string(q_ref, precision=4, separator=', ')}, "

@@ -31,9 +31,8 @@ import click
 import cv2
 import numpy as np
 
-from refiner_rt import draw
-from refiner_rt import quaternion as rq
-from refiner_rt.session import MAX_ITERATIONS, MAX_VIEWS
+from refiner_rt.draw import annotate
+from refiner_rt.checks import MAX_ITERATIONS, MAX_VIEWS
 
 __all__ = ["track_cmd", "read_detections", "frame_files", "annotate", "OUTPUT_FORMAT"]
 
@@ -97,28 +96,6 @@ def _numbers(value, shape, what: str) -> np.ndarray:
     return arr
 
 
-def annotate(image: np.ndarray, boxes: dict, rotations: dict) -> np.ndarray:
-    """A copy of ``image`` (BGR) with each object's box and its rotation's axes drawn at the box centre.
-
-    The axes are the columns of the object-to-camera rotation matrix, drawn orthographically (camera ``x`` right,
-    ``y`` down) with half the box's shorter side as length: x red, y green, z blue.
-    """
-    out = image.copy()
-    for object_id, q in rotations.items():
-        x1, y1, x2, y2 = boxes[object_id]
-        cv2.rectangle(out, (int(x1), int(y1)), (int(x2), int(y2)), (255, 255, 255), 1, cv2.LINE_AA)
-        centre = np.array([(x1 + x2) / 2, (y1 + y2) / 2])
-        length = 0.5 * min(x2 - x1, y2 - y1)
-        R = rq.to_matrix(q)
-        for axis in np.argsort(R[2])[::-1]:  # the axis pointing farthest away first, so nearer ones stay on top
-            tip = centre + length * R[:2, axis]
-            cv2.line(out, tuple(np.round(centre).astype(int)), tuple(np.round(tip).astype(int)),
-                     draw.AXIS_COLOURS[axis], 2, cv2.LINE_AA)
-        cv2.putText(out, object_id, (int(x1), max(int(y1) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    (255, 255, 255), 1, cv2.LINE_AA)
-    return out
-
-
 class _VideoOutput:
     """Annotated frames to a video file (``.mp4``, ``.avi``) or an image strip (``.png``, ``.jpg``)."""
 
@@ -164,8 +141,9 @@ class _VideoOutput:
 
 def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
     """``{object id: RefinerSession}``: an ``--model`` ONNX file trained for the object, else its shipped model."""
+    from refiner_rt.refiner import load
     from refiner_rt.session import RefinerSession
-    from refiner_rt.tracker import _object_name
+    from refiner_rt.tracker import object_name
 
     files, names = [], set()
     for m in model_args:
@@ -175,7 +153,7 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
             names.add(m)
     loaded, out = {}, {}
     for object_id in object_ids:
-        name = _object_name(object_id)
+        name = object_name(object_id)
         sess = next((s for s in files if name in s.contract.objects), None)
         if sess is None:
             if names and name not in names:
@@ -183,7 +161,7 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
                                  f"{sorted({o for s in files for o in s.contract.objects})} and the names given are "
                                  f"{sorted(names)}")
             if name not in loaded:
-                loaded[name] = RefinerSession.pretrained(name, int8=int8, threads=threads)
+                loaded[name] = load(name, int8=int8, threads=threads)
             sess = loaded[name]
         out[object_id] = sess
     return out
@@ -192,18 +170,17 @@ def _sessions(object_ids, model_args, int8: bool, threads: int) -> dict:
 def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None = None) -> dict:
     """``--cascade``: each object's shipped :class:`refiner_rt.RefinerCascade` (with ``settle_deg``) in place of its
     coarse session (the session kept where no fine refiner ships, or where an ``--model`` file serves the object)."""
-    from refiner_rt.cascade import RefinerCascade
-    from refiner_rt.pretrained import WEIGHTS_DIR, pretrained_models
-    from refiner_rt.tracker import _object_name
+    from refiner_rt.pretrained import WEIGHTS_DIR
+    from refiner_rt.refiner import load
+    from refiner_rt.tracker import object_name
 
-    with_fine = {m.object_id for m in pretrained_models() if "fine" in m.stages}
     out, built = {}, {}
     for object_id, sess in sessions.items():
-        name = _object_name(object_id)
+        name = object_name(object_id)
         shipped = sess.model_path is not None and Path(sess.model_path).parent == WEIGHTS_DIR
-        if name in with_fine and shipped:
-            if name not in built:
-                built[name] = RefinerCascade.pretrained(name, int8=int8, threads=threads, settle_deg=settle_deg)
+        if shipped:
+            if name not in built:  # the cascade where a fine refiner ships, else the coarse session
+                built[name] = load(name, cascade=True, int8=int8, threads=threads, settle_deg=settle_deg)
             out[object_id] = built[name]
         else:
             out[object_id] = sess
