@@ -8,7 +8,7 @@ Three parts, each optional, one JSON (and a plot):
 * ``stress``: the real frames under one camera effect at a time (:data:`STRESS_CASES`: exposure, tone curve, white
   balance and colour cast, saturation, contrast, sharpening, sensor noise, motion and defocus blur, JPEG, a lower
   resolution), each at a strength a real camera gives, applied to the whole frame before the crop
-  (:func:`models.augment.apply_op`, the training augmentation's own operations). A robust model moves little: the
+  (:func:`models.data.augment.apply_op`, the training augmentation's own operations). A robust model moves little: the
   table is each case's error minus the clean frames' error.
 * ``rendered``: any number of rendered BOP folders (``--rendered NAME=DIR``: e.g. a Blender Cycles validation set and
   TinyRenderer fresh renders of the same layout), scored the same way; the ratio of the first to the second is
@@ -45,7 +45,7 @@ if str(REPO) not in sys.path:
 from benchmarks.study_cli import write_json  # noqa: E402
 
 # Camera effects at the strength a working camera gives (a webcam indoors to a robot's RGB-D colour stream): name,
-# operation of models.augment, strength (the argument apply_op takes).
+# operation of models.data.augment, strength (the argument apply_op takes).
 STRESS_CASES: tuple[tuple[str, str, object], ...] = (
     ("exposure -0.7 EV", "brightness", 0.6),
     ("exposure +0.5 EV", "brightness", 1.4),
@@ -78,11 +78,11 @@ def case_slug(name: str) -> str:
 
 def stressed_copy(data: Path, out: Path, op: str, strength, seed: int = STRESS_SEED) -> Path:
     """A copy of the BOP folder ``data`` at ``out`` with every colour image put through ``op`` at ``strength``
-    (:func:`models.augment.apply_op` on the whole frame, BGR); ground truth copied unchanged. Reused when ``out``
+    (:func:`models.data.augment.apply_op` on the whole frame, BGR); ground truth copied unchanged. Reused when ``out``
     holds a finished copy of the same input and case (its ``stress.json``)."""
     import cv2
 
-    from models.augment import apply_op
+    from models.data.augment import apply_op
 
     record = {"data": str(Path(data).resolve()), "op": op, "strength": strength, "seed": seed}
     stamp = out / "stress.json"

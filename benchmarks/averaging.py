@@ -59,8 +59,8 @@ def jittered_views(crops: np.ndarray, views: int) -> list[np.ndarray]:
 
 
 def averaged_predictor(nets: list, views: int):
-    """A predictor (``models.evaluate``) that averages the corrections of ``nets`` over ``views`` views."""
-    from models.train import predict
+    """A predictor (``models.evaluate.errors``) that averages the corrections of ``nets`` over ``views`` views."""
+    from models.train.loop import predict
     from refiner_rt import quaternion as rq
 
     def run(crops, q_in):
@@ -73,7 +73,7 @@ def averaged_predictor(nets: list, views: int):
 def load_models(paths: list[Path], data: Path | None, cache: Path | None):
     """The nets, their shared test crops (of their objects) and rotation frame; refuses checkpoints of other splits."""
     import models
-    from models.pipeline import checkpoint_spec, checkpoint_test_set
+    from models.data.pipeline import checkpoint_spec, checkpoint_test_set
 
     loaded = [models.load_checkpoint(p) for p in paths]
     first = loaded[0][1]
@@ -107,13 +107,13 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
 
 def runtime_errors(ckpt: Path, test, frame: str, samples: list, views: list[int], workdir: Path) -> dict[int, dict]:
     """``{K: pooled summary}`` of ``RefinerSession.refine(views=K)`` on the full frames of ``test`` (``samples``: its
-    frames and boxes), with the coarse poses of ``models.evaluate.evaluate_errors`` (seed 2024, ``uniform:0:30``),
+    frames and boxes), with the coarse poses of ``models.evaluate.errors.evaluate_errors`` (seed 2024, ``uniform:0:30``),
     for the checkpoint exported to ONNX."""
     import cv2
 
     from export.onnx_export import export_checkpoint
-    from models.metrics import summarize_errors
-    from models.noise import NoiseSpec, perturb
+    from models.evaluate.metrics import summarize_errors
+    from models.data.noise import NoiseSpec, perturb
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
 
@@ -142,7 +142,7 @@ def runtime_errors(ckpt: Path, test, frame: str, samples: list, views: list[int]
 def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | None, runtime: bool = False) -> list[dict]:
     import tempfile
 
-    from models.evaluate import evaluate_errors
+    from models.evaluate.errors import evaluate_errors
 
     nets, test, frame, samples = load_models(paths, data, cache)
     names = [p.name for p in paths]
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
                         "RefinerSession.refine(views=K) on the full frames, with the same coarse poses")
     args = parse_checkpoint_args(p, argv)
 
-    from models.train import set_threads
+    from models.train.loop import set_threads
 
     threads = set_threads(args.threads)
     rows = run(args.checkpoints, args.views, args.data, args.cache, runtime=args.runtime)

@@ -43,7 +43,7 @@ def scene_folder(sample) -> str:
 
 
 def _spec(path: Path, info: dict):
-    from models.pipeline import DataSpec
+    from models.data.pipeline import DataSpec
 
     if not info.get("data"):
         raise SystemExit(f"{path}: the checkpoint records no split (info['data']); train it with refiner-rt train "
@@ -54,8 +54,8 @@ def _spec(path: Path, info: dict):
 def compare(paths: list[Path], cache: Path | None) -> dict:
     """Every checkpoint's error on the first one's test crops from scenes none of them trained or validated on."""
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import cropset_for, load_splits
 
     loaded = [(p, *models.load_checkpoint(p)) for p in paths]
     objects = loaded[0][2].get("objects") or []
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                           checkpoints_help="the first one's split gives the test crops")
     args = parse_checkpoint_args(p, argv)
 
-    from models.train import set_threads
+    from models.train.loop import set_threads
 
     threads = set_threads(args.threads)
     result = compare(args.checkpoints, args.cache)

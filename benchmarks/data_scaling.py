@@ -57,8 +57,8 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.study_cli import provenance, write_json  # noqa: E402
-from models.augment import PHOTOMETRIC_OPS  # noqa: E402
-from models.recipe import RecipeError, add_recipe_argument, load_recipe, recipe_from_arguments  # noqa: E402
+from models.data.augment import PHOTOMETRIC_OPS  # noqa: E402
+from models.train.recipe import RecipeError, add_recipe_argument, load_recipe, recipe_from_arguments  # noqa: E402
 
 # The study's training options: flag -> (argparse dest, TrainRecipe field, help when the study's meaning needs its
 # own words, else None: the field's). Their defaults are the named recipe "data-scaling"; each run's recipe is that
@@ -131,7 +131,7 @@ def _parse_probabilities(text: str) -> list[float]:
 def _augment_label(row: dict) -> str:
     extra = [f"{name} {row[key]:g}" for key, name in
              (("background", "background"), ("occlude", "occluders"), ("relight", "relight")) if row.get(key)]
-    extra += ["photometric"] if row.get("photometric") else []  # models.augment, the --aug-* probabilities
+    extra += ["photometric"] if row.get("photometric") else []  # models.data.augment, the --aug-* probabilities
     if not extra:
         return "yes" if row["augment"] else "no"
     return " + ".join((["jitter"] if row["augment"] else []) + extra)
@@ -247,11 +247,11 @@ def _initial_model(args, spec, config: dict):
     network's full config.
     """
     import models
-    from models.pipeline import checkpoint_spec
+    from models.data.pipeline import checkpoint_spec
 
     model, info = models.load_checkpoint(args.init)
     if model.arch == args.arch:
-        from models.fusion import with_roll
+        from models.nets.fusion import with_roll
 
         model = with_roll(model, config)  # the same weights with another input turn may go on
     if model.arch != args.arch or model.config != config:
@@ -292,10 +292,10 @@ def run(args) -> dict:
     import torch
 
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import cropset_for, load_splits
-    from models.recipe import check_masks
-    from models.train import set_threads, train_refiner
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import cropset_for, load_splits
+    from models.train.recipe import check_masks
+    from models.train.loop import set_threads, train_refiner
 
     try:  # the training options' ranges and rules, checked by the recipe before any crops are cut
         study_recipe(args, args.modes.split(",")[0], _parse_sizes(args.sizes)[-1])

@@ -15,7 +15,7 @@ the training crops of its scenes only), validation and test parts of its recorde
 with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024, one pass, no augmentation). The test error
 rotation ``q_refined * q_true^-1``, taken in the viewing-ray frame, is split into its twist about the ray (in the
 image plane) and the swing perpendicular to it (out of the plane), and the coarse inputs' error the same way for
-reference (:func:`models.metrics.swing_twist_deg`).
+reference (:func:`models.evaluate.metrics.swing_twist_deg`).
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ PARTS = ("train_base", "train_finetune", "val", "test")
 def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
     """One checkpoint's errors on each part of its split and its test error split about the viewing ray."""
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.metrics import swing_twist_deg
-    from models.pipeline import checkpoint_spec, cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.evaluate.metrics import swing_twist_deg
+    from models.data.pipeline import checkpoint_spec, cropset_for, load_splits
     from refiner_rt import quaternion as rq
 
     net, info = models.load_checkpoint(path)
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     p = checkpoint_parser(__doc__.splitlines()[0])
     args = parse_checkpoint_args(p, argv)
 
-    from models.train import set_threads
+    from models.train.loop import set_threads
 
     threads = set_threads(args.threads)
     results = [breakdown(c, args.data, args.cache) for c in args.checkpoints]

@@ -108,9 +108,9 @@ def runtime_errors(obj: str, coarse: Path, fine: Path, data: Path, seed: int = 2
     degrees."""
     import cv2
 
-    from models.noise import NoiseSpec, perturb
-    from models.pipeline import load_splits
-    from models.symmetry import symmetric_error
+    from models.data.noise import NoiseSpec, perturb
+    from models.data.pipeline import load_splits
+    from models.data.symmetry import symmetric_error
     from benchmarks.pretrained import SYMMETRIES
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq

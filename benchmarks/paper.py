@@ -2,8 +2,8 @@
 
 Every experiment trains (or reuses) two models under the same protocol: ``paper`` (the paper's shallow refiner and
 recipe) and ``improved`` (this project's ``fusion`` refiner); their recipes are the ``RECIPES`` dict below.
-Training is ``refiner-rt train`` (a :class:`models.recipe.TrainRecipe` run by :func:`models.training.train`), evaluation ``refiner-rt eval``
-(:func:`models.eval_cli.run_eval`), so every number here can be re-made with those commands.
+Training is ``refiner-rt train`` (a :class:`models.train.recipe.TrainRecipe` run by :func:`models.train.run.train`), evaluation ``refiner-rt eval``
+(:func:`models.evaluate.cli.run_eval`), so every number here can be re-made with those commands.
 
 Usage (from the repository root)::
 
@@ -59,7 +59,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.study_cli import write_json  # noqa: E402  (schema version and git commit in every result JSON)
-from models.paths import per_object_path  # noqa: E402
+from models.train.paths import per_object_path  # noqa: E402
 
 # The two models of every table (the schedules used for the published results; see benchmarks/studies/paper_protocol/README.md).
 # per_object=0 in a recipe: no per-object fine-tuning; the experiment's fine-tune images then join the base
@@ -225,8 +225,8 @@ EXPERIMENTS: dict[str, Experiment] = {
 
 
 def _train_defaults(data: Path) -> dict:
-    """Every training option (a :class:`models.recipe.TrainRecipe` field) at the named recipe ``paper``'s value."""
-    from models.recipe import load_recipe
+    """Every training option (a :class:`models.train.recipe.TrainRecipe` field) at the named recipe ``paper``'s value."""
+    from models.train.recipe import load_recipe
 
     return {**load_recipe("paper").as_dict(), "data": str(data)}
 
@@ -326,15 +326,15 @@ def model_dir(args, exp_name: str, model: str) -> Path:
 
 
 def _objects_in(data: Path) -> list[str]:
-    from models.pipeline import DataSpec, load_samples
+    from models.data.pipeline import DataSpec, load_samples
 
     return sorted({s.obj_id for s in load_samples(DataSpec(data=str(data)))})
 
 
 def train_recipe(opts: dict, args, defaults: dict):
-    """The :class:`models.recipe.TrainRecipe` of one checkpoint: ``opts`` over ``defaults``, with ``ft_continue`` as
+    """The :class:`models.train.recipe.TrainRecipe` of one checkpoint: ``opts`` over ``defaults``, with ``ft_continue`` as
     a continuation stage when it lengthens the fine-tuning."""
-    from models.recipe import TrainRecipe
+    from models.train.recipe import TrainRecipe
 
     train = {k: (str(v) if isinstance(v, Path) else v) for k, v in opts.items() if k != "ft_continue"}
     cont = opts.get("ft_continue") or {}
@@ -347,7 +347,7 @@ def train_recipe(opts: dict, args, defaults: dict):
 
 def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
     """Train one checkpoint (resuming an interrupted run) unless its done marker exists."""
-    from models.train_cli import run
+    from models.train.cli import run
 
     done = out.with_suffix(".done")
     if done.is_file() and not args.force:
@@ -412,7 +412,7 @@ def _merge(results: list[dict]) -> dict:
 
 def evaluate(ckpts: list[Path], setting: dict, args) -> dict:
     """``run_eval`` of the model (or, one per object, of the per-object models) under ``setting``."""
-    from models.eval_cli import run_eval
+    from models.evaluate.cli import run_eval
 
     common = dict(threads=args.threads, cache_root=args.cache, progress=False, **setting)
     if len(ckpts) == 1:
@@ -426,9 +426,9 @@ def input_angle_errors(ckpt: Path, noise: str, args) -> dict:
 
     import models
     from models.data.objects import YCBV_CLASSES
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import checkpoint_test_set
-    from models.train import set_threads
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import checkpoint_test_set
+    from models.train.loop import set_threads
 
     set_threads(args.threads)
     net, info = models.load_checkpoint(ckpt)

@@ -213,7 +213,7 @@ def query_table(result: dict) -> str:
 def run(args) -> dict:
     from models.data import SplitSizes, make_splits
     from models.data.splits import SPLIT_MODES
-    from models.pipeline import DataSpec, load_samples
+    from models.data.pipeline import DataSpec, load_samples
 
     sizes = _parse_sizes(args.sizes)
     modes = [m for m in args.modes.split(",") if m]

@@ -56,7 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from models.data.objects import SCAN_FRAME_SYMMETRIES  # noqa: E402
-from models.recipe import NAMED_RECIPES  # noqa: E402
+from models.train.recipe import NAMED_RECIPES  # noqa: E402
 from refiner_rt.metadata import file_sha256  # noqa: E402
 from refiner_rt.pretrained import INDEX_FILE, INDEX_FORMAT, WEIGHTS_DIR, model_file_name  # noqa: E402
 
@@ -67,7 +67,7 @@ OBJECT_FRAME = ("YCB google_16k scan frame (models/data/ycb_models/<id>/textured
 SCHEMA = "refiner-rt/pretrained-eval/1"
 
 # The held-out-scenes recipe of the shipped models, as this build names its options: a view of the one definition,
-# ``heldout-scenes-v3`` in models/recipe.py (v1, the best measured for unseen scenes in
+# ``heldout-scenes-v3`` in models/train/recipe.py (v1, the best measured for unseen scenes in
 # benchmarks/studies/heldout_scenes, "Five conv blocks on all nine objects", and benchmarks/studies/scene_count; v2 on
 # a four times larger rendered set; v3, v4 and v5 continue each object's shipped model on new scenes). Model version 1
 # was trained with heldout-scenes-v1 (3,500 crops per object from ycb9_v1's 2,362 scenes), version 2 with
@@ -119,7 +119,7 @@ SYMMETRIES = SCAN_FRAME_SYMMETRIES
 
 
 # Objects trained from scratch in two stages instead of from the shipped model: a first stage whose coarse inputs are
-# turns about the object's own axis alone (models.noise twist), then the recipe's stage from that network. The can's
+# turns about the object's own axis alone (models.data.noise twist), then the recipe's stage from that network. The can's
 # networks trained on random-axis inputs never learnt the turn about its axis, though its label shows it: the refined
 # turn was the input's (benchmarks/studies/can_twist); a first stage on turns teaches it. That made the can's version
 # 5 ({"002_master_chef_can": {"noise": "twist:0:30", "lr": 1e-3, "samples": 200_000}}); version 6 continues it, as
@@ -147,7 +147,7 @@ def train_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cac
                   inplane: float | None = None, roll: str | None = None) -> list[str]:
     """The complete ``data_scaling.py`` command that trains ``obj``'s shipped model (from ``init`` when given, a model
     of another set unless ``other_set`` is False; every crop of the ``extra_train`` folders joins the training part of
-    ``data``'s split). ``noise``, ``lr``, ``photometric`` (``{operation: probability}``, models.augment) and ``seed``
+    ``data``'s split). ``noise``, ``lr``, ``photometric`` (``{operation: probability}``, models.data.augment) and ``seed``
     (the training run's, not the split's) and ``inplane`` (the largest turn of a training crop about the viewing ray,
     degrees, 0: none; ``--inplane``) and ``roll`` (the fusion network's input turn, ``"canonical"`` or ``"none"``)
     replace the recipe's; ``name`` (default ``obj``) names the outputs in ``run``."""
@@ -238,8 +238,8 @@ def _score(onnx_paths: dict[str, Path], test, samples, rotation_frame: str, nois
     ``RefinerSession.refine_crops``: overall, inside the image and cut by its border; the same coarse inputs for all
     (``noise`` about the truth). Objects with a :data:`SYMMETRIES` entry are also scored to the closest symmetric
     pose (``symmetric``)."""
-    from models.evaluate import evaluate_errors, onnx_predictor
-    from models.symmetry import symmetric_error
+    from models.evaluate.errors import evaluate_errors, onnx_predictor
+    from models.data.symmetry import symmetric_error
 
     q_samples = np.array([s.q_gt for s in samples])
     if len(samples) != len(test) or not np.allclose(np.abs(np.sum(q_samples * test.q_gt, axis=1)), 1.0, atol=1e-6):
@@ -268,7 +268,7 @@ def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -
     """Held-out-scene errors of each ONNX model on the test split its checkpoint was trained against
     (:func:`_score`)."""
     import models
-    from models.pipeline import checkpoint_test_set
+    from models.data.pipeline import checkpoint_test_set
 
     net, info = models.load_checkpoint(ckpt)
     test, spec, samples = checkpoint_test_set(net, info, data=data, cache_root=cache, with_samples=True)
@@ -277,10 +277,10 @@ def evaluate(onnx_paths: dict[str, Path], ckpt: Path, data: Path, cache: Path) -
 
 
 def whole_folder_spec(data: Path, obj: str, part: str):
-    """A :class:`models.pipeline.DataSpec` that puts every instance of ``obj`` in ``data`` (the usual filters:
+    """A :class:`models.data.pipeline.DataSpec` that puts every instance of ``obj`` in ``data`` (the usual filters:
     ``visib_fract >= 0.3``, boxes of 16 px or more) into one part, ``"train_base"`` or ``"test"``: for a folder of
     scenes rendered apart from any training set (calibration crops, or fresh held-out scenes)."""
-    from models.pipeline import DataSpec, load_samples
+    from models.data.pipeline import DataSpec, load_samples
 
     spec = DataSpec(data=str(data), objects=[obj], split_mode="scenes", sizes=(0, 0, 0, 0))
     try:
@@ -294,7 +294,7 @@ def evaluate_fresh(onnx_paths: dict[str, Path], obj: str, data: Path, cache: Pat
                    input_size: int, crop_context: float, noise: str = "uniform:0:30", crop_filter: str = "none") -> dict:
     """Errors of each ONNX model on every instance of ``obj`` in ``data``, a folder of rendered scenes that no
     shipped model trained on (``refiner-rt render`` with a seed other than the training set's) (:func:`_score`)."""
-    from models.pipeline import cropset_for, load_splits
+    from models.data.pipeline import cropset_for, load_splits
 
     spec = whole_folder_spec(data, obj, "test")
     splits = load_splits(spec)
@@ -807,7 +807,7 @@ def _fresh(d: dict) -> bool:
 
 def _symmetry_sentence(d: dict) -> str:
     """The card's sentence on an object scored with its symmetry too (``eval.int8.symmetric``)."""
-    from models.symmetry import CONTINUOUS_STEPS
+    from models.data.symmetry import CONTINUOUS_STEPS
 
     sym = d["eval"]["int8"]["symmetric"]
     turns = [c["axis"] for s in sym["symmetry"].values() for c in s.get("symmetries_continuous", [])]
@@ -1059,7 +1059,7 @@ def main(argv=None) -> int:
     if (args.heldout is None) != (args.calibration is None):
         ap.error("--heldout and --calibration go together (two folders of fresh scenes)")
     if args.real is not None:
-        from models.pipeline import detect_format
+        from models.data.pipeline import detect_format
 
         try:  # checked before hours of training, not after
             detect_format(args.real)

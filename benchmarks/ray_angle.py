@@ -34,9 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import checkpoint_test_set
-    from models.train import set_threads
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import checkpoint_test_set
+    from models.train.loop import set_threads
     from refiner_rt import quaternion as rq
 
     set_threads(args.threads)

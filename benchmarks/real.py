@@ -55,7 +55,7 @@ def chosen_models(items: list[str], fp32: bool, error) -> dict[str, Path]:
 def run(models: dict[str, Path], data: Path, draws: int = 10, seed: int = 2024, threads: int = 1,
         progress: bool = False) -> dict:
     """Every model on its object's instances in ``data``; objects with no instance there are listed as skipped."""
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
     from refiner_rt.metadata import file_sha256
 
     per_object, skipped = {}, {}
@@ -75,7 +75,7 @@ def run(models: dict[str, Path], data: Path, draws: int = 10, seed: int = 2024, 
 
 
 def summarise(per_object: dict, skipped: dict, data: Path, draws: int, seed: int) -> dict:
-    """The record of ``per_object`` (object -> its :func:`models.eval_cli.run_eval_all` entry): the means over
+    """The record of ``per_object`` (object -> its :func:`models.evaluate.cli.run_eval_all` entry): the means over
     objects, over instances and per video."""
     mean = lambda key: sum(o[key] for o in per_object.values()) / len(per_object)  # noqa: E731
     instances = sum(o["instances"] for o in per_object.values())

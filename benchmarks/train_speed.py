@@ -2,7 +2,7 @@
 synthetic crops, in one process.
 
 The held-out-scenes models are limited by their training steps, so a step's cost is what bounds them. This runs the
-real training loop (``models.train.train_refiner``: crop pipeline, forward, loss, backward, Adam) on random crops with
+real training loop (``models.train.loop.train_refiner``: crop pipeline, forward, loss, backward, Adam) on random crops with
 random instance masks, with the augmentations the scene runs use (``--augment --background 0.5`` by default), and
 reads each epoch's ``samples_per_s`` from its history. The variants alternate epoch by epoch, so load on the machine
 falls on each alike; the first epoch of each is warm-up and is dropped. Reported: the median samples/s of each
@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from models.recipe import parse_json_object as _parse_config  # noqa: E402
+from models.train.recipe import parse_json_object as _parse_config  # noqa: E402
 from benchmarks.study_cli import provenance, write_json  # noqa: E402
 
 FIVE_BLOCKS = {"conv_channels": [16, 32, 64, 128, 128]}
@@ -36,7 +36,7 @@ FIVE_BLOCKS = {"conv_channels": [16, 32, 64, 128, 128]}
 
 def synthetic_crops(n: int, size: int, seed: int = 0):
     """``n`` random ``size`` px crops with random rotations, ray-frame rotations and a random blob mask each."""
-    from models.cropset import CropSet
+    from models.data.cropset import CropSet
     from refiner_rt import quaternion as rq
 
     rng = np.random.default_rng(seed)
@@ -71,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     import models
-    from models.train import TrainConfig, set_threads, train_refiner
+    from models.train.config import TrainConfig
+    from models.train.loop import set_threads, train_refiner
 
     set_threads(args.threads)
     torch.manual_seed(0)

@@ -23,8 +23,8 @@ LAZY_COMMANDS = {
     "track": ("refiner_rt.track_cli:track_cmd", "Track object rotations through a folder of frames with boxes."),
     "bench": ("refiner_rt.bench:bench_cmd", "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8."),
     "render": ("models.data.render:render_cmd", "Render BOP-format training scenes of YCB objects on the CPU."),
-    "train": ("models.train_cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning)."),
-    "eval": ("models.eval_cli:eval_cmd", "Evaluate a checkpoint or ONNX model on a dataset's test split."),
+    "train": ("models.train.cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning)."),
+    "eval": ("models.evaluate.cli:eval_cmd", "Evaluate a checkpoint or ONNX model on a dataset's test split."),
 }
 
 

@@ -20,7 +20,7 @@ from refiner_rt import quaternion as rq
 __all__ = ["MAX_VIEWS", "VIEW_JITTER", "ray_quaternions", "view_boxes", "view_offsets"]
 
 # refine(views=K): the largest K, and the box jitter of the extra views as a fraction of the crop window (the
-# training's --augment box jitter, models.train.TrainConfig.box_jitter).
+# training's --augment box jitter, models.train.config.TrainConfig.box_jitter).
 MAX_VIEWS = 16
 VIEW_JITTER = 0.05
 

@@ -27,7 +27,7 @@ def appearance():
 
 
 def test_every_stress_case_is_an_operation_of_the_augmentation(appearance):
-    from models.augment import PHOTOMETRIC_OPS
+    from models.data.augment import PHOTOMETRIC_OPS
 
     assert {op for _, op, _ in appearance.STRESS_CASES} <= set(PHOTOMETRIC_OPS)
     assert len({name for name, _, _ in appearance.STRESS_CASES}) == len(appearance.STRESS_CASES)

@@ -7,7 +7,7 @@ import pytest
 
 from bench_scripts import load_benchmark
 from cube_dataset import make_cube_dataset
-from models.pipeline import DataSpec, load_splits
+from models.data.pipeline import DataSpec, load_splits
 
 
 def _study(tmp, data, name):

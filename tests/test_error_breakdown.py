@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from bench_scripts import load_benchmark
 from cube_dataset import make_cube_dataset
-from models.metrics import swing_twist_deg
+from models.evaluate.metrics import swing_twist_deg
 
 
 def _wxyz(r: Rotation) -> np.ndarray:

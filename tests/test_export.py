@@ -16,7 +16,7 @@ import export
 import models
 from export import onnx_export, parity
 from export.defaults import LRN_LOWERING_NAMES
-from models.checkpoint import file_sha256
+from models.train.checkpoint import file_sha256
 from refiner_rt import __version__
 from refiner_rt.cli import main as cli_main
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION, parse_metadata
@@ -269,7 +269,7 @@ def test_lrn_lowerings_match_torch(tmp_path, beta):
     class Net(torch.nn.Module):
         def __init__(self):
             super().__init__()
-            self.lrn = models.blocks.LocalResponseNorm(5, 1e-2, beta, 2.0)
+            self.lrn = models.nets.blocks.LocalResponseNorm(5, 1e-2, beta, 2.0)
 
         def forward(self, x):
             return self.lrn(x)

@@ -1,4 +1,4 @@
-"""models.losses against refiner_rt.quaternion (numpy) and SciPy's Rotation, plus gradient safety."""
+"""models.train.losses against refiner_rt.quaternion (numpy) and SciPy's Rotation, plus gradient safety."""
 
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from models import losses
+from models.train import losses
 from refiner_rt import quaternion as rq
 
 RNG = np.random.default_rng(1)

@@ -151,7 +151,7 @@ def test_dataset_calibration_leaves_out_the_recorded_extra_training_folders(fp32
     # from another folder: calibration draws from the recorded split's own training part of the data given.
     import json
 
-    from models.pipeline import DataSpec
+    from models.data.pipeline import DataSpec
 
     props = _props(fp32_models["fusion"])
     spec = DataSpec(data="a_set").as_dict()

@@ -56,7 +56,7 @@ def test_all_scores_every_visible_instance_and_the_drift_of_a_fixed_turn(real_fo
 def test_identity_model_leaves_the_input_error(real_folder, tmp_path):
     split, _ = real_folder
     model = _model(tmp_path, [1.0, 0.0, 0.0, 0.0], obj="009_gelatin_box")
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
 
     r = run_eval_all(model, split, draws=5, threads=1, progress=False, cache_root=tmp_path / "c")
     o = r["objects"]["009_gelatin_box"]
@@ -74,7 +74,7 @@ def test_the_master_chef_can_is_scored_up_to_turns_about_its_axis(tmp_path):
     turn = Rotation.from_rotvec([0.0, 0.0, np.radians(45.0)])  # about the can's z axis only, between samples
     x, y, z, w = turn.as_quat()
     model = _model(tmp_path, [w, x, y, z], obj="002_master_chef_can")
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
 
     r = run_eval_all(model, tmp_path / "test", draws=1, threads=1, progress=False, cache_root=tmp_path / "c")
     assert r["objects"]["002_master_chef_can"]["drift_mean_deg"] == pytest.approx(0.0, abs=1e-3)
@@ -92,7 +92,7 @@ def test_all_refuses_split_options_and_names_a_missing_object(real_folder, tmp_p
 
 
 def test_a_read_only_folder_caches_its_crops_in_the_users_cache(tmp_path, monkeypatch):
-    import models.pipeline as pipeline
+    import models.data.pipeline as pipeline
 
     data = tmp_path / "shared" / "test"
     data.mkdir(parents=True)

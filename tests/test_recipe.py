@@ -22,7 +22,7 @@ def cubes(tmp_path_factory):
 
 
 def _tiny(cubes, **changes):
-    from models.recipe import TrainRecipe
+    from models.train.recipe import TrainRecipe
 
     d = dict(data=str(cubes / "cubes"), arch="fusion", arch_config=TINY, base_per_object=10, per_object=6,
              val_per_object=4, test_per_object=4, epochs_mse=1, epochs_geodesic=1, batch_size=8, threads=1,
@@ -39,7 +39,7 @@ def _same(a, b) -> bool:
 
 
 def test_named_recipes_are_valid_and_paper_is_the_defaults():
-    from models.recipe import NAMED_RECIPES, TrainRecipe, load_recipe
+    from models.train.recipe import NAMED_RECIPES, TrainRecipe, load_recipe
 
     assert load_recipe("paper").as_dict() == {**TrainRecipe().as_dict(), "name": "paper"}
     held = load_recipe("heldout-scenes-v1")
@@ -58,14 +58,14 @@ def test_named_recipes_are_valid_and_paper_is_the_defaults():
     assert (built.val_per_object, built.test_per_object, built.lr, built.background, built.seed, built.bf16) == (
         RECIPE["val"], RECIPE["test"], RECIPE["lr"], RECIPE["background"], RECIPE["seed"], RECIPE["bf16"])
     assert built.arch_config == RECIPE["config"]
-    # the same network as heldout-scenes-v1's, but for the input turn that version 6 adds (models.fusion roll)
+    # the same network as heldout-scenes-v1's, but for the input turn that version 6 adds (models.nets.fusion roll)
     assert {k: v for k, v in built.arch_config.items() if k != "roll"} == held.arch_config
     assert built.rotation_frame == RECIPE["rotation_frame"] == held.rotation_frame
     assert built.inplane == RECIPE["inplane"]
 
 
 def test_recipe_files_round_trip_and_toml_reads(tmp_path):
-    from models.recipe import TrainRecipe, load_recipe
+    from models.train.recipe import TrainRecipe, load_recipe
 
     r = TrainRecipe(arch="fusion", arch_config={"fuse_width": 128}, objects=["003_cracker_box", "my_widget"],
                     stages=[{"ft_epochs_geodesic": 20}], rotation_frame="ray", inplane=15.0).validate()
@@ -89,7 +89,7 @@ def test_recipe_files_round_trip_and_toml_reads(tmp_path):
     ({"objects": ["a b"]}, "objects", "objects must be a non-empty list of object names"),
 ])
 def test_cross_field_rules_name_the_field(changes, field, words):
-    from models.recipe import RecipeError, TrainRecipe
+    from models.train.recipe import RecipeError, TrainRecipe
 
     with pytest.raises(RecipeError, match=words.replace("[", r"\[").replace("]", r"\]")) as info:
         TrainRecipe.from_dict(changes)
@@ -132,11 +132,11 @@ def test_a_multi_stage_recipe_gives_the_weights_of_the_same_calls_in_sequence(cu
     import models
 
     staged = _tiny(cubes, stages=[{"ft_epochs_geodesic": 2, "ft_lr": 1e-4}])
-    out = models.train(staged, out=tmp_path / "staged" / "m.pt", progress=False)
+    out = models.run_training(staged, out=tmp_path / "staged" / "m.pt", progress=False)
     first = _tiny(cubes)
     calls = tmp_path / "calls" / "m.pt"
-    models.train(first, out=calls, progress=False)
-    models.train(first.merged(ft_epochs_geodesic=2, ft_lr=1e-4), out=calls, resume=True, progress=False)
+    models.run_training(first, out=calls, progress=False)
+    models.run_training(first.merged(ft_epochs_geodesic=2, ft_lr=1e-4), out=calls, resume=True, progress=False)
     assert set(out) == {"base", "003_cracker_box", "006_mustard_bottle"}
     for key, path in out.items():
         other = calls if key == "base" else calls.with_name(f"m.{key}.pt")
@@ -174,8 +174,8 @@ def test_the_heldout_recipe_reproduces_the_data_scaling_command(cubes, tmp_path)
 
 
 def test_devices_and_the_ddp_backend_follow_the_tensors():
-    from models.recipe import RecipeError
-    from models.training import distributed_backend, resolve_device
+    from models.train.recipe import RecipeError
+    from models.train.run import distributed_backend, resolve_device
 
     assert resolve_device("cpu").type == "cpu"
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else resolve_device("auto").type)
@@ -191,11 +191,11 @@ def test_devices_and_the_ddp_backend_follow_the_tensors():
 def test_training_on_a_device_saves_device_free_checkpoints(cubes, tmp_path):
     # On a machine with CUDA this trains there; everywhere the checkpoint's tensors are on the CPU.
     import models
-    from models.training import resolve_device
+    from models.train.run import resolve_device
 
     device = resolve_device("auto")
     r = _tiny(cubes, per_object=0, device=str(device))
-    out = models.train(r, out=tmp_path / "d.pt", progress=False)
+    out = models.run_training(r, out=tmp_path / "d.pt", progress=False)
     state = _weights(out["base"])
     assert all(v.device.type == "cpu" for v in state.values())
     model, _ = models.load_checkpoint(out["base"])

@@ -11,7 +11,7 @@ lever        training
 ``control``  the version-6 recipe as it is: the same amount of further training, so a lever's gain is not the
              gain of training longer
 ``photo``    plus camera-like photometric augmentation at the probabilities the BOP winners use
-             (:data:`PHOTO`: CosyPose's and GDRNPP's lists, the strengths of models.augment)
+             (:data:`PHOTO`: CosyPose's and GDRNPP's lists, the strengths of models.data.augment)
 ``aa``       the network's crop filter ``antialias`` (block averages before the crop's bilinear shrink,
              docs/design.md §3) in training as at run time; version 6 had it at run time only
 ===========  ===================================================================================================
@@ -51,7 +51,7 @@ if str(ROOT) not in sys.path:
 from benchmarks.study_cli import write_json  # noqa: E402
 
 # CosyPose trains on renders with blur (p 0.4), sharpness, contrast and colour (0.3 each) and brightness (0.5);
-# GDRNPP adds noise, JPEG-like degradation and colour casts at about 0.3 each. models.augment's strengths are a
+# GDRNPP adds noise, JPEG-like degradation and colour casts at about 0.3 each. models.data.augment's strengths are a
 # working camera's (narrower than theirs); the probabilities are theirs.
 PHOTO = {"downscale": 0.2, "motion_blur": 0.2, "blur": 0.4, "sensor_noise": 0.3, "white_balance": 0.3,
          "brightness": 0.5, "gamma": 0.3, "contrast": 0.3, "colour": 0.3, "sharpness": 0.3, "jpeg": 0.3}

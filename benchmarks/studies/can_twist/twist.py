@@ -50,8 +50,8 @@ def _parts(q: np.ndarray, q_true: np.ndarray, axis) -> dict:
 def measure(model: Path, obj: str, heldout: Path, axis) -> dict:
     """The twist/swing split of ``model``'s errors on every instance of ``obj`` in ``heldout``."""
     from benchmarks.pretrained import _metadata, whole_folder_spec
-    from models.evaluate import evaluate_errors, onnx_predictor
-    from models.pipeline import cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors, onnx_predictor
+    from models.data.pipeline import cropset_for, load_splits
 
     meta = _metadata(model)
     spec = whole_folder_spec(heldout, obj, "test")

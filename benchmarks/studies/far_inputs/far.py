@@ -54,8 +54,8 @@ def refine_paths(obj: str, folder: Path) -> dict:
     import cv2
 
     from benchmarks.pretrained import whole_folder_spec
-    from models.noise import NoiseSpec, perturb
-    from models.pipeline import load_splits
+    from models.data.noise import NoiseSpec, perturb
+    from models.data.pipeline import load_splits
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
     from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS
@@ -113,7 +113,7 @@ def settled(r: dict, settle: float | None, cascade: bool, gate: tuple) -> np.nda
 def score(obj: str, paths: dict, symmetric: bool) -> dict:
     """Mean error (degrees) per input, refiner (``coarse``, ``cascade``) and settle (``"off"`` or the value)."""
     from benchmarks.pretrained import SYMMETRIES
-    from models.symmetry import symmetric_error
+    from models.data.symmetry import symmetric_error
     from refiner_rt import quaternion as rq
     from refiner_rt.cascade import shipped_gate
 
@@ -142,7 +142,7 @@ def check(obj: str, folder: Path, paths: dict, settle: float) -> float:
     import cv2
 
     from benchmarks.pretrained import whole_folder_spec
-    from models.pipeline import load_splits
+    from models.data.pipeline import load_splits
     from refiner_rt import RefinerCascade, RefinerSession
     from refiner_rt import quaternion as rq
     from refiner_rt.cascade import shipped_gate

@@ -10,7 +10,7 @@ lever                  training data, augmentation
 =====================  ========================================================================================
 ``v5``                 no training: the version-5 model
 ``tabletop``           scenes of the earlier layout (``render --layout tabletop``), the recipe's augmentation
-``tabletop+photo``     the same scenes, plus the photometric augmentation of ``robot-real-v6`` (models.augment)
+``tabletop+photo``     the same scenes, plus the photometric augmentation of ``robot-real-v6`` (models.data.augment)
 ``robot``              scenes of the robot layout (``render``'s default), the recipe's augmentation
 ``robot+photo``        the robot scenes plus the photometric augmentation: ``robot-real-v6``
 ``robot-long``         ``robot`` on every training crop of the set (about 5,000) for ``--long-samples`` samples
@@ -26,10 +26,10 @@ lever                  training data, augmentation
                        the ray that no training scene had, as an object leaning on another or a tilted camera shows
 ``robot+inplane``      ``robot`` with the same turns
 ``mix-long+inplane``   ``mix-long`` with the same turns (``robot-long+inplane`` likewise)
-``tabletop+roll``      ``tabletop`` with the network's canonical roll (``models.fusion.canonical_roll``): every crop
+``tabletop+roll``      ``tabletop`` with the network's canonical roll (``models.nets.fusion.canonical_roll``): every crop
                        is turned, inside the network, so that the coarse pose's object z axis points up in it, so the
                        network sees each viewing direction at one roll (``robot+roll``, ``mix-long+roll`` likewise)
-``tabletop+quarter``   ``tabletop`` with the canonical roll in quarter turns (``models.fusion.quarter_roll``): a crop
+``tabletop+quarter``   ``tabletop`` with the canonical roll in quarter turns (``models.nets.fusion.quarter_roll``): a crop
                        whose axis points within 45 degrees of up is left as it is, the others are turned by 90, 180
                        or 270 degrees (``mix-long+quarter`` likewise)
 =====================  ========================================================================================
@@ -70,7 +70,7 @@ LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-lon
 
 def photometric() -> dict:
     """The photometric augmentation of the ``robot-real-v6`` recipe: ``{operation: probability}``."""
-    from models.recipe import NAMED_RECIPES
+    from models.train.recipe import NAMED_RECIPES
 
     return {k[len("aug_"):]: v for k, v in NAMED_RECIPES["robot-real-v6"].items() if k.startswith("aug_")}
 
@@ -85,7 +85,7 @@ def score_redrawn(docs: list[dict], run: Path, v5: Path, redrawn: Path) -> dict:
     """Every row of ``docs`` scored again, as on the real frames (10 draws, the drift), on ``redrawn``: the real frames
     with their objects re-drawn at the true poses (``benchmarks/real_rendered.py``), so that a row's gain on the
     view can be told from its gain on the appearance. ``{label: {object: {"mean_deg", "drift_mean_deg"}}}``."""
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
     from refiner_rt.pretrained import model_file_name
 
     out: dict = {}
@@ -182,7 +182,7 @@ def same_scenes(robot: Path, cycles: Path, run: Path) -> Path:
 
 def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
     """Real-frame and fresh-render errors of ``onnx`` for ``obj``."""
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
 
     r = run_eval_all(onnx, real, objects=[obj], draws=10, threads=1, progress=False)["objects"][obj]
     out = {"real": {k: round(r[k], 3) for k in ("mean_deg", "median_deg", "input_mean_deg", "drift_mean_deg",

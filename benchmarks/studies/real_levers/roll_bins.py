@@ -58,8 +58,8 @@ def main(argv=None) -> int:
             ap.error(f"--model: expected NAME=ONNX with an existing file; got {spec!r}")
         models[name] = Path(path)
     from benchmarks.pretrained import whole_folder_spec
-    from models.evaluate import evaluate_errors, onnx_predictor
-    from models.pipeline import cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors, onnx_predictor
+    from models.data.pipeline import cropset_for, load_splits
 
     t0 = time.perf_counter()
     spec = whole_folder_spec(args.data, args.object, "test")

@@ -2,7 +2,7 @@
 
 A cylinder whose colours change only along its axis looks the same after any turn about that axis, so the part of
 the label ``q_noise^-1`` about the axis cannot be seen in the crop: the plain loss asks the network for it anyway;
-the symmetry-aware loss (``models.symmetry``) trains towards the closest equivalent label. Both networks are the
+the symmetry-aware loss (``models.data.symmetry``) trains towards the closest equivalent label. Both networks are the
 same recipe on the same rendered data and split, trained for the same steps, and measured on the same test crops
 and coarse inputs with the symmetry-aware error (and the plain error, for reference).
 
@@ -76,9 +76,9 @@ def main(argv=None) -> int:
 
     import models
     from models.data.render import RenderConfig, render_dataset
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import checkpoint_test_set
-    from models.recipe import TrainRecipe
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import checkpoint_test_set
+    from models.train.recipe import TrainRecipe
 
     t0 = time.perf_counter()
     write_object(args.work / "models", args.shape)
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
         recipe = base.merged(symmetries=symmetries) if symmetries else base
         out = args.work / "runs" / f"{label.split()[0]}.pt"
         t1 = time.perf_counter()
-        models.train(recipe, out=out, progress=False)
+        models.run_training(recipe, out=out, progress=False)
         net, info = models.load_checkpoint(out)
         test, _ = checkpoint_test_set(net, info, cache_root=args.work / "cache")
         row = {"train_s": round(time.perf_counter() - t1, 1), "best_epoch": info["best_epoch"],

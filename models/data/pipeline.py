@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.cropset import CropSet
+from models.data.cropset import CropSet
 from refiner_rt.geometry import ray_quaternions
 
 __all__ = ["DataSpec", "detect_format", "load_samples", "load_splits", "cropset_for", "checkpoint_spec",

@@ -1,6 +1,6 @@
 """TrainRecipe: the one definition of a training run (data and split, network, stages, augmentations, run).
 
-Every way of starting training reads its options from here: ``models.train(recipe, out=...)``, ``refiner-rt train``
+Every way of starting training reads its options from here: ``models.run_training(recipe, out=...)``, ``refiner-rt train``
 (its click options are generated from the fields below, in sections), ``benchmarks/paper.py`` and
 ``benchmarks/data_scaling.py``. A recipe is saved as JSON beside every checkpoint (``<ckpt stem>.recipe.json``) and
 read back from JSON or TOML files; named recipes ship in :data:`NAMED_RECIPES`.
@@ -20,7 +20,9 @@ import re
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
-from models.augment import PHOTOMETRIC_OPS
+from models.data.augment import PHOTOMETRIC_OPS
+from models.data.objects import OBJECT_NAME_PATTERN
+from models.train.config import RecipeError, TrainConfig, check_inplane_frame, check_masks
 
 __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_recipe", "check_masks",
            "check_inplane_frame", "epoch_plan", "OBJECT_NAME_PATTERN", "object_names",
@@ -28,16 +30,6 @@ __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_reci
 
 SECTIONS = ("data", "model", "optimisation", "augmentation", "run")
 
-# An object's name: a YCB id, a mesh folder or file name, or ``obj_NNNNNN`` of a BOP models/ folder.
-OBJECT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_+-]*$")
-
-
-class RecipeError(ValueError):
-    """A recipe value that is out of range or contradicts another field; ``field`` names the offending field."""
-
-    def __init__(self, field_name: str, message: str):
-        super().__init__(message)
-        self.field = field_name
 
 
 def _opt(default, section: str, help: str, *, flag: str | None = None, cli: bool = True, factory: bool = False):
@@ -136,7 +128,7 @@ class TrainRecipe:
     inplane: float = _opt(0.0, "augmentation", "Turn every training crop about its centre by up to this many degrees, "
                           "the coarse pose with it (new rotations about the viewing ray); needs --rotation-frame ray. "
                           "0: off.")
-    # Camera-like photometric augmentation (models.augment): the probability per crop of each operation, 0 = off.
+    # Camera-like photometric augmentation (models.data.augment): the probability per crop of each operation, 0 = off.
     aug_motion_blur: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['motion_blur']}.")
     aug_blur: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['blur']}.")
     aug_sensor_noise: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['sensor_noise']}.")
@@ -158,7 +150,7 @@ class TrainRecipe:
     # ---- validation: every rule about a recipe's values, in one place ----
     def validate(self) -> "TrainRecipe":
         """Check ranges and cross-field rules; returns self. Raises :class:`RecipeError` naming the field."""
-        from models.noise import NoiseSpec
+        from models.data.noise import NoiseSpec
 
         def need(ok: bool, name: str, expected: str):
             if not ok:
@@ -187,7 +179,7 @@ class TrainRecipe:
         need(isinstance(self.bf16, bool) and isinstance(self.augment, bool), "bf16", "true or false")
         need(isinstance(self.arch_config, dict), "arch_config", "a JSON object of architecture config overrides")
         need(isinstance(self.symmetries, dict), "symmetries", "an object of object name -> symmetry")
-        from models.symmetry import validate_symmetry
+        from models.data.symmetry import validate_symmetry
 
         for obj, sym in self.symmetries.items():
             if not sym:
@@ -246,7 +238,7 @@ class TrainRecipe:
 
     @property
     def photometric(self) -> dict[str, float]:
-        """The photometric augmentations switched on: ``{operation: probability}`` (:mod:`models.augment`)."""
+        """The photometric augmentations switched on: ``{operation: probability}`` (:mod:`models.data.augment`)."""
         return {op: float(getattr(self, f"aug_{op}")) for op in PHOTOMETRIC_OPS if getattr(self, f"aug_{op}") > 0}
 
     @property
@@ -254,9 +246,7 @@ class TrainRecipe:
         return self.ft_lr or self.lr / 3
 
     def stage_config(self, stage: str, n_train: int):
-        """The :class:`models.train.TrainConfig` of one stage (``"base"`` or ``"finetune"``) on ``n_train`` crops."""
-        from models.train import TrainConfig
-
+        """The :class:`models.train.config.TrainConfig` of one stage (``"base"`` or ``"finetune"``) on ``n_train`` crops."""
         if stage not in ("base", "finetune"):
             raise ValueError(f"stage must be 'base' or 'finetune'; got {stage!r}")
         epochs_mse, epochs_geodesic = (self.epochs_mse, self.epochs_geodesic) if stage == "base" else self.ft_epochs
@@ -274,8 +264,8 @@ class TrainRecipe:
         )
 
     def data_spec(self):
-        """The :class:`models.pipeline.DataSpec` of this recipe's data and split."""
-        from models.pipeline import DataSpec
+        """The :class:`models.data.pipeline.DataSpec` of this recipe's data and split."""
+        from models.data.pipeline import DataSpec
 
         if self.data is None:
             raise RecipeError("data", "data is not set: give the dataset folder (--data DIR)")
@@ -332,31 +322,6 @@ def _expand(objects: list[str] | None) -> list[str] | None:
     return objects
 
 
-def check_inplane_frame(inplane: float, rotation_frame: str, *, as_flags: bool = True) -> None:
-    """In-plane turns of a crop are rotations about the viewing ray, so they need the ray frame.
-
-    ``as_flags``: name the values as command-line flags (``--inplane 30``) rather than fields (``inplane``).
-    """
-    if inplane > 0 and rotation_frame != "ray":
-        why = ("a crop turned about its centre shows the object turned about the viewing ray, not the camera axis")
-        if as_flags:
-            message = f"--inplane {inplane:g} needs --rotation-frame ray ({why}); got --rotation-frame {rotation_frame}"
-        else:
-            message = f"inplane needs rotation_frame='ray': {why}; got rotation_frame={rotation_frame!r}"
-        raise RecipeError("inplane", message)
-
-
-def check_masks(background: float, occlude: float, has_masks: bool, where: str, *, as_flags: bool = True) -> None:
-    """New backgrounds and pasted occluders cut the object out by its instance mask: refuse them without masks."""
-    spell = (lambda n, p: f"--{n} {p:g}") if as_flags else (lambda n, p: f"{n}={p}")
-    wanted = [spell(name, p) for name, p in (("background", background), ("occlude", occlude)) if p > 0]
-    if wanted and not has_masks:
-        raise RecipeError("background" if background > 0 else "occlude",
-                          f"{' '.join(wanted)} needs instance masks, but {where} has none "
-                          "(BOP mask_visib/<im_id>_<gt_idx>.png or YCB-Video <frame>-label.png; `refiner-rt render` "
-                          "writes mask_visib/)")
-
-
 def epoch_plan(samples: int, n_train: int, epoch_samples: int, batch_size: int) -> tuple[int, int, int]:
     """``(epochs_mse, epochs_geodesic, max_steps_per_epoch)`` of a sample budget.
 
@@ -402,7 +367,7 @@ NAMED_RECIPES: dict[str, dict] = {
         "split_objects": ["paper"], "per_object": 0, "val_per_object": 300, "test_per_object": 700, "seed": 0,
         "samples": 500_000, "base_per_object": 16000, "bf16": True,
     },
-    # heldout-scenes-v3 with camera-like photometric augmentation (models.augment: the probability per crop of each
+    # heldout-scenes-v3 with camera-like photometric augmentation (models.data.augment: the probability per crop of each
     # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what
     # `benchmarks/pretrained.py build` would train model version 6 with, continuing each version-5 model. Not yet
     # shown to pay (benchmarks/studies/real_levers): 60,000 samples of it moved the real dev frames by -0.54 deg over
@@ -418,7 +383,7 @@ NAMED_RECIPES: dict[str, dict] = {
         "aug_brightness": 0.4, "aug_contrast": 0.3, "aug_colour": 0.3, "aug_sharpness": 0.3, "aug_jpeg": 0.3,
     },
     # What `benchmarks/pretrained.py build` trains model version 6 with: heldout-scenes-v3's network with the canonical
-    # roll (models.fusion.canonical_roll: each crop turned so that the coarse pose's object z axis points up), float32,
+    # roll (models.nets.fusion.canonical_roll: each crop turned so that the coarse pose's object z axis points up), float32,
     # continuing each version-5 model on the robot layout with tabletop scenes joining (build --extra-train), no
     # photometric augmentation. Measured in benchmarks/studies/real_levers ("The views the training scenes lack"):
     # 150,000 samples of it took the real dev frames' gelatin box 12.87 -> 5.20 deg, the banana 19.78 -> 9.26 and the
