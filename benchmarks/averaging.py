@@ -9,7 +9,7 @@ view or ``K``. The average is the chordal mean of the rotations (``refiner_rt.qu
 
 Usage (from the repository root)::
 
-    python benchmarks/averaging.py CKPT [CKPT ...] [--views 4,8] [--runtime] [--cache DIR] [--data DIR] [--json OUT]
+    python -m benchmarks.averaging CKPT [CKPT ...] [--views 4,8] [--runtime] [--cache DIR] [--data DIR] [--json OUT]
 
 ``--runtime`` also measures each model's views end to end, the way robot code runs them: the checkpoint exported to
 ONNX (``refiner-rt export``, parity-checked) and ``RefinerSession.refine(image, box, q_in, K=K, views=K)`` on the full
@@ -31,11 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
+from models.evaluate.record import checkpoint_parser, parse_checkpoint_args, provenance, write_json
 
 
 def jittered_views(crops: np.ndarray, views: int) -> list[np.ndarray]:
@@ -209,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(args.json, {"study": "corrections averaged over box-jittered views and over models", "rows": rows,
                                "test_noise": "uniform:0:30", "checkpoints": [str(c) for c in args.checkpoints],
-                               **provenance("averaging.py", argv, threads)})
+                               **provenance("benchmarks.averaging", argv, threads)})
     return 0
 
 

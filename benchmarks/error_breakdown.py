@@ -7,7 +7,7 @@ foreshortening reveal?
 
 Usage (from the repository root)::
 
-    python benchmarks/error_breakdown.py CKPT [CKPT ...] [--cache DIR] [--data DIR] [--json OUT]
+    python -m benchmarks.error_breakdown CKPT [CKPT ...] [--cache DIR] [--data DIR] [--json OUT]
 
 Each checkpoint (``refiner-rt train``, its per-object fine-tuned models, or ``data_scaling.py --save``) is evaluated
 on its own objects' crops in the training (base and fine-tuning; for a ``--train-scenes`` run of ``data_scaling.py``,
@@ -20,16 +20,11 @@ reference (:func:`models.evaluate.metrics.swing_twist_deg`).
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
+from models.evaluate.record import checkpoint_parser, parse_checkpoint_args, provenance, write_json
 
 PARTS = ("train_base", "train_finetune", "val", "test")
 
@@ -129,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(args.json, {"study": "error on train/val/test parts, test error in and out of the image plane",
                                "results": results, "test_noise": "uniform:0:30",
-                               **provenance("error_breakdown.py", argv, threads)})
+                               **provenance("benchmarks.error_breakdown", argv, threads)})
     return 0
 
 

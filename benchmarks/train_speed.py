@@ -10,8 +10,8 @@ variant and their ratio.
 
 Usage (from the repository root)::
 
-    python benchmarks/train_speed.py                       # five-block fusion, batch 64, one thread
-    python benchmarks/train_speed.py --config '{}' --threads 2 --json benchmarks/results/train_speed.json
+    python -m benchmarks.train_speed                       # five-block fusion, batch 64, one thread
+    python -m benchmarks.train_speed --config '{}' --threads 2 --json benchmarks/results/train_speed.json
 """
 
 from __future__ import annotations
@@ -24,12 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from models.train.recipe import parse_json_object as _parse_config  # noqa: E402
-from benchmarks.study_cli import provenance, write_json  # noqa: E402
+from models.evaluate.record import provenance, write_json
+from models.train.recipe import parse_json_object as _parse_config
 
 FIVE_BLOCKS = {"conv_channels": [16, 32, 64, 128, 128]}
 
@@ -102,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         "augment": args.augment, "background": args.background,
         "median_samples_per_s": med, "bf16_speedup": med["bf16"] / med["float32"],
         "samples_per_s": rates,
-        **provenance("train_speed.py", argv, args.threads),
+        **provenance("benchmarks.train_speed", argv, args.threads),
         "cpu_bf16": "avx512_bf16" in Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else None,
         "wall_s": round(time.perf_counter() - t0, 1),
     }

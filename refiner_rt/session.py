@@ -322,6 +322,9 @@ def _validate_settle(value, iterations: int | None = None) -> float | None:
     return float(value)
 
 
+validate_settle = _validate_settle  # the same check for the training side (evaluation scores settle_deg the same way)
+
+
 def _validate_K(K) -> np.ndarray:
     """``K`` as a float64 ``(3, 3)`` pinhole matrix, or a ValueError naming ``K`` (see :data:`K_MAX_ABS`)."""
     try:

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from data_fixtures import make_bop
-from onnx_fixtures import channel_mean_model, constant_model, contract
+from tests.data_fixtures import make_bop
+from tests.onnx_fixtures import channel_mean_model, constant_model, contract
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
 from models.evaluate.errors import evaluate_errors, torch_predictor
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 
 @pytest.fixture(scope="module")

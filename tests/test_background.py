@@ -10,23 +10,23 @@ from __future__ import annotations
 import dataclasses
 import json
 
+from click.testing import CliRunner
 import cv2
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
-from data_fixtures import write_ycbv_frame
-from models.data.cropset import CropSet
 from models.data import CropCache, load_bop, load_ycbv
-from models.data.cache import samples_fingerprint
 from models.data.augment import jitter_box_and_colour, paste_occluders, replace_background
+from models.data.cache import samples_fingerprint
+from models.data.cropset import CropSet
 from models.train.config import TrainConfig
 from models.train.loop import train_refiner
 from refiner_rt.cli import main
 from refiner_rt.preprocess import crop_to_square
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
+from tests.data_fixtures import write_ycbv_frame
 
 S = 32
 TINY = json.dumps({"input_size": S, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [16, 64],

@@ -9,11 +9,11 @@ split whose validation or test crops the base network was trained on is refused.
 import json
 import re
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.cube_dataset import make_cube_dataset
 
 C, M = "003_cracker_box", "006_mustard_bottle"
 SIZES = (20, 0, 10, 10)

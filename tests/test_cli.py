@@ -4,11 +4,11 @@ import json
 import subprocess
 import sys
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
-import onnx_fixtures as fx
 from refiner_rt.cli import LAZY_COMMANDS, main
+from tests import onnx_fixtures as fx
 
 
 def test_group_help_lists_every_command_without_importing_them():

@@ -8,11 +8,11 @@ import onnx
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from onnx_fixtures import contract, random_weight_model
 from refiner_rt import RefinerSession
 from refiner_rt.metadata import parse_metadata
 from refiner_rt.preprocess import crop_matrix, crop_to_square, prefiltered_region, resize_crop
-from test_preprocess import naive_crop
+from tests.onnx_fixtures import contract, random_weight_model
+from tests.test_preprocess import naive_crop
 
 RNG = np.random.default_rng(3)
 

@@ -6,13 +6,13 @@ Runs are capped at a few steps: this checks the study's plumbing and bookkeeping
 import json
 from pathlib import Path
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
 import models
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 WIDE = {"fuse_width": 1024, "pose_widths": [64, 1024]}
 
@@ -59,7 +59,7 @@ def test_study_writes_one_row_per_size_and_mode_on_fixed_test_sets(cubes, tmp_pa
         assert r["mean_deg"] >= 0 and r["input_mean_deg"] > 0
     printed = capsys.readouterr().out
     assert "| scenes | 40 | yes |" in printed and f"fusion {json.dumps(WIDE)}, " in printed
-    assert doc["command"].startswith("python benchmarks/data_scaling.py --data")
+    assert doc["command"].startswith("python -m benchmarks.data_scaling --data")
     assert study.main(["--table", str(out)]) == 0
     assert capsys.readouterr().out.count("| frames |") == 3
 

@@ -1,12 +1,12 @@
 """models.train.losses against refiner_rt.quaternion (numpy) and SciPy's Rotation, plus gradient safety."""
 
-import numpy as np
-import pytest
-import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
+import torch
 
 from models.train import losses
 from refiner_rt import quaternion as rq

@@ -4,14 +4,14 @@ import json
 
 import numpy as np
 import pytest
-import torch
 from torch import nn
+import torch
 
 import models
-import models.train.losses
 from models.nets import registry
 from models.nets.blocks import IMAGENET_MEAN_RGB, IMAGENET_STD_RGB, InputNormalization, Refiner
 from models.nets.vggm import MIN_INPUT_SIZE
+import models.train.losses
 
 # Small hidden widths keep the tests fast; the default sizes are tested once in test_default_*.
 SMALL_COMMON = {"pose_widths": [8, 16], "head_widths": [16, 8]}

@@ -1,15 +1,13 @@
 """TrainRecipe: files, rules, named recipes, the generated CLI, and stages that give the same weights as calls."""
 
 import json
-import sys
-from pathlib import Path
 
+from click.testing import CliRunner
 import pytest
 import torch
-from click.testing import CliRunner
 
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.cube_dataset import make_cube_dataset
 
 TINY = {"input_size": 32, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [32, 64], "head_widths": [32, 16]}
 
@@ -51,8 +49,7 @@ def test_named_recipes_are_valid_and_paper_is_the_defaults():
     for name in NAMED_RECIPES:
         load_recipe(name)
     # the same values as the build script that trains the shipped models
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from benchmarks.pretrained import RECIPE
+    from export.release.coarse import RECIPE
 
     built = load_recipe(RECIPE["name"])
     assert (built.val_per_object, built.test_per_object, built.lr, built.background, built.seed, built.bf16) == (
@@ -151,9 +148,8 @@ def test_a_multi_stage_recipe_gives_the_weights_of_the_same_calls_in_sequence(cu
 
 
 def test_the_heldout_recipe_reproduces_the_data_scaling_command(cubes, tmp_path):
-    # The shipped models are trained by benchmarks/data_scaling.py; `refiner-rt train --recipe heldout-scenes-v1`
+    # Models up to version 6 were trained by benchmarks/data_scaling.py; `refiner-rt train --recipe heldout-scenes-v1`
     # with the same images, budget and network writes the same weights.
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from benchmarks import data_scaling
 
     common = ["--val", "4", "--test", "4", "--samples", "40", "--epoch-samples", "20", "--threads", "1",

@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import json
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
 import models
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
 from models.data.augment import relight
 from models.train.config import TrainConfig
 from refiner_rt.cli import main
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 S = 32
 TINY = json.dumps({"input_size": S, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [16, 64],

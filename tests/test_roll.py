@@ -4,13 +4,13 @@ trained without it."""
 
 import numpy as np
 import pytest
-import torch
 from scipy.spatial.transform import Rotation
+import torch
 
 import export
 import models
-from models.nets.fusion import canonical_roll, roll_angle
 from models.data.augment import rotate_in_plane
+from models.nets.fusion import canonical_roll, roll_angle
 
 SMALL = {"conv_channels": [8, 8], "fuse_width": 32, "pose_widths": [16, 32], "head_widths": [16, 8]}
 
@@ -236,7 +236,7 @@ def test_a_network_without_the_roll_goes_on_with_it_with_the_same_weights(tmp_pa
     """data_scaling --init accepts a checkpoint whose config differs only in roll, keeping every weight."""
     from types import SimpleNamespace
 
-    from bench_scripts import load_benchmark
+    from tests.bench_scripts import load_benchmark
 
     scaling = load_benchmark("data_scaling")
     torch.manual_seed(0)
@@ -275,7 +275,7 @@ def test_refiner_rt_train_init_goes_on_with_the_roll_and_keeps_every_weight(tmp_
 def test_roll_bins_measures_the_roll_and_the_axis_to_the_ray_as_scipy_does():
     """benchmarks/studies/real_levers/roll_bins.py's bins: the angle of the object's z axis to the viewing ray (from
     SciPy's matrix) and the magnitude of the turn's roll angle."""
-    from bench_scripts import load_benchmark
+    from tests.bench_scripts import load_benchmark
 
     study = load_benchmark("studies/real_levers/roll_bins")
     r = Rotation.random(100, random_state=8)

@@ -71,7 +71,7 @@ def test_closest_label_picks_the_symmetric_label_nearest_the_prediction():
 
 def test_training_with_a_symmetry_records_it_and_evaluates_with_it(tmp_path):
     import models
-    from cube_dataset import make_cube_dataset
+    from tests.cube_dataset import make_cube_dataset
     from models.train.recipe import RecipeError, TrainRecipe
 
     make_cube_dataset(tmp_path / "cubes", scenes=3, frames=8)

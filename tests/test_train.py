@@ -11,8 +11,8 @@ import torch
 
 import models
 from models.data.cropset import CropSet
-from models.evaluate.metrics import format_markdown, format_table, summarize_errors
 from models.data.noise import NoiseSpec, perturb
+from models.evaluate.metrics import format_markdown, format_table, summarize_errors
 from models.train.config import TrainConfig
 from models.train.loop import train_refiner, validation_errors
 from refiner_rt import quaternion as rq

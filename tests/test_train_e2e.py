@@ -6,11 +6,11 @@ model give the same evaluation, and that the per-object fine-tuned models are fo
 
 import json
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.cube_dataset import make_cube_dataset
 
 ARCH = "fusion"
 SMALL = json.dumps({"input_size": 32, "conv_channels": [8, 8], "fuse_width": 128, "pose_widths": [32, 128], "head_widths": [64, 32]})

@@ -23,7 +23,7 @@ from models.data.symmetry import symmetric_error
 from refiner_rt import quaternion as rq
 # Imported with the module, not when a long training run first scores its test split: a process that started before
 # the runtime's files changed on disk must not fail at its end on a mix of the old and the new.
-from refiner_rt.session import _validate_settle, settle_keeps
+from refiner_rt.session import settle_keeps, validate_settle
 
 __all__ = ["EvalErrors", "evaluate_errors", "evaluate_folder", "folder_cropset", "onnx_predictor", "torch_predictor"]
 
@@ -80,7 +80,7 @@ def evaluate_errors(
     """
     if resample < 1 or iterations < 1:
         raise ValueError(f"resample and iterations must be >= 1; got {resample}, {iterations}")
-    settle_deg = _validate_settle(settle_deg, iterations)
+    settle_deg = validate_settle(settle_deg, iterations)
     noise = NoiseSpec.parse(noise) if isinstance(noise, str) else noise
     rng = np.random.default_rng(seed)
     q_gt = data.q_gt_in(rotation_frame)

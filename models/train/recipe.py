@@ -337,7 +337,7 @@ def epoch_plan(samples: int, n_train: int, epoch_samples: int, batch_size: int) 
 NAMED_RECIPES: dict[str, dict] = {
     # The paper's recipe as `refiner-rt train` runs it by default (the dataclass defaults).
     "paper": {},
-    # The shipped pretrained models (benchmarks/pretrained.py's RECIPE): five conv blocks, box and colour jitter, new
+    # The shipped pretrained models (export/release/coarse.py's RECIPE): five conv blocks, box and colour jitter, new
     # backgrounds for half the crops, cosine learning rate from 1e-3, the viewing-ray frame, the scenes split drawn
     # over the paper's nine objects, one network per object (--objects ID), no fine-tuning stage; 3,500 training
     # crops and 300,000 samples per object, what every shipped model was trained with (the build's defaults).
@@ -349,7 +349,7 @@ NAMED_RECIPES: dict[str, dict] = {
     },
     # heldout-scenes-v1 on a four times larger rendered set (benchmarks/DATA.md, ycb9_v2: 10,000 scenes of 4
     # frames): up to 16,000 training crops per object at the same 300,000 samples (the scene-count study: at a fixed
-    # budget, more scenes trade memorising for fitting). What `benchmarks/pretrained.py build` trains (model version 2).
+    # budget, more scenes trade memorising for fitting). What `export/release/coarse.py build` trains (model version 2).
     "heldout-scenes-v2": {
         "arch": "fusion", "arch_config": {"conv_channels": [16, 32, 64, 128, 128]}, "rotation_frame": "ray",
         "lr": 1e-3, "lr_schedule": "cosine", "augment": True, "background": 0.5, "split_mode": "scenes",
@@ -369,7 +369,7 @@ NAMED_RECIPES: dict[str, dict] = {
     },
     # heldout-scenes-v3 with camera-like photometric augmentation (models.data.augment: the probability per crop of each
     # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what
-    # `benchmarks/pretrained.py build` would train model version 6 with, continuing each version-5 model. Not yet
+    # `export/release/coarse.py build` would train model version 6 with, continuing each version-5 model. Not yet
     # shown to pay (benchmarks/studies/real_levers): 60,000 samples of it moved the real dev frames by -0.54 deg over
     # four objects but cost 1.2 on the tabletop renders, and its photometric part made the real frames worse than
     # the same run without it for three of the four. float32: on
@@ -382,7 +382,7 @@ NAMED_RECIPES: dict[str, dict] = {
         "aug_motion_blur": 0.2, "aug_blur": 0.3, "aug_sensor_noise": 0.3, "aug_white_balance": 0.3,
         "aug_brightness": 0.4, "aug_contrast": 0.3, "aug_colour": 0.3, "aug_sharpness": 0.3, "aug_jpeg": 0.3,
     },
-    # What `benchmarks/pretrained.py build` trains model version 6 with: heldout-scenes-v3's network with the canonical
+    # What `export/release/coarse.py build` trains model version 6 with: heldout-scenes-v3's network with the canonical
     # roll (models.nets.fusion.canonical_roll: each crop turned so that the coarse pose's object z axis points up), float32,
     # continuing each version-5 model on the robot layout with tabletop scenes joining (build --extra-train), no
     # photometric augmentation. Measured in benchmarks/studies/real_levers ("The views the training scenes lack"):

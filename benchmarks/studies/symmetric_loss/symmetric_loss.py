@@ -6,7 +6,7 @@ the symmetry-aware loss (``models.data.symmetry``) trains towards the closest eq
 same recipe on the same rendered data and split, trained for the same steps, and measured on the same test crops
 and coarse inputs with the symmetry-aware error (and the plain error, for reference).
 
-    python benchmarks/studies/symmetric_loss/symmetric_loss.py --work runs/symmetric_loss \\
+    python -m benchmarks.studies.symmetric_loss.symmetric_loss --work runs/symmetric_loss \\
         --json benchmarks/studies/symmetric_loss/symmetric_loss.json
 """
 
@@ -20,10 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.study_cli import provenance, write_json  # noqa: E402
+from models.evaluate.record import provenance, write_json
 
 NAME = "obj_000001"
 SYMMETRIES = {
@@ -115,7 +112,7 @@ def main(argv=None) -> int:
               f"plain error {row['plain']['mean_deg']:.2f}", file=sys.stderr)
     doc = {"study": f"plain vs symmetry-aware loss on a rendered banded {args.shape} (symmetric about z)",
            "object": NAME, "shape": args.shape, "symmetry": symmetry, "frames": args.frames, "recipe": base.as_dict(), "rows": rows,
-           "test_noise": args.noise, **provenance("studies/symmetric_loss/symmetric_loss.py", list(sys.argv[1:] if argv is None else argv),
+           "test_noise": args.noise, **provenance("benchmarks.studies.symmetric_loss.symmetric_loss", list(sys.argv[1:] if argv is None else argv),
                                                       args.threads),
            "wall_s": round(time.perf_counter() - t0, 1)}
     if args.json:
