@@ -52,11 +52,11 @@ import numpy as np
 
 from export.release.card import (MAX_INT8_COST_DEG, MAX_MEAN_INT8_COST_DEG, RESULTS_DIR, ROOT, SCHEMA, load_results,
                                  metadata_props, portable_command, publish, stamp, write_card)
-from models.data.objects import PAPER_OBJECTS, SCAN_FRAME_SYMMETRIES
+from models.data.objects import PAPER_OBJECTS, SCAN_FRAME_SYMMETRIES, object_names
 from models.data.pipeline import whole_folder_spec
 from models.evaluate.real import DEFAULT_JSON as REAL_JSON
 from models.evaluate.record import git_commit, machine
-from models.train.recipe import NAMED_RECIPES, TrainRecipe, load_recipe, object_names
+from models.train.recipe import NAMED_RECIPES, TrainRecipe, load_recipe
 from refiner_rt.metadata import file_sha256
 from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
 

@@ -27,6 +27,7 @@ __all__ = [
     "validate_object_ids",
     "SCAN_FRAME_SYMMETRIES",
     "OBJECT_NAME_PATTERN",
+    "object_names",
 ]
 
 # An object's name: a YCB id, a mesh folder or file name, or ``obj_NNNNNN`` of a BOP models/ folder.
@@ -166,3 +167,16 @@ def obj_id_map_for(data) -> dict[int, str]:
     ids = dict(BOP_YCBV_OBJ_IDS)
     ids.update({v["obj_id"]: name for name, v in dataset_objects(data).items()})
     return ids
+
+
+def object_names(text: str) -> list[str]:
+    """Comma-separated object names (each :data:`OBJECT_NAME_PATTERN`): the one parser of ``--objects`` lists.
+
+    Raises:
+        ValueError: an empty list or a name with other characters, the text quoted.
+    """
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    if not names or not all(OBJECT_NAME_PATTERN.match(n) for n in names):
+        raise ValueError(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, digits, "
+                         f"_ + -); got {text!r}")
+    return names

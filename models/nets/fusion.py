@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from models.nets.blocks import InputNormalization, RefinementHead, Refiner, mlp, unit_normalize, validate_int_list
-from models.train.losses import quat_multiply
+from models.nets.quaternion import quat_multiply
 from models.nets.registry import register_refiner
 
 __all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices", "roll_angle",

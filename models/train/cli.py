@@ -24,7 +24,7 @@ import click
 
 from models.data.augment import PHOTOMETRIC_OPS
 from models.train.recipe import (NAMED_RECIPES, SECTIONS, RecipeError, TrainRecipe, field_default, object_names,
-                           load_recipe, parse_json_object)
+                                 load_recipe, parse_json_object)
 from models.train.run import write_logs  # noqa: F401  (re-exported: the epoch logs of a run)
 
 log = logging.getLogger(__name__)

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from models.data.augment import (jitter_box_and_colour, paste_occluders, photometric, relight, replace_background,
-                                  rotate_in_plane)
+                                 rotate_in_plane)
 from models.data.cropset import CropSet
 from models.data.noise import NoiseSpec, perturb
 from models.data.symmetry import closest_label, symmetric_error, symmetry_table

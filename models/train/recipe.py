@@ -21,7 +21,7 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from models.data.augment import PHOTOMETRIC_OPS
-from models.data.objects import OBJECT_NAME_PATTERN
+from models.data.objects import OBJECT_NAME_PATTERN, object_names
 from models.train.config import RecipeError, TrainConfig, check_inplane_frame, check_masks
 
 __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_recipe", "check_masks",
@@ -433,19 +433,6 @@ def load_recipe(name_or_path: str | Path) -> TrainRecipe:
 def field_default(f) -> object:
     """A dataclass field's default value (calling its factory)."""
     return f.default_factory() if f.default is MISSING else f.default
-
-
-def object_names(text: str) -> list[str]:
-    """Comma-separated object names (each :data:`OBJECT_NAME_PATTERN`): the one parser of ``--objects`` lists.
-
-    Raises:
-        ValueError: an empty list or a name with other characters, the text quoted.
-    """
-    names = [v.strip() for v in text.split(",") if v.strip()]
-    if not names or not all(OBJECT_NAME_PATTERN.match(n) for n in names):
-        raise ValueError(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, digits, "
-                         f"_ + -); got {text!r}")
-    return names
 
 
 def _comma_names(text: str) -> list[str]:
