@@ -1,4 +1,4 @@
-"""The appearance benchmark (benchmarks/appearance.py): the stressed copies are the frames through the training
+"""The appearance benchmark (models/evaluate/appearance.py, run by benchmarks/appearance.py): the stressed copies are the frames through the training
 augmentation's own operations, reused when unchanged; a model that ignores the pixels pays nothing for any case, one
 that reads them pays for a change of its input; the gap and the rendered sets' ratio add up."""
 
@@ -21,7 +21,7 @@ def real_folder(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def appearance():
-    from benchmarks import appearance
+    from models.evaluate import appearance
 
     return appearance
 
@@ -82,7 +82,9 @@ def test_rendered_sets_give_the_ratio_of_the_first_to_the_second(appearance, rea
     assert r["ratio"]["value"] == pytest.approx(r["sets"]["a"]["mean_deg"] / r["sets"]["b"]["mean_deg"])
 
 
-def test_the_command_line_refuses_nothing_to_measure(appearance, capsys):
+def test_the_command_line_refuses_nothing_to_measure(capsys):
+    from benchmarks import appearance as script
+
     with pytest.raises(SystemExit):
-        appearance.main([])
+        script.main([])
     assert "nothing to measure" in capsys.readouterr().err

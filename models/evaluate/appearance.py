@@ -19,10 +19,7 @@ Every part scores every instance with ``visib_fract >= 0.3`` through the runtime
 as the input). Real frames are for measuring only: choose checkpoints on the stress test and the rendered sets, never
 on the real frames' own numbers.
 
-Usage (from the repository root)::
-
-    python -m benchmarks.appearance --real REAL [--rendered cycles=DIR --rendered tiny=DIR] \\
-        [--model OBJ=PATH ...] --json benchmarks/results/appearance/v6.json --plot benchmarks/results/appearance/v6.png
+The command is ``python -m benchmarks.appearance`` (its docstring has the usage); this module is what it runs.
 """
 
 from __future__ import annotations

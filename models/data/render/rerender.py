@@ -10,10 +10,7 @@ frame; objects that are not annotated are not drawn, so where one hid an annotat
 
 Real frames are for measuring only: never train, calibrate or choose a checkpoint on them or on this copy.
 
-Usage (from the repository root)::
-
-    python -m benchmarks.real_rendered --data REAL --out data/real_rendered/test [--background grey]
-    python -m benchmarks.real --data data/real_rendered/test --json benchmarks/results/real/rendered_real.json
+The command is ``python -m benchmarks.real_rendered`` (its docstring has the usage); this module is what it runs.
 """
 
 from __future__ import annotations
