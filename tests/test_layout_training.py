@@ -188,3 +188,15 @@ def test_no_private_name_imported_across_modules():
                 if private and module != name:
                     bad.append(f"{path.relative_to(ROOT)}:{line}: from {module} import {', '.join(private)}")
     assert not bad, "\n".join(bad)
+
+
+def test_no_code_commits_to_git():
+    """A build writes files and lists them; committing is the builder's step (no ``git commit`` run from code)."""
+    bad = []
+    for name, path in KNOWN.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.List, ast.Tuple)):
+                words = [e.value for e in node.elts if isinstance(e, ast.Constant) and isinstance(e.value, str)]
+                if "git" in words and "commit" in words:
+                    bad.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not bad, "\n".join(bad)

@@ -304,11 +304,15 @@ BLOCK = re.compile(r"(<!-- generated: ([\w-]+) -->\n)(.*?)(<!-- end: \2 -->)", r
 
 
 def render(text: str, skip: tuple[str, ...] = ()) -> str:
-    """``text`` with every generated block rewritten from its JSON (blocks named in ``skip`` left as they are)."""
+    """``text`` with every generated block rewritten from its JSON (blocks named in ``skip`` left as they are).
+
+    Raises:
+        ValueError: a generated block names a table :data:`TABLES` does not have.
+    """
     def one(m):
         name = m.group(2)
         if name not in TABLES:
-            raise SystemExit(f"unknown generated table {name!r}; known: {sorted(TABLES)}")
+            raise ValueError(f"unknown generated table {name!r}; known: {sorted(TABLES)}")
         if name in skip:
             return m.group(0)
         return m.group(1) + TABLES[name]() + "\n" + m.group(4)
