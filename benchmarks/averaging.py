@@ -9,7 +9,7 @@ view or ``K``. The average is the chordal mean of the rotations (``refiner_rt.qu
 
 Usage (from the repository root)::
 
-    python benchmarks/averaging.py CKPT [CKPT ...] [--views 4,8] [--runtime] [--cache DIR] [--data DIR] [--json OUT]
+    python -m benchmarks.averaging CKPT [CKPT ...] [--views 4,8] [--runtime] [--cache DIR] [--data DIR] [--json OUT]
 
 ``--runtime`` also measures each model's views end to end, the way robot code runs them: the checkpoint exported to
 ONNX (``refiner-rt export``, parity-checked) and ``RefinerSession.refine(image, box, q_in, K=K, views=K)`` on the full
@@ -31,11 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
+from models.evaluate.record import checkpoint_parser, parse_checkpoint_args, provenance, write_json
 
 
 def jittered_views(crops: np.ndarray, views: int) -> list[np.ndarray]:
@@ -59,8 +55,8 @@ def jittered_views(crops: np.ndarray, views: int) -> list[np.ndarray]:
 
 
 def averaged_predictor(nets: list, views: int):
-    """A predictor (``models.evaluate``) that averages the corrections of ``nets`` over ``views`` views."""
-    from models.train import predict
+    """A predictor (``models.evaluate.errors``) that averages the corrections of ``nets`` over ``views`` views."""
+    from models.train.loop import predict
     from refiner_rt import quaternion as rq
 
     def run(crops, q_in):
@@ -73,7 +69,7 @@ def averaged_predictor(nets: list, views: int):
 def load_models(paths: list[Path], data: Path | None, cache: Path | None):
     """The nets, their shared test crops (of their objects) and rotation frame; refuses checkpoints of other splits."""
     import models
-    from models.pipeline import checkpoint_spec, checkpoint_test_set
+    from models.data.pipeline import checkpoint_spec, checkpoint_test_set
 
     loaded = [models.load_checkpoint(p) for p in paths]
     first = loaded[0][1]
@@ -107,13 +103,13 @@ def load_models(paths: list[Path], data: Path | None, cache: Path | None):
 
 def runtime_errors(ckpt: Path, test, frame: str, samples: list, views: list[int], workdir: Path) -> dict[int, dict]:
     """``{K: pooled summary}`` of ``RefinerSession.refine(views=K)`` on the full frames of ``test`` (``samples``: its
-    frames and boxes), with the coarse poses of ``models.evaluate.evaluate_errors`` (seed 2024, ``uniform:0:30``),
+    frames and boxes), with the coarse poses of ``models.evaluate.errors.evaluate_errors`` (seed 2024, ``uniform:0:30``),
     for the checkpoint exported to ONNX."""
     import cv2
 
     from export.onnx_export import export_checkpoint
-    from models.metrics import summarize_errors
-    from models.noise import NoiseSpec, perturb
+    from models.evaluate.metrics import summarize_errors
+    from models.data.noise import NoiseSpec, perturb
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
 
@@ -142,7 +138,7 @@ def runtime_errors(ckpt: Path, test, frame: str, samples: list, views: list[int]
 def run(paths: list[Path], views: list[int], data: Path | None, cache: Path | None, runtime: bool = False) -> list[dict]:
     import tempfile
 
-    from models.evaluate import evaluate_errors
+    from models.evaluate.errors import evaluate_errors
 
     nets, test, frame, samples = load_models(paths, data, cache)
     names = [p.name for p in paths]
@@ -201,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
                         "RefinerSession.refine(views=K) on the full frames, with the same coarse poses")
     args = parse_checkpoint_args(p, argv)
 
-    from models.train import set_threads
+    from models.train.loop import set_threads
 
     threads = set_threads(args.threads)
     rows = run(args.checkpoints, args.views, args.data, args.cache, runtime=args.runtime)
@@ -209,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(args.json, {"study": "corrections averaged over box-jittered views and over models", "rows": rows,
                                "test_noise": "uniform:0:30", "checkpoints": [str(c) for c in args.checkpoints],
-                               **provenance("averaging.py", argv, threads)})
+                               **provenance("benchmarks.averaging", argv, threads)})
     return 0
 
 

@@ -7,7 +7,7 @@ recorded split, minus every crop whose scene any of the checkpoints trained or v
 
 Usage (from the repository root)::
 
-    python benchmarks/cross_split.py CKPT [CKPT ...] [--cache DIR] [--threads N] [--json OUT]
+    python -m benchmarks.cross_split CKPT [CKPT ...] [--cache DIR] [--threads N] [--json OUT]
 
 Scenes are compared by their folder on disk with symbolic links resolved, so a dataset that links the scene
 folders of another (a rendered set extended with more scenes, say) is recognised as holding the same scenes.
@@ -19,16 +19,11 @@ their split); each must cover the first checkpoint's objects.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
+from models.evaluate.record import checkpoint_parser, parse_checkpoint_args, provenance, write_json
 
 SEEN_PARTS = ("train_base", "train_finetune", "val")
 
@@ -43,7 +38,7 @@ def scene_folder(sample) -> str:
 
 
 def _spec(path: Path, info: dict):
-    from models.pipeline import DataSpec
+    from models.data.pipeline import DataSpec
 
     if not info.get("data"):
         raise SystemExit(f"{path}: the checkpoint records no split (info['data']); train it with refiner-rt train "
@@ -54,8 +49,8 @@ def _spec(path: Path, info: dict):
 def compare(paths: list[Path], cache: Path | None) -> dict:
     """Every checkpoint's error on the first one's test crops from scenes none of them trained or validated on."""
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import cropset_for, load_splits
 
     loaded = [(p, *models.load_checkpoint(p)) for p in paths]
     objects = loaded[0][2].get("objects") or []
@@ -121,14 +116,14 @@ def main(argv: list[str] | None = None) -> int:
                           checkpoints_help="the first one's split gives the test crops")
     args = parse_checkpoint_args(p, argv)
 
-    from models.train import set_threads
+    from models.train.loop import set_threads
 
     threads = set_threads(args.threads)
     result = compare(args.checkpoints, args.cache)
     print(markdown(result))
     if args.json:
         write_json(args.json, {"study": "checkpoints on the same test crops from scenes none of them saw", **result,
-                               "test_noise": "uniform:0:30", **provenance("cross_split.py", argv, threads)})
+                               "test_noise": "uniform:0:30", **provenance("benchmarks.cross_split", argv, threads)})
     return 0
 
 

@@ -8,7 +8,7 @@ rather than guessed.
 
 Usage (from the repository root)::
 
-    python benchmarks/data_scaling.py --data DIR --object 003_cracker_box --sizes 1000,3000,10000 \\
+    python -m benchmarks.data_scaling --data DIR --object 003_cracker_box --sizes 1000,3000,10000 \\
         --samples 150000 [--augment] [--background 0.5] [--occlude 0.5] [--json benchmarks/results/data_scaling.json]
 
 For each mode the split is made once with the largest size (so the test crops are the same for every size) and
@@ -52,13 +52,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import provenance, write_json  # noqa: E402
-from models.augment import PHOTOMETRIC_OPS  # noqa: E402
-from models.recipe import RecipeError, add_recipe_argument, load_recipe, recipe_from_arguments  # noqa: E402
+from models.data.augment import PHOTOMETRIC_OPS
+from models.evaluate.record import provenance, write_json
+from models.train.recipe import RecipeError, add_recipe_argument, load_recipe, recipe_from_arguments
 
 # The study's training options: flag -> (argparse dest, TrainRecipe field, help when the study's meaning needs its
 # own words, else None: the field's). Their defaults are the named recipe "data-scaling"; each run's recipe is that
@@ -131,7 +127,7 @@ def _parse_probabilities(text: str) -> list[float]:
 def _augment_label(row: dict) -> str:
     extra = [f"{name} {row[key]:g}" for key, name in
              (("background", "background"), ("occlude", "occluders"), ("relight", "relight")) if row.get(key)]
-    extra += ["photometric"] if row.get("photometric") else []  # models.augment, the --aug-* probabilities
+    extra += ["photometric"] if row.get("photometric") else []  # models.data.augment, the --aug-* probabilities
     if not extra:
         return "yes" if row["augment"] else "no"
     return " + ".join((["jitter"] if row["augment"] else []) + extra)
@@ -247,11 +243,11 @@ def _initial_model(args, spec, config: dict):
     network's full config.
     """
     import models
-    from models.pipeline import checkpoint_spec
+    from models.data.pipeline import checkpoint_spec
 
     model, info = models.load_checkpoint(args.init)
     if model.arch == args.arch:
-        from models.fusion import with_roll
+        from models.nets.fusion import with_roll
 
         model = with_roll(model, config)  # the same weights with another input turn may go on
     if model.arch != args.arch or model.config != config:
@@ -292,10 +288,10 @@ def run(args) -> dict:
     import torch
 
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import cropset_for, load_splits
-    from models.recipe import check_masks
-    from models.train import set_threads, train_refiner
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import cropset_for, load_splits
+    from models.train.recipe import check_masks
+    from models.train.loop import set_threads, train_refiner
 
     try:  # the training options' ranges and rules, checked by the recipe before any crops are cut
         study_recipe(args, args.modes.split(",")[0], _parse_sizes(args.sizes)[-1])
@@ -396,7 +392,7 @@ def run(args) -> dict:
         **({"ema": args.ema} if args.ema else {}), **({"inplane_deg": args.inplane} if args.inplane else {}),
         **({"adamw_weight_decay": args.weight_decay} if args.weight_decay else {}),
         "test_noise": "uniform:0:30", "rows": rows,
-        **provenance("data_scaling.py", args.argv, threads),
+        **provenance("benchmarks.data_scaling", args.argv, threads),
         "wall_s": round(time.perf_counter() - t_all, 1),
     }
 
@@ -548,9 +544,10 @@ def plot_comparison(docs: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser(base=None) -> argparse.ArgumentParser:
+    """The command's options; the training ones default to ``base`` (the named recipe "data-scaling")."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    base = load_recipe("data-scaling")
+    base = base or load_recipe("data-scaling")
     for flag, (dest, name, help_text) in RECIPE_ARGUMENTS.items():
         add_recipe_argument(p, flag, name, base, dest=dest, help=help_text)
     p.add_argument("--table", type=Path, nargs="+", metavar="JSON",
@@ -601,6 +598,12 @@ def main(argv: list[str] | None = None) -> int:
                         "configuration)")
     p.add_argument("--json", type=Path, help="write the rows and the command here")
     p.add_argument("--quiet", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    base = load_recipe("data-scaling")
+    p = build_parser(base)
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     args.recipe = base

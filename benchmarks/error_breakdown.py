@@ -7,7 +7,7 @@ foreshortening reveal?
 
 Usage (from the repository root)::
 
-    python benchmarks/error_breakdown.py CKPT [CKPT ...] [--cache DIR] [--data DIR] [--json OUT]
+    python -m benchmarks.error_breakdown CKPT [CKPT ...] [--cache DIR] [--data DIR] [--json OUT]
 
 Each checkpoint (``refiner-rt train``, its per-object fine-tuned models, or ``data_scaling.py --save``) is evaluated
 on its own objects' crops in the training (base and fine-tuning; for a ``--train-scenes`` run of ``data_scaling.py``,
@@ -15,21 +15,16 @@ the training crops of its scenes only), validation and test parts of its recorde
 with the inputs of ``refiner-rt eval`` (``uniform:0:30``, seed 2024, one pass, no augmentation). The test error
 rotation ``q_refined * q_true^-1``, taken in the viewing-ray frame, is split into its twist about the ray (in the
 image plane) and the swing perpendicular to it (out of the plane), and the coarse inputs' error the same way for
-reference (:func:`models.metrics.swing_twist_deg`).
+reference (:func:`models.evaluate.metrics.swing_twist_deg`).
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import checkpoint_parser, parse_checkpoint_args, provenance, write_json  # noqa: E402
+from models.evaluate.record import checkpoint_parser, parse_checkpoint_args, provenance, write_json
 
 PARTS = ("train_base", "train_finetune", "val", "test")
 
@@ -37,9 +32,9 @@ PARTS = ("train_base", "train_finetune", "val", "test")
 def breakdown(path: Path, data: Path | None, cache: Path | None) -> dict:
     """One checkpoint's errors on each part of its split and its test error split about the viewing ray."""
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.metrics import swing_twist_deg
-    from models.pipeline import checkpoint_spec, cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.evaluate.metrics import swing_twist_deg
+    from models.data.pipeline import checkpoint_spec, cropset_for, load_splits
     from refiner_rt import quaternion as rq
 
     net, info = models.load_checkpoint(path)
@@ -121,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     p = checkpoint_parser(__doc__.splitlines()[0])
     args = parse_checkpoint_args(p, argv)
 
-    from models.train import set_threads
+    from models.train.loop import set_threads
 
     threads = set_threads(args.threads)
     results = [breakdown(c, args.data, args.cache) for c in args.checkpoints]
@@ -129,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(args.json, {"study": "error on train/val/test parts, test error in and out of the image plane",
                                "results": results, "test_noise": "uniform:0:30",
-                               **provenance("error_breakdown.py", argv, threads)})
+                               **provenance("benchmarks.error_breakdown", argv, threads)})
     return 0
 
 

@@ -16,8 +16,8 @@ so that the previous one's spinning onnxruntime workers have parked) and the fig
 session each, as a real object's would be; every shipped model has the same architecture, so the same speed) and
 the output says so.
 
-    python benchmarks/frame_speed.py --json benchmarks/results/frame_speed.json
-    python benchmarks/frame_speed.py --model-dir DIR      # DIR/<obj>.int8.onnx instead of the shipped files
+    python -m benchmarks.frame_speed --json benchmarks/results/frame_speed.json
+    python -m benchmarks.frame_speed --model-dir DIR      # DIR/<obj>.int8.onnx instead of the shipped files
 """
 
 from __future__ import annotations
@@ -32,14 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from refiner_rt import RefinerSession  # noqa: E402
-from export.bench import machine_info  # noqa: E402
-from refiner_rt.bench import FRAME_K, synthetic_frame  # noqa: E402
-from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
-from refiner_rt.session import available_cores, default_session_options  # noqa: E402
+from refiner_rt import RefinerSession
+from export.bench import machine_info
+from refiner_rt.bench import FRAME_K, synthetic_frame
+from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models
+from refiner_rt.session import available_cores, default_session_options
 
 PAUSE_S = 0.05  # between ways, in every round (see the loop)
 PAPER_OBJECTS = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "006_mustard_bottle", "009_gelatin_box",
@@ -136,7 +133,7 @@ def main(argv=None) -> int:
         "result": result,
         "target_ms_one_core": 2.0,
         "machine": machine_info(),
-        "command": "python benchmarks/frame_speed.py " + " ".join(
+        "command": "python -m benchmarks.frame_speed " + " ".join(
             Path(a).name if a.startswith("/") else a for a in (argv if argv is not None else sys.argv[1:])),
         "rounds": args.rounds,
         "frames_per_round": args.frames,

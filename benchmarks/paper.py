@@ -2,15 +2,15 @@
 
 Every experiment trains (or reuses) two models under the same protocol: ``paper`` (the paper's shallow refiner and
 recipe) and ``improved`` (this project's ``fusion`` refiner); their recipes are the ``RECIPES`` dict below.
-Training is ``refiner-rt train`` (a :class:`models.recipe.TrainRecipe` run by :func:`models.training.train`), evaluation ``refiner-rt eval``
-(:func:`models.eval_cli.run_eval`), so every number here can be re-made with those commands.
+Training is ``refiner-rt train`` (a :class:`models.train.recipe.TrainRecipe` run by :func:`models.train.run.train`), evaluation ``refiner-rt eval``
+(:func:`models.evaluate.cli.run_eval`), so every number here can be re-made with those commands.
 
 Usage (from the repository root)::
 
-    python benchmarks/paper.py --data data/ycb9 --runs runs/paper_exp            # every experiment
-    python benchmarks/paper.py --data D --runs R --only baseline,scenes --models paper       # a subset
-    python benchmarks/paper.py --list                                                        # experiments, status
-    python benchmarks/paper.py --report                  # results/*.json -> results/tables.md and PNG plots
+    python -m benchmarks.paper --data data/ycb9 --runs runs/paper_exp            # every experiment
+    python -m benchmarks.paper --data D --runs R --only baseline,scenes --models paper       # a subset
+    python -m benchmarks.paper --list                                                        # experiments, status
+    python -m benchmarks.paper --report                  # results/*.json -> results/tables.md and PNG plots
 
 Budgets (``--budget``): ``standard`` (default) is the recipes as written, except VGG-M at ``VGGM_REDUCED`` (224x224
 VGG-M from scratch trains about 50x slower per sample than the shallow network on a CPU, measured); ``full`` runs
@@ -30,7 +30,7 @@ JSON layout of ``<results>/<experiment>.json``::
      "paper": <run_eval dict>, "improved": <run_eval dict>,          # the primary setting
      "settings": {"<name>": {"paper": ..., "improved": ...}, ...},   # only experiments with several settings
      "paper_reference": {"average_mean_deg": 6.67, "source": "..."},  # the paper's numbers ({} if none)
-     "command": "python benchmarks/paper.py ...", "machine": machine_info(), "wall_s": 1234.5,
+     "command": "python -m benchmarks.paper ...", "machine": machine_info(), "wall_s": 1234.5,
      "budget": {"paper": {level, arch, protocol, epochs, images_per_object, lr, lr_schedule, rotation_frame,
                           max_steps_per_epoch, reduced, ...,
                           "training": {epochs, seconds, samples}},   # from the epoch logs, resumes included
@@ -55,11 +55,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
-from benchmarks.study_cli import write_json  # noqa: E402  (schema version and git commit in every result JSON)
-from models.paths import per_object_path  # noqa: E402
+from models.evaluate.record import write_json  # (schema version and git commit in every result JSON)
+from models.train.paths import per_object_path
 
 # The two models of every table (the schedules used for the published results; see benchmarks/studies/paper_protocol/README.md).
 # per_object=0 in a recipe: no per-object fine-tuning; the experiment's fine-tune images then join the base
@@ -225,8 +223,8 @@ EXPERIMENTS: dict[str, Experiment] = {
 
 
 def _train_defaults(data: Path) -> dict:
-    """Every training option (a :class:`models.recipe.TrainRecipe` field) at the named recipe ``paper``'s value."""
-    from models.recipe import load_recipe
+    """Every training option (a :class:`models.train.recipe.TrainRecipe` field) at the named recipe ``paper``'s value."""
+    from models.train.recipe import load_recipe
 
     return {**load_recipe("paper").as_dict(), "data": str(data)}
 
@@ -326,15 +324,15 @@ def model_dir(args, exp_name: str, model: str) -> Path:
 
 
 def _objects_in(data: Path) -> list[str]:
-    from models.pipeline import DataSpec, load_samples
+    from models.data.pipeline import DataSpec, load_samples
 
     return sorted({s.obj_id for s in load_samples(DataSpec(data=str(data)))})
 
 
 def train_recipe(opts: dict, args, defaults: dict):
-    """The :class:`models.recipe.TrainRecipe` of one checkpoint: ``opts`` over ``defaults``, with ``ft_continue`` as
+    """The :class:`models.train.recipe.TrainRecipe` of one checkpoint: ``opts`` over ``defaults``, with ``ft_continue`` as
     a continuation stage when it lengthens the fine-tuning."""
-    from models.recipe import TrainRecipe
+    from models.train.recipe import TrainRecipe
 
     train = {k: (str(v) if isinstance(v, Path) else v) for k, v in opts.items() if k != "ft_continue"}
     cont = opts.get("ft_continue") or {}
@@ -347,7 +345,7 @@ def train_recipe(opts: dict, args, defaults: dict):
 
 def _train_one(opts: dict, out: Path, args, defaults: dict) -> None:
     """Train one checkpoint (resuming an interrupted run) unless its done marker exists."""
-    from models.train_cli import run
+    from models.train.cli import run
 
     done = out.with_suffix(".done")
     if done.is_file() and not args.force:
@@ -412,7 +410,7 @@ def _merge(results: list[dict]) -> dict:
 
 def evaluate(ckpts: list[Path], setting: dict, args) -> dict:
     """``run_eval`` of the model (or, one per object, of the per-object models) under ``setting``."""
-    from models.eval_cli import run_eval
+    from models.evaluate.cli import run_eval
 
     common = dict(threads=args.threads, cache_root=args.cache, progress=False, **setting)
     if len(ckpts) == 1:
@@ -426,9 +424,9 @@ def input_angle_errors(ckpt: Path, noise: str, args) -> dict:
 
     import models
     from models.data.objects import YCBV_CLASSES
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import checkpoint_test_set
-    from models.train import set_threads
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import checkpoint_test_set
+    from models.train.loop import set_threads
 
     set_threads(args.threads)
     net, info = models.load_checkpoint(ckpt)
@@ -538,7 +536,7 @@ def write_result(name: str, exp: Experiment, results: dict, budget: dict, wall_s
             "objects_mean_deg": {o: s["mean_deg"] - r["fp32"]["objects"][o]["mean_deg"] for o, s in r["int8"]["objects"].items()},
         } for m, r in results.items()}
     doc.update(paper_reference=exp.reference,
-               command="python benchmarks/paper.py " + shlex.join(argv),
+               command="python -m benchmarks.paper " + shlex.join(argv),
                machine=machine_info(), wall_s=wall_s, budget=budget)
     args.results.mkdir(parents=True, exist_ok=True)
     path = args.results / f"{name}.json"
@@ -652,7 +650,7 @@ def write_report(results: Path) -> Path:
 
     matplotlib.use("Agg")
     lines = ["# Paper experiments: results", "",
-             "Mean ± std geodesic error in degrees per object; generated by `python benchmarks/paper.py --report` "
+             "Mean ± std geodesic error in degrees per object; generated by `python -m benchmarks.paper --report` "
              "from the JSON files beside this one.", ""]
     for name, exp in EXPERIMENTS.items():
         path = results / f"{name}.json"
@@ -706,7 +704,7 @@ def write_report(results: Path) -> Path:
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python benchmarks/paper.py", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="python -m benchmarks.paper", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, help="Dataset (BOP split folder or YCB-Video root).")
     p.add_argument("--runs", type=Path, help="Where trained models go: RUNS/<experiment>/<model>/<arch>.pt.")

@@ -10,9 +10,9 @@ images are read).
 
 Usage (from the repository root)::
 
-    python benchmarks/pose_coverage.py --data DIR [--sizes 3000,5000,3000,3000] [--modes frames,scenes] \\
+    python -m benchmarks.pose_coverage --data DIR [--sizes 3000,5000,3000,3000] [--modes frames,scenes] \\
         [--json benchmarks/results/pose_coverage.json]
-    python benchmarks/pose_coverage.py --data DIR [--data DIR2 ...] --query REAL [--json PATH]
+    python -m benchmarks.pose_coverage --data DIR [--data DIR2 ...] --query REAL [--json PATH]
 
 With ``--query`` (a BOP folder of other images, e.g. real frames) nothing is split: every instance of the query
 (``visib_fract >= 0.3``) is measured against every instance of each ``--data`` folder, twice: the nearest rotation,
@@ -38,13 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import write_json  # noqa: E402
-from refiner_rt import quaternion as rq  # noqa: E402
-from refiner_rt.geometry import ray_quaternions  # noqa: E402
+from models.evaluate.record import write_json
+from refiner_rt import quaternion as rq
+from refiner_rt.geometry import ray_quaternions
 
 THRESHOLDS_DEG = (2.0, 5.0, 10.0)
 NEIGHBOUR_DEG = 10.0  # --query: reference instances this near a query instance are counted
@@ -185,13 +181,13 @@ def run_query(args, argv: list[str]) -> dict:
 
     query = load(args.query)
     references = {folder.name: load(folder) for folder in args.data}
-    from benchmarks.real import _data_name
+    from models.evaluate.record import data_name
 
     # The query (real frames) is named as the folder's dataset, REAL in the command: no machine path is recorded.
     argv = ["REAL" if Path(a) == args.query else a for a in argv]
-    return {"query": _data_name(args.query), "data": [str(d) for d in args.data], "min_visib": 0.3,
+    return {"query": data_name(args.query), "data": [str(d) for d in args.data], "min_visib": 0.3,
             "coverage": query_coverage(query, references),
-            "command": "python benchmarks/pose_coverage.py " + shlex.join(argv),
+            "command": "python -m benchmarks.pose_coverage " + shlex.join(argv),
             "wall_s": round(time.perf_counter() - t0, 1),
             "machine": {"python": platform.python_version(), "platform": platform.platform()}}
 
@@ -213,7 +209,7 @@ def query_table(result: dict) -> str:
 def run(args) -> dict:
     from models.data import SplitSizes, make_splits
     from models.data.splits import SPLIT_MODES
-    from models.pipeline import DataSpec, load_samples
+    from models.data.pipeline import DataSpec, load_samples
 
     sizes = _parse_sizes(args.sizes)
     modes = [m for m in args.modes.split(",") if m]

@@ -15,9 +15,9 @@ For each model, at one batch size and thread count (default batch 1, 1 thread), 
 
 Usage (from the repository root)::
 
-    python benchmarks/profile_refine.py                 # random-weight shallow + fusion, fp32 (needs torch)
-    python benchmarks/profile_refine.py --int8          # ... and their dynamic-INT8 exports
-    python benchmarks/profile_refine.py --model a.onnx --model b.onnx --batch 8 --threads 2
+    python -m benchmarks.profile_refine                 # random-weight shallow + fusion, fp32 (needs torch)
+    python -m benchmarks.profile_refine --int8          # ... and their dynamic-INT8 exports
+    python -m benchmarks.profile_refine --model a.onnx --model b.onnx --batch 8 --threads 2
 
 Speed does not depend on weight values, so random weights give the real timings. The machine is
 shared: compare numbers from one run only, and note what else was running.
@@ -40,11 +40,11 @@ import numpy as np
 import onnxruntime as ort
 
 from refiner_rt import RefinerSession
-from refiner_rt.session import DISABLED_OPTIMIZERS
 from export.bench import machine_info
 from refiner_rt.bench import frame_K, synthetic_frame
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION
 from refiner_rt.preprocess import crop_to_square, validate_boxes
+from refiner_rt.session import DISABLED_OPTIMIZERS
 
 
 def build_models(archs: list[str], workdir: Path, int8: bool) -> dict[str, Path]:

@@ -6,7 +6,7 @@ does not grow with the angle has not learned to use the appearance yet (see ``be
 
 Usage (from the repository root)::
 
-    python benchmarks/ray_angle.py runs/fusion.pt [--cache DIR] [--bin 4]
+    python -m benchmarks.ray_angle runs/fusion.pt [--cache DIR] [--bin 4]
 
 Evaluates the checkpoint (base network only) on its own test split, with the inputs of ``refiner-rt eval``
 (``uniform:0:30``, seed 2024), and prints one Markdown row per bin: crops, mean output error, mean input error.
@@ -15,14 +15,9 @@ Evaluates the checkpoint (base network only) on its own test split, with the inp
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
-
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,9 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import checkpoint_test_set
-    from models.train import set_threads
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import checkpoint_test_set
+    from models.train.loop import set_threads
     from refiner_rt import quaternion as rq
 
     set_threads(args.threads)

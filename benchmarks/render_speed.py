@@ -8,8 +8,8 @@ number of files that differ between the two outputs (0: the BMPs change no pixel
 
 Usage (from the repository root)::
 
-    python benchmarks/render_speed.py                                  # 20 four-frame scenes of the shipped YCB meshes
-    python benchmarks/render_speed.py --scenes 40 --json benchmarks/results/render_speed.json
+    python -m benchmarks.render_speed                                  # 20 four-frame scenes of the shipped YCB meshes
+    python -m benchmarks.render_speed --scenes 40 --json benchmarks/results/render_speed.json
 """
 
 from __future__ import annotations
@@ -23,15 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import provenance, write_json  # noqa: E402
-from models.data.render import RenderConfig, default_models_dir, _World, find_models, render_scene  # noqa: E402
+from models.data.render import RenderConfig, default_models_dir, World, find_models, render_scene
+from models.evaluate.record import provenance, write_json
 
 
-class _PngTextureWorld(_World):
+class _PngTextureWorld(World):
     """The world as it was: every body's texture loaded from the mesh's PNG."""
 
     def _texture(self, obj: str) -> Path:
@@ -65,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        worlds = {"bmp_textures": _World(meshes, tmp / "bmp"), "png_textures": _PngTextureWorld(meshes, tmp / "png")}
+        worlds = {"bmp_textures": World(meshes, tmp / "bmp"), "png_textures": _PngTextureWorld(meshes, tmp / "png")}
         times: dict[str, list[float]] = {name: [] for name in worlds}
         for name, world in worlds.items():
             (tmp / name).mkdir()
@@ -79,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         compared, differ = differing_files(tmp / "bmp_textures", tmp / "png_textures")
     med = {name: float(np.median(t)) for name, t in times.items()}
     doc = {
-        **provenance("render_speed.py", argv, processes=1),
+        **provenance("benchmarks.render_speed", argv, processes=1),
         "scenes": args.scenes, "frames_per_scene": args.frames_per_scene, "seed": args.seed,
         "first_scene": args.first_scene, "image": [cfg.width, cfg.height],
         "median_s_per_scene": med,

@@ -10,10 +10,10 @@ memory pattern settle in the first few thousand; see ``benchmarks/memory.py``). 
 
 Usage (from the repository root)::
 
-    python benchmarks/soak.py                              # fusion fp32, 1,000,000 calls (about 15 min on one core)
-    python benchmarks/soak.py --calls 100000 --json benchmarks/results/soak_100k.json
-    python benchmarks/soak.py --model refiner.onnx --callers 4
-    python benchmarks/soak.py --model refiner_rt/weights/003_cracker_box.int8.onnx   # a shipped (ray-frame) model
+    python -m benchmarks.soak                              # fusion fp32, 1,000,000 calls (about 15 min on one core)
+    python -m benchmarks.soak --calls 100000 --json benchmarks/results/soak_100k.json
+    python -m benchmarks.soak --model refiner.onnx --callers 4
+    python -m benchmarks.soak --model refiner_rt/weights/003_cracker_box.int8.onnx   # a shipped (ray-frame) model
 
 Written (``--json``): the command, the machine (CPU model and its vector-instruction flags, cores, versions),
 the model, RSS at start / after imports / after loading / after warm-up / at the end, peak RSS (VmHWM), the growth
@@ -34,25 +34,23 @@ import threading
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.memory import MB, _rss_bytes, build_model, rss_record, summarize  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
+from export.bench_models import build_random_model
+from models.evaluate.memory import MB, rss_bytes, rss_record, summarize
+from models.evaluate.record import REPO
+from models.evaluate.record import write_json
 
 DEFAULT_CALLS = 1_000_000
 
 
 def child(model: str, calls: int, every: int, callers: int) -> dict:
     """The measured process: import the runtime, load, refine ``calls`` times from ``callers`` threads, sample RSS."""
-    start = _rss_bytes()
+    start = rss_bytes()
     from refiner_rt import RefinerSession
     from refiner_rt.bench import frame_K, synthetic_frame
 
-    imported = _rss_bytes()
+    imported = rss_bytes()
     sess = RefinerSession(model, threads=1)
-    loaded = _rss_bytes()
+    loaded = rss_bytes()
     image, boxes, q_in = synthetic_frame(1)
     K = frame_K(sess)  # the bench's camera: ray-frame models need K
     expected = sess.refine(image, boxes, q_in, K=K).q_refined
@@ -67,7 +65,7 @@ def child(model: str, calls: int, every: int, callers: int) -> dict:
                     mismatches[0] += 1
                 done[0] += 1
                 if done[0] % every == 0:
-                    samples.append((done[0], _rss_bytes()))
+                    samples.append((done[0], rss_bytes()))
 
     t0 = time.perf_counter()
     shares = [calls // callers + (1 if i < calls % callers else 0) for i in range(callers)]
@@ -104,10 +102,10 @@ def main(argv=None) -> int:
         print(json.dumps(child(str(args.model), args.calls, args.every, args.callers)))
         return 0
     with tempfile.TemporaryDirectory(prefix="refiner-rt-soak-") as tmp:
-        model = args.model or build_model(Path(tmp), args.arch, int8=False)
-        cmd = [sys.executable, __file__, "--child", "--model", str(model), "--calls", str(args.calls),
+        model = args.model or build_random_model(Path(tmp), args.arch, int8=False)
+        cmd = [sys.executable, "-m", "benchmarks.soak", "--child", "--model", str(model), "--calls", str(args.calls),
                "--warmup", str(args.warmup), "--every", str(args.every), "--callers", str(args.callers)]
-        out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+        out = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=REPO).stdout
     result = json.loads(out.strip().splitlines()[-1])
     from export.bench import machine_info  # here, not in the measured process: it looks for torch's version
 
@@ -131,7 +129,7 @@ def main(argv=None) -> int:
           f"{result['results_differing_from_the_first']}")
     if args.json:
         record = {
-            "command": "python benchmarks/soak.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:])),
+            "command": "python -m benchmarks.soak " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:])),
             "model": model_label,
             "calls": args.calls,
             "warmup": args.warmup,

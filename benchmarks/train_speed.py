@@ -2,7 +2,7 @@
 synthetic crops, in one process.
 
 The held-out-scenes models are limited by their training steps, so a step's cost is what bounds them. This runs the
-real training loop (``models.train.train_refiner``: crop pipeline, forward, loss, backward, Adam) on random crops with
+real training loop (``models.train.loop.train_refiner``: crop pipeline, forward, loss, backward, Adam) on random crops with
 random instance masks, with the augmentations the scene runs use (``--augment --background 0.5`` by default), and
 reads each epoch's ``samples_per_s`` from its history. The variants alternate epoch by epoch, so load on the machine
 falls on each alike; the first epoch of each is warm-up and is dropped. Reported: the median samples/s of each
@@ -10,8 +10,8 @@ variant and their ratio.
 
 Usage (from the repository root)::
 
-    python benchmarks/train_speed.py                       # five-block fusion, batch 64, one thread
-    python benchmarks/train_speed.py --config '{}' --threads 2 --json benchmarks/results/train_speed.json
+    python -m benchmarks.train_speed                       # five-block fusion, batch 64, one thread
+    python -m benchmarks.train_speed --config '{}' --threads 2 --json benchmarks/results/train_speed.json
 """
 
 from __future__ import annotations
@@ -24,19 +24,15 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from models.recipe import parse_json_object as _parse_config  # noqa: E402
-from benchmarks.study_cli import provenance, write_json  # noqa: E402
+from models.evaluate.record import provenance, write_json
+from models.train.recipe import parse_json_object as _parse_config
 
 FIVE_BLOCKS = {"conv_channels": [16, 32, 64, 128, 128]}
 
 
 def synthetic_crops(n: int, size: int, seed: int = 0):
     """``n`` random ``size`` px crops with random rotations, ray-frame rotations and a random blob mask each."""
-    from models.cropset import CropSet
+    from models.data.cropset import CropSet
     from refiner_rt import quaternion as rq
 
     rng = np.random.default_rng(seed)
@@ -71,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     import models
-    from models.train import TrainConfig, set_threads, train_refiner
+    from models.train.config import TrainConfig
+    from models.train.loop import set_threads, train_refiner
 
     set_threads(args.threads)
     torch.manual_seed(0)
@@ -101,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         "augment": args.augment, "background": args.background,
         "median_samples_per_s": med, "bf16_speedup": med["bf16"] / med["float32"],
         "samples_per_s": rates,
-        **provenance("train_speed.py", argv, args.threads),
+        **provenance("benchmarks.train_speed", argv, args.threads),
         "cpu_bf16": "avx512_bf16" in Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else None,
         "wall_s": round(time.perf_counter() - t0, 1),
     }

@@ -8,7 +8,7 @@ the real frames hold objects in all of these. Instances with ``visib_fract >= --
 
 Usage (from the repository root)::
 
-    python benchmarks/viewpoints.py --data robot=data/ycb9_robot --data real=REAL \\
+    python -m benchmarks.viewpoints --data robot=data/ycb9_robot --data real=REAL \\
         [--png benchmarks/viewpoints.png] [--json benchmarks/results/viewpoints.json]
 """
 
@@ -20,11 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from benchmarks.study_cli import write_json  # noqa: E402
+from models.evaluate.record import write_json
 
 
 def viewpoints(R: np.ndarray, t: np.ndarray) -> dict[str, np.ndarray]:

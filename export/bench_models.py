@@ -115,3 +115,19 @@ def build_default_models(specs, workdir: Path, int8: bool = True, echo=None) -> 
             echo(line)
     return fp32 + quantized
 
+
+def build_random_model(workdir: Path, arch: str, int8: bool) -> Path:
+    """A random-weight model of ``arch`` exported to ``workdir`` (INT8 with export.quantize's default scheme)."""
+    import torch
+
+    import models
+    from export import export_model
+
+    torch.manual_seed(0)
+    path = workdir / f"{arch}.onnx"
+    export_model(models.build_refiner(arch).eval(), path, checkpoint_sha256="random-weights")
+    if int8:
+        from export.quantize import quantize_model
+
+        path = quantize_model(path).path
+    return path

@@ -26,7 +26,7 @@ from export.defaults import (
     MIN_OPSET,
     SCHEMES,
 )
-from models.paths import per_object_path, per_object_siblings
+from models.train.paths import per_object_path, per_object_siblings
 
 __all__ = ["export_cmd"]
 
@@ -173,7 +173,7 @@ def _quantize_one(fp32: Path, out: Path, scheme: str | None, calib: Path | None)
 
 def _export_one(checkpoint: Path, output: Path, opset: int, lrn: str) -> None:
     from export.onnx_export import ParityError, export_loaded_checkpoint
-    from models.checkpoint import load_checkpoint
+    from models.train.checkpoint import load_checkpoint
 
     try:
         model, info = load_checkpoint(checkpoint)

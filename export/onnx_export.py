@@ -17,7 +17,7 @@ Decisions (for the runtime and for robot integrators):
       lower opsets need a version conversion that fails for these graphs, so ``opset >= 18`` is required and
       the opset actually written is checked. Its optimiser folds eval-mode BatchNorm into the convolutions.
     * LRN (VGG-M): ``nn.LocalResponseNorm`` exports as whatever subgraph the exporter decomposes it into (with
-      ``If`` nodes, which OpenCV's ``cv2.dnn`` rejects, on some exporter paths). :class:`models.blocks.
+      ``If`` nodes, which OpenCV's ``cv2.dnn`` rejects, on some exporter paths). :class:`models.nets.blocks.
       LocalResponseNorm` instead calls the custom op ``refiner_rt::local_response_norm`` while exporting, and
       this module chooses how it is written (``lrn=``):
 
@@ -60,8 +60,8 @@ from torch.export import Dim
 import refiner_rt
 from export.defaults import DEFAULT_LRN_LOWERING, DEFAULT_OPSET, MIN_OPSET  # torch-free: `export --help` reads them
 from export.parity import DEFAULT_TOL, MIN_PARITY_INPUTS, PARITY_SEED, check_parity, random_inputs
-from models.blocks import Refiner
-from models.checkpoint import file_sha256, load_checkpoint, new_temp_file_beside
+from models.nets.blocks import Refiner
+from models.train.checkpoint import file_sha256, load_checkpoint, new_temp_file_beside
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION, REQUIRED_KEYS, build_metadata
 
 __all__ = [
@@ -168,7 +168,7 @@ LRN_LOWERINGS = {"decomposed": _lrn_decomposed, "LRN": _lrn_as_onnx_op}
 
 
 def _custom_translations(lrn: str) -> dict:
-    # The op is registered by importing models.blocks (imported above for Refiner).
+    # The op is registered by importing models.nets.blocks (imported above for Refiner).
     return {torch.ops.refiner_rt.local_response_norm.default: LRN_LOWERINGS[lrn]}
 
 
@@ -300,16 +300,16 @@ def build_model_metadata(
 
 def model_roll(model: Refiner) -> str:
     """The turn the runtime makes before ``model``'s graph: the fusion network's ``roll`` config (``"none"`` or
-    ``"canonical"`` or ``"quarter"``; models.fusion.ROLLS), ``"none"`` for every other network."""
+    ``"canonical"`` or ``"quarter"``; models.nets.fusion.ROLLS), ``"none"`` for every other network."""
     return model.config.get("roll", "none") if model.arch == "fusion" else "none"
 
 
 def graph_network(model: Refiner) -> Refiner:
-    """The network an exported file holds: ``model`` itself, or for a network with a roll (models.fusion.ROLLS) the same
+    """The network an exported file holds: ``model`` itself, or for a network with a roll (models.nets.fusion.ROLLS) the same
     weights without it. The turn is a warp of each crop that the runtime makes before the graph
     (refiner_rt.preprocess.ROLL_TURNS; metadata ``roll``), a few microseconds there against as much time as the
     network itself as an ONNX GridSample."""
-    from models.fusion import with_roll
+    from models.nets.fusion import with_roll
 
     return with_roll(model, {"roll": "none"}) if model_roll(model) != "none" else model
 

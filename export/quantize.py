@@ -109,7 +109,7 @@ from export.defaults import (  # torch-free: `export --help` reads them
     SCHEMES,
 )
 from export.parity import MIN_PARITY_INPUTS, PARITY_SEED, onnxruntime_outputs, random_inputs
-from models.checkpoint import new_temp_file_beside
+from models.train.checkpoint import new_temp_file_beside
 from refiner_rt import quaternion as rq
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, ModelContract, parse_metadata
 
@@ -311,7 +311,7 @@ def dataset_calibration(
 
     The split is rebuilt from the data spec recorded in the model's metadata (``data``, as ``refiner-rt train``
     writes it; its extra training folders left out) when present, else from the defaults, and crops come through
-    the crop cache (:func:`models.pipeline.cropset_for`, reused when training built it). ``n + n_check``
+    the crop cache (:func:`models.data.pipeline.cropset_for`, reused when training built it). ``n + n_check``
     distinct crops of ``train_base`` are drawn with ``seed`` (never the test split): ``n`` to calibrate,
     ``n_check`` held out for the agreement check (a quarter of the split each way when it is smaller). Their
     coarse rotations are ``q_gt * q_noise`` in the model's rotation frame with the model's ``train_noise``
@@ -324,7 +324,7 @@ def dataset_calibration(
         n_check: number of held-out crops.
         seed: sampling seed.
         cache_root: where crop caches live (default ``<data_dir>/.crops``).
-        spec: a :class:`models.pipeline.DataSpec` whose ``train_base`` part to draw from instead of the recorded
+        spec: a :class:`models.data.pipeline.DataSpec` whose ``train_base`` part to draw from instead of the recorded
             one (e.g. a folder of calibration scenes rendered apart from the training set: every instance of
             it in ``train_base``); its ``data`` is replaced by ``data_dir``.
 
@@ -337,8 +337,8 @@ def dataset_calibration(
     Raises:
         FileNotFoundError / ValueError: not a dataset, or a training split with fewer than 2 crops.
     """
-    from models.noise import NoiseSpec, perturb
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.data.noise import NoiseSpec, perturb
+    from models.data.pipeline import DataSpec, cropset_for, load_splits
 
     if spec is not None:
         spec = DataSpec.from_dict({**spec.as_dict(), "data": str(data_dir)})

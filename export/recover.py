@@ -149,6 +149,6 @@ def checkpoint_from_onnx(onnx_path, out, images: np.ndarray, q_in: np.ndarray, *
     }
     if props.get("data"):
         info["data"] = json.loads(props["data"])
-    from models.fusion import with_roll
+    from models.nets.fusion import with_roll
 
     return models.save_checkpoint(with_roll(model, config).train(), out, **info)

@@ -6,7 +6,11 @@
     models.save_checkpoint(model, "ckpt.pt", objects=["003_cracker_box"], train_noise="uniform:0:30")
     model, info = models.load_checkpoint("ckpt.pt")
     recipe = models.load_recipe("paper").merged(data="renders/", objects=["003_cracker_box"])
-    models.train(recipe, out="runs/paper.pt")         # a whole run: base, per-object fine-tuning, continuations
+    models.run_training(recipe, out="runs/paper.pt")  # a whole run: base, per-object fine-tuning, continuations
+
+Sub-packages, one job each (docs/design.md §11): ``models.nets`` (the networks and their registry),
+``models.data`` (datasets, splits, crops, noise, augmentation, symmetries, the renderer), ``models.train``
+(recipes, the training loop, checkpoints, losses) and ``models.evaluate`` (errors, metrics, real-frame scoring).
 
 Conventions (docs/design.md §2): quaternions ``wxyz``, rotations object-to-camera, images ``(N, S, S, 3)``
 uint8 NHWC in the model's channel order (BGR by default).
@@ -20,19 +24,18 @@ import importlib
 # processes should not pay torch's start-up; the networks load on first use of a name below (the registry
 # imports the built-in architectures on its first lookup).
 _EXPORTS = {
-    "CHECKPOINT_FORMAT": "models.checkpoint",
-    "load_checkpoint": "models.checkpoint",
-    "save_checkpoint": "models.checkpoint",
-    "Refiner": "models.blocks",
-    "build_refiner": "models.registry",
-    "get_refiner_class": "models.registry",
-    "list_refiners": "models.registry",
-    "register_refiner": "models.registry",
-    "losses": None,
-    "train": None,  # the module, callable: models.train(recipe, out=...) runs models.training.train
-    "TrainRecipe": "models.recipe",
-    "load_recipe": "models.recipe",
-    "NAMED_RECIPES": "models.recipe",
+    "CHECKPOINT_FORMAT": "models.train.checkpoint",
+    "load_checkpoint": "models.train.checkpoint",
+    "save_checkpoint": "models.train.checkpoint",
+    "Refiner": "models.nets.blocks",
+    "build_refiner": "models.nets.registry",
+    "get_refiner_class": "models.nets.registry",
+    "list_refiners": "models.nets.registry",
+    "register_refiner": "models.nets.registry",
+    "run_training": "models.train.run",
+    "TrainRecipe": "models.train.recipe",
+    "load_recipe": "models.train.recipe",
+    "NAMED_RECIPES": "models.train.recipe",
 }
 __all__ = sorted(_EXPORTS)
 
@@ -40,6 +43,4 @@ __all__ = sorted(_EXPORTS)
 def __getattr__(name):
     if name not in _EXPORTS:
         raise AttributeError(f"module 'models' has no attribute {name!r}")
-    if _EXPORTS[name] is None:
-        return importlib.import_module(f"models.{name}")
     return getattr(importlib.import_module(_EXPORTS[name]), name)

@@ -8,5 +8,5 @@ from __future__ import annotations
 from refiner_rt.cli import LazyCommand
 
 render = LazyCommand("models.data.render:render_cmd", "Render BOP-format training scenes of YCB objects on the CPU.")
-train = LazyCommand("models.train_cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning).")
-evaluate = LazyCommand("models.eval_cli:eval_cmd", "Evaluate a checkpoint or ONNX model on a dataset's test split.")
+train = LazyCommand("models.train.cli:train_cmd", "Train a refiner (paper recipe: base, then per-object fine-tuning).")
+evaluate = LazyCommand("models.evaluate.cli:eval_cmd", "Evaluate a checkpoint or ONNX model on a dataset's test split.")

@@ -21,7 +21,7 @@ __all__ = ["MAX_VIEWS", "VIEW_JITTER", "ray_quaternions", "ray_quaternion_rows",
            "view_offsets"]
 
 # refine(views=K): the largest K, and the box jitter of the extra views as a fraction of the crop window (the
-# training's --augment box jitter, models.train.TrainConfig.box_jitter).
+# training's --augment box jitter, models.train.config.TrainConfig.box_jitter).
 MAX_VIEWS = 16
 VIEW_JITTER = 0.05
 

@@ -242,7 +242,7 @@ def resize_crop(crop: np.ndarray, size: int, out=None, crop_filter: str = "none"
 # --------------------------------------------------------------------------------------------- the canonical roll
 # A model whose metadata says ``roll = "canonical"`` (refiner_rt.metadata) was trained with each crop turned about its
 # centre so that the coarse pose's object z axis points up in the image (its x axis where the z axis lies within 30
-# degrees of the viewing ray), and the coarse pose turned with it (models.fusion.canonical_roll, the training's
+# degrees of the viewing ray), and the coarse pose turned with it (models.nets.fusion.canonical_roll, the training's
 # definition in PyTorch). Its ONNX graph is the network alone: the runtime makes the turn here, one small warp per
 # crop, before each pass.
 _AXIS_NEAR_RAY = 0.25  # sin(30 deg) ** 2: the z axis's image length below which the x axis is used
@@ -259,7 +259,7 @@ ROLL_STEP_DEG = 1.0
 def roll_angle(w: float, x: float, y: float, z: float) -> float:
     """The image angle (radians, clockwise from up, x right and y down) of the object's z axis under the unit rotation
     ``(w, x, y, z)`` (object to the viewing-ray frame), or of its x axis where the z axis lies within 30 degrees of
-    the ray. The runtime's twin of ``models.fusion.roll_angle`` (plain floats: one crop at a time is the common case,
+    the ray. The runtime's twin of ``models.nets.fusion.roll_angle`` (plain floats: one crop at a time is the common case,
     where numpy's per-call cost would exceed the maths)."""
     zx, zy = 2.0 * (x * z + w * y), 2.0 * (y * z - w * x)  # R's third column: the object z axis
     if zx * zx + zy * zy > _AXIS_NEAR_RAY:
@@ -278,7 +278,7 @@ def canonical_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None,
     ``step_deg``), and its rotation turned about the viewing ray with it: ``(crops (N, S, S, 3) uint8, q (N, 4) float64
     wxyz)``.
 
-    The turn is the training's (``models.fusion.canonical_roll``): bilinear, corners filled by reflection about the
+    The turn is the training's (``models.nets.fusion.canonical_roll``): bilinear, corners filled by reflection about the
     crop's edges, the output pixel at offset ``d`` from the centre taking the input at ``R(psi) d``, ``psi`` the roll
     angle rounded to a multiple of ``step_deg`` degrees (:data:`ROLL_STEP_DEG`; ``0``: the exact angle, as in
     training); the rotation becomes ``q_z(-psi) * q``, so the turned crop and rotation agree whatever the rounding.
@@ -310,7 +310,7 @@ def canonical_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None,
 
 
 def quarter_roll(crops: np.ndarray, q_wxyz, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`canonical_roll` in quarter turns (``models.fusion.quarter_roll``): each crop turned by the multiple of 90
+    """:func:`canonical_roll` in quarter turns (``models.nets.fusion.quarter_roll``): each crop turned by the multiple of 90
     degrees nearest to the canonical turn, so that the axis then points within 45 degrees of up, and its rotation
     with it. Pixels are moved, never resampled: equal to the training's turn. ``(crops, q)`` as there."""
     crops = np.asarray(crops)

@@ -1,17 +1,9 @@
-"""The scripts of ``benchmarks/`` (a folder of scripts, not a package) imported as modules by their tests."""
+"""The scripts of ``benchmarks/`` imported as modules by their tests: ``benchmarks/<name>.py`` (``name`` may be
+``studies/<study>/<script>``) as the module ``benchmarks.<name>``, the same module ``python -m`` runs."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+import importlib
 
 
 def load_benchmark(name: str):
-    """``benchmarks/<name>.py`` as module ``bench_<name>``, registered in ``sys.modules`` (dataclasses resolve
-    their module there)."""
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    """The script ``benchmarks/<name>.py`` as its module (``"studies/cascade/cascade"`` -> ``benchmarks.studies.cascade.cascade``)."""
+    return importlib.import_module("benchmarks." + name.replace("/", "."))

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from data_fixtures import bop_save_json
+from tests.data_fixtures import bop_save_json
 
 # Cube of side 2 (object units: 5 cm): 8 corners, 6 faces (outward, counter-clockwise seen from outside).
 _CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float) * 0.025

@@ -6,9 +6,10 @@ import numpy as np
 import torch
 
 import models
-from models.cropset import CropSet
-from models.train import TrainConfig, train_refiner
-from models.training import init_distributed
+from models.data.cropset import CropSet
+from models.train.config import TrainConfig
+from models.train.loop import train_refiner
+from models.train.run import init_distributed
 from refiner_rt import quaternion as rq
 
 

@@ -7,8 +7,8 @@ cropping, channel handling and composition can be checked against independent co
 from __future__ import annotations
 
 import numpy as np
-import onnx
 from onnx import TensorProto, helper
+import onnx
 
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION, build_metadata
 

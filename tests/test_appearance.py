@@ -1,4 +1,4 @@
-"""The appearance benchmark (benchmarks/appearance.py): the stressed copies are the frames through the training
+"""The appearance benchmark (models/evaluate/appearance.py, run by benchmarks/appearance.py): the stressed copies are the frames through the training
 augmentation's own operations, reused when unchanged; a model that ignores the pixels pays nothing for any case, one
 that reads them pays for a change of its input; the gap and the rendered sets' ratio add up."""
 
@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from data_fixtures import make_bop
-from onnx_fixtures import channel_mean_model, constant_model, contract
+from tests.data_fixtures import make_bop
+from tests.onnx_fixtures import channel_mean_model, constant_model, contract
 
 
 @pytest.fixture(scope="module")
@@ -21,13 +21,13 @@ def real_folder(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def appearance():
-    from benchmarks import appearance
+    from models.evaluate import appearance
 
     return appearance
 
 
 def test_every_stress_case_is_an_operation_of_the_augmentation(appearance):
-    from models.augment import PHOTOMETRIC_OPS
+    from models.data.augment import PHOTOMETRIC_OPS
 
     assert {op for _, op, _ in appearance.STRESS_CASES} <= set(PHOTOMETRIC_OPS)
     assert len({name for name, _, _ in appearance.STRESS_CASES}) == len(appearance.STRESS_CASES)
@@ -82,7 +82,9 @@ def test_rendered_sets_give_the_ratio_of_the_first_to_the_second(appearance, rea
     assert r["ratio"]["value"] == pytest.approx(r["sets"]["a"]["mean_deg"] / r["sets"]["b"]["mean_deg"])
 
 
-def test_the_command_line_refuses_nothing_to_measure(appearance, capsys):
+def test_the_command_line_refuses_nothing_to_measure(capsys):
+    from benchmarks import appearance as script
+
     with pytest.raises(SystemExit):
-        appearance.main([])
+        script.main([])
     assert "nothing to measure" in capsys.readouterr().err

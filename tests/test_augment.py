@@ -1,4 +1,4 @@
-"""Camera-like photometric augmentation (models.augment): each operation against an independent computation of what
+"""Camera-like photometric augmentation (models.data.augment): each operation against an independent computation of what
 it should do, determinism, untouched crops, and the recipe's validation of the probabilities."""
 
 import cv2
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from models.augment import PHOTOMETRIC_OPS, _apply, _motion_kernel, photometric, validate_probabilities
-from models.recipe import RecipeError, TrainRecipe
+from models.data.augment import PHOTOMETRIC_OPS, _apply, _motion_kernel, photometric, validate_probabilities
+from models.train.recipe import RecipeError, TrainRecipe
 
 
 def _batch(n=6, s=32, seed=0):
@@ -74,7 +74,7 @@ def test_probabilities_are_validated_with_the_operation_named():
 
 
 def test_gamma_and_downscale_match_their_formulas():
-    from models.augment import apply_op
+    from models.data.augment import apply_op
 
     crop = _batch(n=1, s=64)[0].numpy().astype(np.float32)
     np.testing.assert_allclose(apply_op("gamma", crop, 1.25), 255.0 * (crop / 255.0) ** 1.25, rtol=1e-5, atol=1e-3)
@@ -86,7 +86,7 @@ def test_gamma_and_downscale_match_their_formulas():
 
 def test_fixed_strengths_are_the_drawn_ones():
     """apply_op at the strength draw_strength gives is what the training augmentation applies (one definition)."""
-    from models.augment import apply_op, draw_strength
+    from models.data.augment import apply_op, draw_strength
 
     crop = _batch(n=1, s=32)[0].numpy().astype(np.float32)
     for op in PHOTOMETRIC_OPS:
@@ -96,7 +96,7 @@ def test_fixed_strengths_are_the_drawn_ones():
 
 
 def test_unknown_operations_are_refused_by_name():
-    from models.augment import apply_op, draw_strength
+    from models.data.augment import apply_op, draw_strength
 
     with pytest.raises(ValueError, match="unknown photometric augmentation 'vignette'"):
         apply_op("vignette", np.zeros((4, 4, 3), np.float32), 1.0)
@@ -105,7 +105,7 @@ def test_unknown_operations_are_refused_by_name():
 
 
 def test_a_long_motion_blur_gets_a_kernel_that_holds_it():
-    from models.augment import apply_op, motion_kernel
+    from models.data.augment import apply_op, motion_kernel
 
     k = motion_kernel(13.0, 0.0, size=15)
     assert k.sum() == pytest.approx(1.0, abs=1e-6) and (k[7] > 0).sum() >= 13  # a horizontal line of 13 px

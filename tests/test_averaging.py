@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
-from models.evaluate import evaluate_errors, torch_predictor
+from models.evaluate.errors import evaluate_errors, torch_predictor
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,7 @@ def test_evaluate_errors_settle_deg_stops_the_samples_a_later_iteration_barely_t
     plain iterations (SciPy's composition gives the errors: halving along the same axis)."""
     from scipy.spatial.transform import Rotation
 
-    from models.cropset import CropSet
+    from models.data.cropset import CropSet
     from refiner_rt import quaternion as rq
 
     n = 40

@@ -10,21 +10,23 @@ from __future__ import annotations
 import dataclasses
 import json
 
+from click.testing import CliRunner
 import cv2
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
-from data_fixtures import write_ycbv_frame
-from models.cropset import CropSet
 from models.data import CropCache, load_bop, load_ycbv
+from models.data.augment import jitter_box_and_colour, paste_occluders, replace_background
 from models.data.cache import samples_fingerprint
-from models.train import TrainConfig, _augment, _paste_occluders, _replace_background, train_refiner
+from models.data.cropset import CropSet
+from models.train.config import TrainConfig
+from models.train.loop import train_refiner
 from refiner_rt.cli import main
 from refiner_rt.preprocess import crop_to_square
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
+from tests.data_fixtures import write_ycbv_frame
 
 S = 32
 TINY = json.dumps({"input_size": S, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [16, 64],
@@ -133,14 +135,14 @@ def test_background_is_replaced_outside_the_mask_only():
     masks = torch.zeros(6, 16, 16, dtype=torch.uint8)
     masks[:, 4:12, 5:11] = 1
     masks[2] = 0  # a crop without a mask
-    out = _replace_background(images, masks, 1.0, gen)
+    out = replace_background(images, masks, 1.0, gen)
     inside = masks.bool()
     assert torch.equal(out[inside], images[inside])
     assert torch.equal(out[2], images[2])
     changed = (out != images).any(dim=3)
     for i in (0, 1, 3, 4, 5):
         assert changed[i][~inside[i]].float().mean() > 0.9
-    assert torch.equal(_replace_background(images, masks, 0.0, gen), images)
+    assert torch.equal(replace_background(images, masks, 0.0, gen), images)
 
 
 def _replace_background_whole_batch(images, masks, p, gen):
@@ -171,7 +173,7 @@ def test_background_matches_the_whole_batch_formula_to_the_byte(n, p):
         images = torch.randint(0, 256, (n, 24, 24, 3), dtype=torch.uint8, generator=data)
         masks = (torch.rand(n, 24, 24, generator=data) > 0.6).to(torch.uint8)
         masks[::3] = 0  # some crops without a mask
-        assert torch.equal(_replace_background(images, masks, p, g), _replace_background_whole_batch(images, masks, p, g_ref))
+        assert torch.equal(replace_background(images, masks, p, g), _replace_background_whole_batch(images, masks, p, g_ref))
     assert torch.equal(g.get_state(), g_ref.get_state())
 
 
@@ -204,7 +206,7 @@ def test_augment_matches_the_affine_grid_formula_to_the_byte(n, s, jitter):
     data = torch.Generator().manual_seed(200 + n)
     for _ in range(20):
         images = torch.randint(0, 256, (n, s, s, 3), dtype=torch.uint8, generator=data)
-        assert torch.equal(_augment(images, cfg, g), _augment_with_affine_grid(images, cfg, g_ref))
+        assert torch.equal(jitter_box_and_colour(images, cfg.box_jitter, g), _augment_with_affine_grid(images, cfg, g_ref))
     assert torch.equal(g.get_state(), g_ref.get_state())
 
 
@@ -217,7 +219,7 @@ def test_background_comes_from_other_crops_and_from_colour_fields():
     kinds = set()
     gen = torch.Generator().manual_seed(1)
     for _ in range(12):
-        out = _replace_background(images, masks, 1.0, gen)
+        out = replace_background(images, masks, 1.0, gen)
         for i in range(4):
             donor = [j for j in range(4) if j != i and torch.equal(out[i][outside], images[j][outside])]
             kinds.add("crop" if donor else "field")
@@ -232,7 +234,7 @@ def test_occluders_are_other_crops_objects_pasted_whole():
     masks = torch.zeros(n, s, s, dtype=torch.uint8)
     masks[:, 5:15, 6:14] = 1
     gen = torch.Generator().manual_seed(3)
-    out = _paste_occluders(images, masks, 1.0, gen)
+    out = paste_occluders(images, masks, 1.0, gen)
     pasted = 0
     for i in range(n):
         changed = (out[i] != images[i]).any(dim=2)
@@ -242,8 +244,8 @@ def test_occluders_are_other_crops_objects_pasted_whole():
             assert changed.sum() <= masks[0].sum()
             pasted += 1
     assert pasted >= n // 2
-    assert torch.equal(_paste_occluders(images, masks, 0.0, gen), images)
-    assert torch.equal(_paste_occluders(images, torch.zeros_like(masks), 1.0, gen), images)
+    assert torch.equal(paste_occluders(images, masks, 0.0, gen), images)
+    assert torch.equal(paste_occluders(images, torch.zeros_like(masks), 1.0, gen), images)
 
 
 def test_training_with_background_needs_masks():

@@ -9,11 +9,11 @@ split whose validation or test crops the base network was trained on is refused.
 import json
 import re
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.cube_dataset import make_cube_dataset
 
 C, M = "003_cracker_box", "006_mustard_bottle"
 SIZES = (20, 0, 10, 10)
@@ -24,7 +24,7 @@ SMALL = {"input_size": 32, "conv_channels": [8, 8], "fuse_width": 128, "pose_wid
 def mixed(tmp_path_factory):
     """Scenes 0-5 hold both cubes, scenes 6-11 only the cracker box; and a base checkpoint split over both."""
     import models
-    from models.pipeline import DataSpec
+    from models.data.pipeline import DataSpec
 
     root = tmp_path_factory.mktemp("mixed")
     data = root / "data"
@@ -49,7 +49,7 @@ def _keys(samples):
 
 
 def test_split_objects_keeps_the_full_split_where_a_subset_alone_would_move_test_scenes(mixed):
-    from models.pipeline import PARTS, DataSpec, load_splits
+    from models.data.pipeline import PARTS, DataSpec, load_splits
 
     data, spec, _ = mixed
     full = load_splits(spec)
@@ -64,7 +64,7 @@ def test_split_objects_keeps_the_full_split_where_a_subset_alone_would_move_test
 
 
 def test_split_objects_is_recorded_only_when_set(mixed):
-    from models.pipeline import DataSpec
+    from models.data.pipeline import DataSpec
 
     _, spec, _ = mixed
     assert "split_objects" not in spec.as_dict()  # specs (and cache keys) from before the field are unchanged
@@ -74,7 +74,7 @@ def test_split_objects_is_recorded_only_when_set(mixed):
 
 
 def test_eval_of_one_object_tests_on_the_models_split(mixed, tmp_path):
-    from models.pipeline import load_splits
+    from models.data.pipeline import load_splits
 
     data, spec, base = mixed
     out = tmp_path / "eval.json"
@@ -89,7 +89,7 @@ def test_eval_of_one_object_tests_on_the_models_split(mixed, tmp_path):
 
 def test_fine_tuning_one_object_of_a_scenes_base_keeps_its_split(mixed, tmp_path):
     import models
-    from models.pipeline import DataSpec, load_splits
+    from models.data.pipeline import DataSpec, load_splits
 
     data, spec, base = mixed
     common = ["train", "--data", str(data), "--base", str(base), "--arch", "fusion", "--split-mode", "scenes",
@@ -115,7 +115,7 @@ def test_fine_tuning_one_object_of_a_scenes_base_keeps_its_split(mixed, tmp_path
 
 
 def test_an_empty_split_part_says_how_many_scenes_each_part_got_and_which_flags_set_the_sizes(tmp_path):
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.data.pipeline import DataSpec, cropset_for, load_splits
 
     data = tmp_path / "small"
     make_cube_dataset(data, obj_ids=(2,), scenes=2, frames=4)

@@ -4,20 +4,20 @@ PyTorch eager rows): interleaved timing, variants, and `refiner-rt bench` rows."
 import json
 
 import click
-import numpy as np
-import pytest
 from click.testing import CliRunner
+import numpy as np
 from onnx import TensorProto, helper, numpy_helper
+import pytest
 
-import onnx_fixtures as fx
-from bench_scripts import load_benchmark
+from tests import onnx_fixtures as fx
+from tests.bench_scripts import load_benchmark
 from export import bench as paper
 from export import bench_models
 from export.defaults import DEFAULT_SCHEME
-from test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
 from refiner_rt import bench
 from refiner_rt import pretrained as pt
 from refiner_rt.cli import RUNTIME_COMMANDS, main
+from tests.test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
 
 
 def _graph_model(nodes, inits, inputs, outputs, path):
@@ -345,7 +345,7 @@ def test_soak_reports_rss_over_the_calls_from_threads_sharing_one_session(tmp_pa
 
 
 def test_study_json_is_stamped_with_schema_version_and_commit(tmp_path):
-    from benchmarks.study_cli import SCHEMA_VERSION, write_json
+    from models.evaluate.record import SCHEMA_VERSION, write_json
 
     path = tmp_path / "sub" / "r.json"
     write_json(path, {"rows": [1], "schema_version": SCHEMA_VERSION})

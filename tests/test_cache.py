@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from data_fixtures import make_bop
 from models.data import CropCache, load_bop
 from models.data import cache as cache_module
 from refiner_rt.preprocess import crop_to_square
+from tests.data_fixtures import make_bop
 
 S = 32
 

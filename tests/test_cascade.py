@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import onnx_fixtures as fx
 from refiner_rt import RefinerCascade, RefinerSession, RefinerTracker, pretrained_models
 from refiner_rt import quaternion as rq
+from tests import onnx_fixtures as fx
 
 IMAGE = np.full((48, 64, 3), 120, np.uint8)
 BOXES = np.array([[10.0, 10.0, 30.0, 40.0], [20.0, 5.0, 50.0, 30.0]])

@@ -4,10 +4,10 @@ import json
 import subprocess
 import sys
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
-import onnx_fixtures as fx
+from tests import onnx_fixtures as fx
 from refiner_rt.cli import ENTRY_POINT_GROUP, RUNTIME_COMMANDS, main, plugged_commands
 
 # Every subcommand: the runtime's own and those the training package plugs in (pyproject.toml's entry points).

@@ -8,10 +8,10 @@ import onnx
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from onnx_fixtures import contract, random_weight_model
 from refiner_rt import RefinerSession
 from refiner_rt.metadata import parse_metadata
 from refiner_rt.preprocess import crop_matrix, crop_to_square, crop_to_square_reference, prefiltered_region, resize_crop
+from tests.onnx_fixtures import contract, random_weight_model
 
 
 RNG = np.random.default_rng(3)

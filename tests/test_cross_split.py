@@ -5,9 +5,9 @@ import json
 
 import pytest
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
-from models.pipeline import DataSpec, load_splits
+from models.data.pipeline import DataSpec, load_splits
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 
 def _study(tmp, data, name):

@@ -8,9 +8,9 @@ import re
 import numpy as np
 import pytest
 
-from data_fixtures import K_YCBV, bop_instance, make_bop, random_rotations, write_bop_scene
 from models.data import Sample, load_bop
 from refiner_rt import quaternion as rq
+from tests.data_fixtures import K_YCBV, bop_instance, make_bop, random_rotations, write_bop_scene
 
 
 @pytest.fixture(scope="module")

@@ -6,13 +6,13 @@ Runs are capped at a few steps: this checks the study's plumbing and bookkeeping
 import json
 from pathlib import Path
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
 import models
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 WIDE = {"fuse_width": 1024, "pose_widths": [64, 1024]}
 
@@ -59,7 +59,7 @@ def test_study_writes_one_row_per_size_and_mode_on_fixed_test_sets(cubes, tmp_pa
         assert r["mean_deg"] >= 0 and r["input_mean_deg"] > 0
     printed = capsys.readouterr().out
     assert "| scenes | 40 | yes |" in printed and f"fusion {json.dumps(WIDE)}, " in printed
-    assert doc["command"].startswith("python benchmarks/data_scaling.py --data")
+    assert doc["command"].startswith("python -m benchmarks.data_scaling --data")
     assert study.main(["--table", str(out)]) == 0
     assert capsys.readouterr().out.count("| frames |") == 3
 
@@ -211,7 +211,7 @@ def test_table_of_several_studies_compares_them_per_object_and_plots(small_resul
 
 
 def test_split_objects_trains_and_tests_on_the_objects_part_of_the_larger_split(cubes, tmp_path, capsys):
-    from models.pipeline import DataSpec, load_splits
+    from models.data.pipeline import DataSpec, load_splits
 
     study = _load()
     out = tmp_path / "split.json"
@@ -233,7 +233,7 @@ def test_split_objects_trains_and_tests_on_the_objects_part_of_the_larger_split(
 
 
 def test_train_scenes_trains_on_every_crop_of_the_first_scenes_on_one_split(cubes, tmp_path, capsys):
-    from models.pipeline import DataSpec, load_splits
+    from models.data.pipeline import DataSpec, load_splits
 
     study = _load()
     out = tmp_path / "scenes.json"
@@ -272,7 +272,7 @@ def test_train_scenes_trains_on_every_crop_of_the_first_scenes_on_one_split(cube
 def test_extra_train_adds_new_scenes_and_init_starts_from_a_trained_model(tmp_path, capsys):
     import shutil
 
-    from models.pipeline import DataSpec, checkpoint_test_set, load_splits
+    from models.data.pipeline import DataSpec, checkpoint_test_set, load_splits
 
     study = _load()
     make_cube_dataset(tmp_path / "cubes", scenes=8, frames=12)
@@ -338,7 +338,7 @@ def test_the_network_is_saved_before_the_test_split_is_scored(cubes, tmp_path, m
     def fail(*args, **kwargs):
         raise RuntimeError("scoring failed")
 
-    monkeypatch.setattr("models.evaluate.evaluate_errors", fail)  # the study imports it when it runs
+    monkeypatch.setattr("models.evaluate.errors.evaluate_errors", fail)  # the study imports it when it runs
     argv = [*_common(cubes, tmp_path, tmp_path / "a.json"), "--modes", "scenes", "--sizes", "10", "--samples", "32",
             "--epoch-samples", "32", "--save", str(tmp_path / "models")]
     with pytest.raises(RuntimeError, match="scoring failed"):
@@ -352,7 +352,7 @@ def test_the_network_is_saved_before_the_test_split_is_scored(cubes, tmp_path, m
     # The rerun with --resume scores that network without training it again: the same weights, the same row.
     monkeypatch.undo()
     trained = []
-    monkeypatch.setattr("models.train.train_refiner", lambda *a, **k: trained.append(1))  # imported when it runs
+    monkeypatch.setattr("models.train.loop.train_refiner", lambda *a, **k: trained.append(1))  # imported when it runs
     before = saved[0].stat().st_mtime_ns
     assert study.main([*argv, "--resume"]) == 0
     assert not trained and saved[0].stat().st_mtime_ns == before

@@ -9,10 +9,10 @@ import pytest
 import scipy.io
 from scipy.spatial.transform import Rotation
 
-from data_fixtures import K_YCBV, K_YCBV_LATE, make_ycbv, random_rotations, write_ycbv_frame
 from models.data import PAPER_OBJECTS, Sample, load_ycbv
 from models.data.ycbv import read_meta
 from refiner_rt import quaternion as rq
+from tests.data_fixtures import K_YCBV, K_YCBV_LATE, make_ycbv, random_rotations, write_ycbv_frame
 
 
 @pytest.fixture(scope="module")

@@ -3,17 +3,17 @@ constant-output stand-in models, and with the shipped models when any ship), the
 
 import re
 
+from click.testing import CliRunner
 import cv2
 import numpy as np
 import pytest
-from click.testing import CliRunner
-from test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
 
 from refiner_rt import demo
 from refiner_rt import pretrained as pt
 from refiner_rt import quaternion as rq
 from refiner_rt.cli import main
 from refiner_rt.draw import project
+from tests.test_pretrained import weights  # noqa: F401  (fixture: two constant-output models in place of the shipped ones)
 
 PAPER_OBJECTS = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "006_mustard_bottle", "009_gelatin_box",
                  "011_banana", "021_bleach_cleanser", "035_power_drill", "037_scissors")

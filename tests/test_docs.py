@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import pytest
-from bench_scripts import load_benchmark
 
 from refiner_rt import pretrained as pt
 
@@ -33,12 +32,12 @@ def anchors(path: Path) -> set[str]:
 
 def test_generated_tables_match_their_json():
     """The paper, Table 1 and speed tables are what their JSON gives. (The shipped-model tables change with every
-    model that lands; `python benchmarks/report.py` rewrites them.)"""
-    report = load_benchmark("report")
+    model that lands; `python -m benchmarks.report` rewrites them.)"""
+    from models.evaluate import report
     skip = ("shipped-models", "shipped-models-short")
     for doc in report.DOCS:
         text = doc.read_text()
-        assert report.render(text, skip=skip) == text, f"{doc}: run python benchmarks/report.py"
+        assert report.render(text, skip=skip) == text, f"{doc}: run python -m benchmarks.report"
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
@@ -188,51 +187,56 @@ def test_ci_runs_the_readme_commands():
 
 def test_model_card_commands_name_no_machine_folders():
     """The model card prints each model's training command with DATA and RUN for the build machine's folders."""
-    build = load_benchmark("pretrained")
-    cmd = ("python benchmarks/data_scaling.py --data /srv/d/ycb9_v1 --object 003_cracker_box --config "
+    from export.release import card
+
+    cmd = ("python -m benchmarks.data_scaling --data /srv/d/ycb9_v1 --object 003_cracker_box --config "
            "'{\"conv_channels\": [16, 32]}' --cache /srv/d/ycb9_v1/.crops --save /srv/r/v1/003_cracker_box "
            "--json /srv/r/v1/003_cracker_box.train.json --extra-train /srv/d/ycb9_v0")
-    portable = build.portable_command(cmd)
+    portable = card.portable_command(cmd)
     assert portable == (
-        "python benchmarks/data_scaling.py --data DATA --object 003_cracker_box --config "
+        "python -m benchmarks.data_scaling --data DATA --object 003_cracker_box --config "
         "'{\"conv_channels\": [16, 32]}' --cache DATA/.crops --save RUN/003_cracker_box "
         "--json RUN/003_cracker_box.train.json --extra-train ycb9_v0")
-    assert build.portable_command(portable) == portable
+    assert card.portable_command(portable) == portable
 
 
 def test_first_stage_commands_train_on_turns_then_go_on_from_that_network():
     """An object of FIRST_STAGE trains twice: turns about its axis from scratch, then the recipe's stage from that
     checkpoint of the same split (no --init-other-set); the card prints both commands."""
-    build = load_benchmark("pretrained")
+    from export.release import coarse
+
     run, data = Path("/srv/r/v5"), Path("/srv/d/ycb9_v5")
-    first = build.train_command(data, "002_master_chef_can", run, 200, 16000, data / ".crops", noise="twist:0:30",
-                                lr=1e-3, name="002_master_chef_can.stage1")
+    first = coarse.data_scaling_command(data, "002_master_chef_can", run, 200, 16000, data / ".crops",
+                                        noise="twist:0:30", lr=1e-3, name="002_master_chef_can.stage1")
     assert first[first.index("--noise") + 1] == "twist:0:30" and first[first.index("--lr") + 1] == "0.001"
     assert first[first.index("--save") + 1] == str(run / "002_master_chef_can.stage1") and "--init" not in first
-    second = build.train_command(data, "002_master_chef_can", run, 300, 16000, data / ".crops",
-                                 init=run / "002_master_chef_can.stage1" / "a.pt", other_set=False)
+    second = coarse.data_scaling_command(data, "002_master_chef_can", run, 300, 16000, data / ".crops",
+                                         init=run / "002_master_chef_can.stage1" / "a.pt", other_set=False)
     assert "--noise" not in second and "--init-other-set" not in second
     assert second[second.index("--save") + 1] == str(run / "002_master_chef_can")
-    assert "--init-other-set" in build.train_command(data, "x", run, 300, 16000, data / ".crops", init=run / "a.pt")
+    assert "--init-other-set" in coarse.data_scaling_command(data, "x", run, 300, 16000, data / ".crops",
+                                                             init=run / "a.pt")
 
 
 def test_train_command_turns_crops_in_plane_only_when_asked():
     """``inplane`` reaches data_scaling.py as ``--inplane DEG``, with the recipe's ray frame that the turns need;
     without it the command has no turns."""
-    build = load_benchmark("pretrained")
+    from export.release import coarse
+
     run, data = Path("/srv/r/v6"), Path("/srv/d/ycb9_tabletop")
-    plain = build.train_command(data, "011_banana", run, 300, 2500, data / ".crops")
+    plain = coarse.data_scaling_command(data, "011_banana", run, 300, 2500, data / ".crops")
     assert "--inplane" not in plain
-    turned = build.train_command(data, "011_banana", run, 300, 2500, data / ".crops", inplane=180.0)
+    turned = coarse.data_scaling_command(data, "011_banana", run, 300, 2500, data / ".crops", inplane=180.0)
     assert turned[turned.index("--inplane") + 1] == "180"
     assert turned[turned.index("--rotation-frame") + 1] == "ray"
-    assert build.train_command(data, "011_banana", run, 300, 2500, data / ".crops", inplane=22.5)[
+    assert coarse.data_scaling_command(data, "011_banana", run, 300, 2500, data / ".crops", inplane=22.5)[
         turned.index("--inplane") + 1] == "22.5"
 
 
 def _card_docs():
-    build = load_benchmark("pretrained")
-    docs = build._load_results()
+    from export.release import card as build
+
+    docs = build.load_results()
     if not docs:
         pytest.skip("no shipped model")
     return build, docs
@@ -263,6 +267,8 @@ def test_model_card_gives_the_symmetry_aware_error_beside_the_plain_one():
     """An object scored with its BOP symmetry too gets a sentence under the table; the table keeps the plain error."""
     import copy
 
+    from models.data.objects import SCAN_FRAME_SYMMETRIES
+
     build, docs = _card_docs()
     plain = build.card_markdown(docs, {})
     docs = copy.deepcopy(docs)
@@ -271,7 +277,7 @@ def test_model_card_gives_the_symmetry_aware_error_beside_the_plain_one():
     assert "scored with BOP's symmetry" not in build.card_markdown(docs, {})
     d["eval"]["int8"]["symmetric"] = {"n": 10, "mean_deg": 3.217, "median_deg": 2.9, "under_5_deg": 0.8,
                                       "under_10_deg": 0.95, "input_mean_deg": 12.1, "std_deg": 1.0,
-                                      "symmetry": build.SYMMETRIES}
+                                      "symmetry": SCAN_FRAME_SYMMETRIES}
     card = build.card_markdown(docs, {})
     assert ("`002_master_chef_can` scored with BOP's symmetry for it (any turn about the axis [0, 0, 1] of the scan "
             "frame leaves it looking the same" in card)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
-from models.metrics import swing_twist_deg
+from models.evaluate.metrics import swing_twist_deg
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 
 def _wxyz(r: Rotation) -> np.ndarray:
@@ -58,7 +58,7 @@ def test_breakdown_measures_each_part_and_splits_the_test_error(saved, capsys):
     argv = [row["checkpoint"], "--cache", str(tmp / "cache"), "--threads", "1", "--json", str(out)]
     assert load_benchmark("error_breakdown").main(argv) == 0
     doc = json.loads(out.read_text())
-    assert doc["command"] == "python benchmarks/error_breakdown.py " + " ".join(argv)
+    assert doc["command"] == "python -m benchmarks.error_breakdown " + " ".join(argv)
     assert doc["machine"]["threads"] == 1 and doc["machine"]["torch"]  # a torch study records torch's threads and version
     r = doc["results"][0]
     parts = r["parts"]

@@ -4,22 +4,22 @@ import os
 import stat
 from pathlib import Path
 
+from click.testing import CliRunner
 import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
 import torch
-from click.testing import CliRunner
-from test_models import small_config
 
-import export
-import models
 from export import onnx_export, parity
+import export
 from export.defaults import LRN_LOWERING_NAMES
-from models.checkpoint import file_sha256
+import models
+from models.train.checkpoint import file_sha256
 from refiner_rt import __version__
 from refiner_rt.cli import main as cli_main
 from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, OUTPUT_QUATERNION, parse_metadata
+from tests.test_models import small_config
 
 INFO = {"objects": ["003_cracker_box", "035_power_drill"], "train_noise": "uniform:0:30"}
 
@@ -269,7 +269,7 @@ def test_lrn_lowerings_match_torch(tmp_path, beta):
     class Net(torch.nn.Module):
         def __init__(self):
             super().__init__()
-            self.lrn = models.blocks.LocalResponseNorm(5, 1e-2, beta, 2.0)
+            self.lrn = models.nets.blocks.LocalResponseNorm(5, 1e-2, beta, 2.0)
 
         def forward(self, x):
             return self.lrn(x)

@@ -1,13 +1,12 @@
-"""benchmarks/fine.py and the cascade study: the card's numbers and the floor curve from error arrays, and the
-study's table, on arrays whose answers are known."""
+"""The cascade measured through the runtime (models/evaluate/cascade.py) and the cascade study: the card's numbers
+and the floor curve from error arrays, and the study's table, on arrays whose answers are known."""
 
 import json
 
 import numpy as np
 
-from bench_scripts import load_benchmark
-
-fine = load_benchmark("fine")
+from models.evaluate import cascade as fine
+from tests.bench_scripts import load_benchmark
 
 
 def _errors():

@@ -1,14 +1,15 @@
-"""models.losses against refiner_rt.quaternion (numpy) and SciPy's Rotation, plus gradient safety."""
+"""models.train.losses against refiner_rt.quaternion (numpy) and SciPy's Rotation, plus gradient safety."""
 
-import numpy as np
-import pytest
-import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
+import torch
 
-from models import losses
+from models.nets import quaternion
+from models.train import losses
 from refiner_rt import quaternion as rq
 
 RNG = np.random.default_rng(1)
@@ -27,21 +28,21 @@ def test_quat_multiply_known_value_wxyz():
     # i * j = k in the Hamilton convention, wxyz order.
     i = torch.tensor([0.0, 1.0, 0.0, 0.0])
     j = torch.tensor([0.0, 0.0, 1.0, 0.0])
-    torch.testing.assert_close(losses.quat_multiply(i, j), torch.tensor([0.0, 0.0, 0.0, 1.0]))
+    torch.testing.assert_close(quaternion.quat_multiply(i, j), torch.tensor([0.0, 0.0, 0.0, 1.0]))
 
 
 def test_quat_multiply_and_conjugate_match_numpy_and_scipy():
     a, b = random_q(100), random_q(100)
-    got = losses.quat_multiply(torch.from_numpy(a), torch.from_numpy(b)).numpy()
+    got = quaternion.quat_multiply(torch.from_numpy(a), torch.from_numpy(b)).numpy()
     np.testing.assert_allclose(got, rq.multiply(a, b), atol=1e-12)
     scipy_ab = (Rotation.from_quat(rq.to_xyzw(a)) * Rotation.from_quat(rq.to_xyzw(b))).as_matrix()
     np.testing.assert_allclose(rq.to_matrix(got), scipy_ab, atol=1e-12)
-    conj = losses.quat_conjugate(torch.from_numpy(a)).numpy()
+    conj = quaternion.quat_conjugate(torch.from_numpy(a)).numpy()
     np.testing.assert_allclose(rq.canonical(conj), rq.inverse(a), atol=1e-15)
 
 
 def test_wxyz_splits_scalar_first():
-    w, x, y, z = losses.wxyz(torch.tensor([[1.0, 2.0, 3.0, 4.0]]))
+    w, x, y, z = quaternion.wxyz(torch.tensor([[1.0, 2.0, 3.0, 4.0]]))
     assert (w.item(), x.item(), y.item(), z.item()) == (1.0, 2.0, 3.0, 4.0)
 
 
@@ -98,4 +99,4 @@ def test_bad_shapes_raise_value_error():
     with pytest.raises(ValueError, match="same shape"):
         losses.geodesic_loss(torch.zeros(3, 4), torch.zeros(2, 4))
     with pytest.raises(TypeError, match="torch.Tensor"):
-        losses.quat_conjugate(np.zeros(4))
+        quaternion.quat_conjugate(np.zeros(4))

@@ -4,13 +4,14 @@ import json
 
 import numpy as np
 import pytest
-import torch
 from torch import nn
+import torch
 
 import models
-from models import registry
-from models.blocks import IMAGENET_MEAN_RGB, IMAGENET_STD_RGB, InputNormalization, Refiner
-from models.vggm import MIN_INPUT_SIZE
+from models.nets import registry
+from models.nets.blocks import IMAGENET_MEAN_RGB, IMAGENET_STD_RGB, InputNormalization, Refiner
+from models.nets.vggm import MIN_INPUT_SIZE
+import models.train.losses
 
 # Small hidden widths keep the tests fast; the default sizes are tested once in test_default_*.
 SMALL_COMMON = {"pose_widths": [8, 16], "head_widths": [16, 8]}
@@ -62,7 +63,7 @@ def test_gradient_flows_to_every_parameter(arch):
     model = models.build_refiner(arch, **small_config(arch)).train()
     image, q = random_inputs(model, 4)
     label = torch.nn.functional.normalize(torch.randn(4, 4), dim=1)
-    models.losses.geodesic_loss(model(image, q), label).backward()
+    models.train.losses.geodesic_loss(model(image, q), label).backward()
     for name, p in model.named_parameters():
         assert p.grad is not None, f"no gradient reached {name}"
         assert torch.isfinite(p.grad).all(), f"non-finite gradient in {name}"
@@ -117,7 +118,7 @@ def test_default_vggm_is_vggm_conv1_to_fc7():
 
 def test_vggm_lrn_matches_torch_reference():
     x = torch.randn(2, 96, 7, 7)
-    lrn = models.vggm.LocalResponseNorm(5, 5e-4, 0.75, 2.0)
+    lrn = models.nets.vggm.LocalResponseNorm(5, 5e-4, 0.75, 2.0)
     torch.testing.assert_close(lrn(x), nn.LocalResponseNorm(5, 5e-4, 0.75, 2.0)(x))
 
 
@@ -305,7 +306,7 @@ def test_vggm_init_state_dict_rejects_bad_files(tmp_path):
 def test_fusion_quaternion_to_matrix_matches_scipy():
     from scipy.spatial.transform import Rotation
 
-    from models.fusion import quaternion_to_matrix_flat
+    from models.nets.fusion import quaternion_to_matrix_flat
 
     rot = Rotation.random(200, random_state=3)
     q_wxyz = np.roll(rot.as_quat(), 1, axis=1)  # scipy is xyzw
@@ -319,7 +320,7 @@ def test_fusion_quaternion_to_matrix_matches_scipy():
 def test_fusion_absolute_output_is_the_exact_correction():
     from scipy.spatial.transform import Rotation
 
-    from models.fusion import correction_from_matrices, matrix_from_6d, quaternion_to_matrix_flat
+    from models.nets.fusion import correction_from_matrices, matrix_from_6d, quaternion_to_matrix_flat
 
     r_in, r_abs = Rotation.random(100, random_state=4), Rotation.random(100, random_state=5)
     q = correction_from_matrices(torch.tensor(r_in.as_matrix()), torch.tensor(r_abs.as_matrix())).numpy()

@@ -5,11 +5,11 @@ symmetries) load under their obj_id."""
 import hashlib
 import json
 
-import numpy as np
 from click.testing import CliRunner
+import numpy as np
 
 from refiner_rt.cli import main
-from test_render import write_box_mesh
+from tests.test_render import write_box_mesh
 
 TINY = json.dumps({"input_size": 32, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [32, 64],
                    "head_widths": [32, 16]})

@@ -7,9 +7,8 @@ import json
 
 import pytest
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
-
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 
 def _load_runner():
@@ -48,7 +47,7 @@ def test_results_follow_the_eval_schema_with_both_models(ran):
             # at most 2 steps of 64 crops each
             training = doc["budget"][model]["training"]
             assert training["epochs"] == 6 and training["seconds"] > 0 and 0 < training["samples"] <= 6 * 2 * 64
-        assert doc["command"].startswith("python benchmarks/paper.py --data")
+        assert doc["command"].startswith("python -m benchmarks.paper --data")
         assert "cpu" in doc["machine"] and doc["wall_s"] > 0
     baseline = json.loads((root / "results" / "baseline.json").read_text())
     assert baseline["paper_reference"]["average_mean_deg"] == 6.67
@@ -72,16 +71,16 @@ def test_report_writes_tables_and_plots(runner, ran):
     assert runner.main(["--report", "--results", str(root / "results")]) == 0
     md = (root / "results" / "tables.md").read_text()
     assert "## baseline" in md and "| **average** | 6.67 |" in md
-    assert str(root) not in md and "Command: `python benchmarks/paper.py" in md  # no machine paths on the page
+    assert str(root) not in md and "Command: `python -m benchmarks.paper" in md  # no machine paths on the page
     assert "## size_5000" in md and "**not run**" in md
     for png in ("baseline.png", "input_angle.png"):
         assert (root / "results" / png).stat().st_size > 1000
 
 
 def test_the_report_shows_commands_without_machine_paths(runner):
-    shown = runner.shown_command("python benchmarks/paper.py --data /mnt/me/proj/data/ycb9 --runs /srv/runs/paper_exp "
+    shown = runner.shown_command("python -m benchmarks.paper --data /mnt/me/proj/data/ycb9 --runs /srv/runs/paper_exp "
                                  "--cache /mnt/x/cache --only baseline")
-    assert shown == "python benchmarks/paper.py --data data/ycb9 --runs runs/paper_exp --cache cache --only baseline"
+    assert shown == "python -m benchmarks.paper --data data/ycb9 --runs runs/paper_exp --cache cache --only baseline"
     assert runner.shown_command("x --data=/data/alice/proj/data/ycb9 --runs=/opt/a/runs/x --n=3") == (
         "x --data=data/ycb9 --runs=runs/x --n=3")
 

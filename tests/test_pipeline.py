@@ -1,12 +1,12 @@
-"""models.pipeline: format detection, loading through either loader, and split parts as CropSets."""
+"""models.data.pipeline: format detection, loading through either loader, and split parts as CropSets."""
 
 import numpy as np
 import pytest
 
-from data_fixtures import make_bop, make_ycbv
-from models.pipeline import DataSpec, checkpoint_test_set, cropset_for, detect_format, load_samples, load_splits
+from models.data.pipeline import DataSpec, checkpoint_test_set, cropset_for, detect_format, load_samples, load_splits
 from refiner_rt import quaternion as rq
 from refiner_rt.session import ray_quaternions
+from tests.data_fixtures import make_bop, make_ycbv
 
 
 def test_detects_both_formats_and_rejects_others(tmp_path):
@@ -67,7 +67,7 @@ def _grown_set(root):
     """A 5-scene cube set split in two folders as a grown render is: scenes 0-2 in ``first``, 3-4 in ``more``."""
     import shutil
 
-    from cube_dataset import make_cube_dataset
+    from tests.cube_dataset import make_cube_dataset
 
     make_cube_dataset(root / "all", scenes=5, frames=6)
     (root / "more").mkdir()
@@ -119,7 +119,7 @@ def test_the_pipeline_does_not_import_the_onnx_session():
     import subprocess
     import sys
 
-    code = "import sys, models.pipeline; assert 'refiner_rt.session' not in sys.modules, 'session imported'"
+    code = "import sys, models.data.pipeline; assert 'refiner_rt.session' not in sys.modules, 'session imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
     from refiner_rt import geometry, session
 

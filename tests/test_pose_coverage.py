@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
 from models.data import Sample, SplitSizes, make_splits
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
 

@@ -3,13 +3,13 @@ ships loading, declaring its contract and refining a crop."""
 
 import json
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-import refiner_rt
 from refiner_rt import RefinerSession
 from refiner_rt import pretrained as pt
+import refiner_rt
 from refiner_rt.cli import main
 from tests.onnx_fixtures import constant_model, contract
 

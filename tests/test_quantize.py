@@ -1,20 +1,20 @@
 """export.quantize: INT8 models keep the contract, record the scheme, load in the runtime and stay close to fp32."""
 
+from click.testing import CliRunner
 import numpy as np
 import onnx
 import pytest
 import torch
-from click.testing import CliRunner
 
-import export
-import models
-from cube_dataset import make_cube_dataset
 from export import quantize as q8
+import export
 from export.parity import random_inputs
+import models
 from refiner_rt import RefinerSession
 from refiner_rt import quaternion as rq
 from refiner_rt.cli import main as cli_main
 from refiner_rt.metadata import parse_metadata
+from tests.cube_dataset import make_cube_dataset
 
 # Small but not degenerate widths: per-tensor int8 on 8-wide layers is not what ships.
 CONFIGS = {
@@ -151,7 +151,7 @@ def test_dataset_calibration_leaves_out_the_recorded_extra_training_folders(fp32
     # from another folder: calibration draws from the recorded split's own training part of the data given.
     import json
 
-    from models.pipeline import DataSpec
+    from models.data.pipeline import DataSpec
 
     props = _props(fp32_models["fusion"])
     spec = DataSpec(data="a_set").as_dict()

@@ -9,10 +9,10 @@ import onnxruntime as ort
 import pytest
 import torch
 
-import export
-import models
 from export import quantize as q8
+import export
 from export.parity import random_inputs
+import models
 from refiner_rt import RefinerSession
 from refiner_rt import quaternion as rq
 

@@ -1,10 +1,10 @@
 """refiner_rt.quaternion against SciPy's Rotation (independent reference) and maths identities."""
 
-import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from refiner_rt import quaternion as rq

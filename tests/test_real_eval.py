@@ -3,19 +3,16 @@ read-only folder. Models with known outputs (an identity correction, a fixed tur
 form; SciPy draws the reference angles."""
 
 import json
-import sys
 from pathlib import Path
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
-from data_fixtures import make_bop
-from onnx_fixtures import constant_model, contract
 from refiner_rt.cli import main
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.data_fixtures import make_bop
+from tests.onnx_fixtures import constant_model, contract
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +53,7 @@ def test_all_scores_every_visible_instance_and_the_drift_of_a_fixed_turn(real_fo
 def test_identity_model_leaves_the_input_error(real_folder, tmp_path):
     split, _ = real_folder
     model = _model(tmp_path, [1.0, 0.0, 0.0, 0.0], obj="009_gelatin_box")
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
 
     r = run_eval_all(model, split, draws=5, threads=1, progress=False, cache_root=tmp_path / "c")
     o = r["objects"]["009_gelatin_box"]
@@ -66,7 +63,7 @@ def test_identity_model_leaves_the_input_error(real_folder, tmp_path):
 
 
 def test_the_master_chef_can_is_scored_up_to_turns_about_its_axis(tmp_path):
-    from data_fixtures import K_YCBV, bop_instance, write_bop_scene
+    from tests.data_fixtures import K_YCBV, bop_instance, write_bop_scene
 
     R = Rotation.from_euler("xyz", [20, -30, 50], degrees=True).as_matrix()
     write_bop_scene(tmp_path / "test", 1, {1: [bop_instance(1, R, [0.0, 0.0, 800.0], [280, 200, 80, 100], 1.0)]},
@@ -74,7 +71,7 @@ def test_the_master_chef_can_is_scored_up_to_turns_about_its_axis(tmp_path):
     turn = Rotation.from_rotvec([0.0, 0.0, np.radians(45.0)])  # about the can's z axis only, between samples
     x, y, z, w = turn.as_quat()
     model = _model(tmp_path, [w, x, y, z], obj="002_master_chef_can")
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
 
     r = run_eval_all(model, tmp_path / "test", draws=1, threads=1, progress=False, cache_root=tmp_path / "c")
     assert r["objects"]["002_master_chef_can"]["drift_mean_deg"] == pytest.approx(0.0, abs=1e-3)
@@ -92,7 +89,7 @@ def test_all_refuses_split_options_and_names_a_missing_object(real_folder, tmp_p
 
 
 def test_a_read_only_folder_caches_its_crops_in_the_users_cache(tmp_path, monkeypatch):
-    import models.pipeline as pipeline
+    import models.data.pipeline as pipeline
 
     data = tmp_path / "shared" / "test"
     data.mkdir(parents=True)
@@ -106,7 +103,6 @@ def test_a_read_only_folder_caches_its_crops_in_the_users_cache(tmp_path, monkey
 
 def test_real_benchmark_scores_the_given_models_and_skips_absent_objects(real_folder, tmp_path, capsys, monkeypatch):
     split, truths = real_folder
-    sys.path.insert(0, str(ROOT))
     from benchmarks import real
 
     monkeypatch.setenv("HOME", str(tmp_path / "home"))

@@ -1,15 +1,13 @@
 """TrainRecipe: files, rules, named recipes, the generated CLI, and stages that give the same weights as calls."""
 
 import json
-import sys
-from pathlib import Path
 
+from click.testing import CliRunner
 import pytest
 import torch
-from click.testing import CliRunner
 
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.cube_dataset import make_cube_dataset
 
 TINY = {"input_size": 32, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [32, 64], "head_widths": [32, 16]}
 
@@ -22,7 +20,7 @@ def cubes(tmp_path_factory):
 
 
 def _tiny(cubes, **changes):
-    from models.recipe import TrainRecipe
+    from models.train.recipe import TrainRecipe
 
     d = dict(data=str(cubes / "cubes"), arch="fusion", arch_config=TINY, base_per_object=10, per_object=6,
              val_per_object=4, test_per_object=4, epochs_mse=1, epochs_geodesic=1, batch_size=8, threads=1,
@@ -39,7 +37,7 @@ def _same(a, b) -> bool:
 
 
 def test_named_recipes_are_valid_and_paper_is_the_defaults():
-    from models.recipe import NAMED_RECIPES, TrainRecipe, load_recipe
+    from models.train.recipe import NAMED_RECIPES, TrainRecipe, load_recipe
 
     assert load_recipe("paper").as_dict() == {**TrainRecipe().as_dict(), "name": "paper"}
     held = load_recipe("heldout-scenes-v1")
@@ -51,21 +49,20 @@ def test_named_recipes_are_valid_and_paper_is_the_defaults():
     for name in NAMED_RECIPES:
         load_recipe(name)
     # the same values as the build script that trains the shipped models
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from benchmarks.pretrained import RECIPE
+    from export.release.coarse import RECIPE
 
     built = load_recipe(RECIPE["name"])
     assert (built.val_per_object, built.test_per_object, built.lr, built.background, built.seed, built.bf16) == (
         RECIPE["val"], RECIPE["test"], RECIPE["lr"], RECIPE["background"], RECIPE["seed"], RECIPE["bf16"])
     assert built.arch_config == RECIPE["config"]
-    # the same network as heldout-scenes-v1's, but for the input turn that version 6 adds (models.fusion roll)
+    # the same network as heldout-scenes-v1's, but for the input turn that version 6 adds (models.nets.fusion roll)
     assert {k: v for k, v in built.arch_config.items() if k != "roll"} == held.arch_config
     assert built.rotation_frame == RECIPE["rotation_frame"] == held.rotation_frame
     assert built.inplane == RECIPE["inplane"]
 
 
 def test_recipe_files_round_trip_and_toml_reads(tmp_path):
-    from models.recipe import TrainRecipe, load_recipe
+    from models.train.recipe import TrainRecipe, load_recipe
 
     r = TrainRecipe(arch="fusion", arch_config={"fuse_width": 128}, objects=["003_cracker_box", "my_widget"],
                     stages=[{"ft_epochs_geodesic": 20}], rotation_frame="ray", inplane=15.0).validate()
@@ -89,7 +86,7 @@ def test_recipe_files_round_trip_and_toml_reads(tmp_path):
     ({"objects": ["a b"]}, "objects", "objects must be a non-empty list of object names"),
 ])
 def test_cross_field_rules_name_the_field(changes, field, words):
-    from models.recipe import RecipeError, TrainRecipe
+    from models.train.recipe import RecipeError, TrainRecipe
 
     with pytest.raises(RecipeError, match=words.replace("[", r"\[").replace("]", r"\]")) as info:
         TrainRecipe.from_dict(changes)
@@ -132,11 +129,11 @@ def test_a_multi_stage_recipe_gives_the_weights_of_the_same_calls_in_sequence(cu
     import models
 
     staged = _tiny(cubes, stages=[{"ft_epochs_geodesic": 2, "ft_lr": 1e-4}])
-    out = models.train(staged, out=tmp_path / "staged" / "m.pt", progress=False)
+    out = models.run_training(staged, out=tmp_path / "staged" / "m.pt", progress=False)
     first = _tiny(cubes)
     calls = tmp_path / "calls" / "m.pt"
-    models.train(first, out=calls, progress=False)
-    models.train(first.merged(ft_epochs_geodesic=2, ft_lr=1e-4), out=calls, resume=True, progress=False)
+    models.run_training(first, out=calls, progress=False)
+    models.run_training(first.merged(ft_epochs_geodesic=2, ft_lr=1e-4), out=calls, resume=True, progress=False)
     assert set(out) == {"base", "003_cracker_box", "006_mustard_bottle"}
     for key, path in out.items():
         other = calls if key == "base" else calls.with_name(f"m.{key}.pt")
@@ -151,9 +148,8 @@ def test_a_multi_stage_recipe_gives_the_weights_of_the_same_calls_in_sequence(cu
 
 
 def test_the_heldout_recipe_reproduces_the_data_scaling_command(cubes, tmp_path):
-    # The shipped models are trained by benchmarks/data_scaling.py; `refiner-rt train --recipe heldout-scenes-v1`
+    # Models up to version 6 were trained by benchmarks/data_scaling.py; `refiner-rt train --recipe heldout-scenes-v1`
     # with the same images, budget and network writes the same weights.
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from benchmarks import data_scaling
 
     common = ["--val", "4", "--test", "4", "--samples", "40", "--epoch-samples", "20", "--threads", "1",
@@ -174,8 +170,8 @@ def test_the_heldout_recipe_reproduces_the_data_scaling_command(cubes, tmp_path)
 
 
 def test_devices_and_the_ddp_backend_follow_the_tensors():
-    from models.recipe import RecipeError
-    from models.training import distributed_backend, resolve_device
+    from models.train.recipe import RecipeError
+    from models.train.run import distributed_backend, resolve_device
 
     assert resolve_device("cpu").type == "cpu"
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else resolve_device("auto").type)
@@ -191,11 +187,11 @@ def test_devices_and_the_ddp_backend_follow_the_tensors():
 def test_training_on_a_device_saves_device_free_checkpoints(cubes, tmp_path):
     # On a machine with CUDA this trains there; everywhere the checkpoint's tensors are on the CPU.
     import models
-    from models.training import resolve_device
+    from models.train.run import resolve_device
 
     device = resolve_device("auto")
     r = _tiny(cubes, per_object=0, device=str(device))
-    out = models.train(r, out=tmp_path / "d.pt", progress=False)
+    out = models.run_training(r, out=tmp_path / "d.pt", progress=False)
     state = _weights(out["base"])
     assert all(v.device.type == "cpu" for v in state.values())
     model, _ = models.load_checkpoint(out["base"])

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-import models
 from export import export_model
 from export.recover import RecoverError, checkpoint_from_onnx
+import models
 
 CONFIG = {"conv_channels": [8, 16], "fuse_width": 32, "pose_widths": [16, 32], "head_widths": [16, 8],
           "input_size": 32}

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import json
 
+from click.testing import CliRunner
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
 import models
-from bench_scripts import load_benchmark
-from cube_dataset import make_cube_dataset
-from models.train import TrainConfig, _relight
+from models.data.augment import relight
+from models.train.config import TrainConfig
 from refiner_rt.cli import main
+from tests.bench_scripts import load_benchmark
+from tests.cube_dataset import make_cube_dataset
 
 S = 32
 TINY = json.dumps({"input_size": S, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [16, 64],
@@ -29,10 +30,10 @@ def _batch(n: int = 64, s: int = 48, seed: int = 0) -> torch.Tensor:
 
 def test_relight_changes_the_picked_crops_only_and_is_seeded():
     x = _batch()
-    same = _relight(x, 0.0, torch.Generator().manual_seed(0))
+    same = relight(x, 0.0, torch.Generator().manual_seed(0))
     assert torch.equal(same, x)
-    a = _relight(x, 0.5, torch.Generator().manual_seed(1))
-    b = _relight(x, 0.5, torch.Generator().manual_seed(1))
+    a = relight(x, 0.5, torch.Generator().manual_seed(1))
+    b = relight(x, 0.5, torch.Generator().manual_seed(1))
     assert torch.equal(a, b) and a.dtype == torch.uint8 and a.shape == x.shape
     unchanged = [bool(torch.equal(a[i], x[i])) for i in range(len(x))]
     assert 16 <= sum(unchanged) <= 48  # about half of 64 picked
@@ -45,7 +46,7 @@ def test_relight_is_a_smooth_gain_not_a_new_image():
     """The crop's content stays: relit crops correlate with their originals, and the large-scale ratio
     relit/original varies smoothly (a shading field), while a blur removes some edge energy."""
     x = _batch(n=32)
-    y = _relight(x, 1.0, torch.Generator().manual_seed(3)).float()
+    y = relight(x, 1.0, torch.Generator().manual_seed(3)).float()
     xf = x.float()
     for i in range(len(x)):
         gx, gy = xf[i].mean(dim=2).flatten(), y[i].mean(dim=2).flatten()
@@ -57,7 +58,7 @@ def test_relight_is_a_smooth_gain_not_a_new_image():
     smooth_y = edges(y) / y.std()
     assert smooth_y < sharp_x * 1.2
     flat = torch.full((8, 48, 48, 3), 128, dtype=torch.uint8)
-    lit = _relight(flat, 1.0, torch.Generator().manual_seed(5)).float().mean(dim=3)
+    lit = relight(flat, 1.0, torch.Generator().manual_seed(5)).float().mean(dim=3)
     # A flat grey crop gets a shading field: a spread across the crop, but no jumps between neighbours
     # beyond the sensor noise (std <= 4 grey levels).
     assert bool(((lit.amax(dim=(1, 2)) - lit.amin(dim=(1, 2))) > 10).all())

@@ -4,10 +4,10 @@ resume, and the CLI. Uses a small textured box mesh written by the test (never t
 import json
 from pathlib import Path
 
+from click.testing import CliRunner
 import cv2
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from models.data import load_bop
 from models.data.render import RenderConfig, find_models, projected_bbox, render_dataset, silhouette
@@ -136,10 +136,10 @@ def test_rendered_instances_cut_by_the_border_are_not_fully_visible(models_dir, 
 
 def test_tone_curve_table_matches_the_formula():
     """The tabulated exposure / white balance / gamma / shoulder curve against the formula evaluated per pixel."""
-    from models.data.render import _ToneCurve
+    from models.data.render import ToneCurve
 
     for seed in range(3):
-        tone = _ToneCurve(np.random.default_rng(seed), RenderConfig())
+        tone = ToneCurve(np.random.default_rng(seed), RenderConfig())
         img = np.random.default_rng(10 + seed).uniform(0, 300, (40, 50, 3)).astype(np.float32)
         x = np.minimum(img.astype(np.float64) * tone.gain / 255.0 * tone.wb, 8.0) ** tone.gamma
         ref = np.clip((1 - np.exp(-tone.k * x)) / (1 - np.exp(-tone.k)), 0, 1) * 255
@@ -267,7 +267,7 @@ def test_projection_matches_K_to_a_fraction_of_a_pixel(models_dir):
 
     cfg = small_cfg(width=320, height=240, K=((520.0, 0, 161.3), (0, 520.0, 117.8), (0, 0, 1)))
     meshes = r.find_models(models_dir, OBJECTS)
-    world = r._World(meshes, models_dir)
+    world = r.World(meshes, models_dir)
     rng = np.random.default_rng(0)
     bodies, centre = r.build_scene(world, cfg, rng)
     K = np.asarray(cfg.K)
@@ -281,7 +281,7 @@ def test_projection_matches_K_to_a_fraction_of_a_pixel(models_dir):
             R = R_cw @ np.asarray(world.pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
             t = R_cw @ np.asarray(pos) + t_cw
             vis = seg == b
-            if vis.sum() < 200 or r._may_be_occluded(vis, seg, b, r.projected_bbox(meshes[obj], R, t, K), 320, 240):
+            if vis.sum() < 200 or r.may_be_occluded(vis, seg, b, r.projected_bbox(meshes[obj], R, t, K), 320, 240):
                 continue
             sil = r.silhouette(meshes[obj], R, t, K, 320, 240)
             (ys, xs), (ys2, xs2) = np.nonzero(vis), np.nonzero(sil)
@@ -297,7 +297,7 @@ def test_a_used_world_renders_a_scene_as_a_fresh_one_does(models_dir, tmp_path):
 
     meshes = find_models(models_dir, OBJECTS)
     cfg = small_cfg()
-    used = r._World(meshes, tmp_path / "used_tmp")
+    used = r.World(meshes, tmp_path / "used_tmp")
     r.render_scene(used, cfg, 5, 0, tmp_path / "used")
     textures = dict(used._textures)
     assert textures and set(textures) <= set(OBJECTS)
@@ -306,7 +306,7 @@ def test_a_used_world_renders_a_scene_as_a_fresh_one_does(models_dir, tmp_path):
         np.testing.assert_array_equal(cv2.imread(str(path)), cv2.imread(str(meshes[obj].texture_path)))
     r.render_scene(used, cfg, 5, 1, tmp_path / "used")
     assert textures.items() <= used._textures.items()  # decoded once, not per scene
-    fresh = r._World(meshes, tmp_path / "fresh_tmp")
+    fresh = r.World(meshes, tmp_path / "fresh_tmp")
     r.render_scene(fresh, cfg, 5, 1, tmp_path / "fresh")
     a, b = tmp_path / "used" / "000001", tmp_path / "fresh" / "000001"
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
@@ -316,7 +316,7 @@ def test_a_used_world_renders_a_scene_as_a_fresh_one_does(models_dir, tmp_path):
 
 
 def test_render_speed_benchmark_finds_the_bmp_textures_change_nothing(tmp_path):
-    from bench_scripts import load_benchmark
+    from tests.bench_scripts import load_benchmark
     from models.data.objects import PAPER_OBJECTS
 
     for k, obj in enumerate(PAPER_OBJECTS):
@@ -329,7 +329,7 @@ def test_render_speed_benchmark_finds_the_bmp_textures_change_nothing(tmp_path):
     assert doc["files_differing"] == [] and doc["files_compared"] >= 5
     assert set(doc["median_s_per_scene"]) == {"bmp_textures", "png_textures"} and doc["speedup"] > 0
     # the shared study record, without torch: the renderer's benchmark does not need it
-    assert doc["command"].startswith("python benchmarks/render_speed.py --models-dir ")
+    assert doc["command"].startswith("python -m benchmarks.render_speed --models-dir ")
     assert doc["machine"]["processes"] == 1 and "torch" not in doc["machine"] and "threads" not in doc["machine"]
 
 
@@ -360,13 +360,13 @@ def test_robot_layout_rests_objects_on_every_face_the_tabletop_layout_stands_the
     import models.data.render as r
 
     meshes = find_models(base_origin_models, ("003_cracker_box",))
-    world = r._World(meshes, tmp_path / "w")
+    world = r.World(meshes, tmp_path / "w")
     upright = {}
     for layout in ("tabletop", "robot"):
         cfg = RenderConfig.for_layout(layout, objects=("003_cracker_box",), objects_per_scene=(1, 1), K=small_cfg().K)
         ups = []
         for scene in range(24):
-            bodies, _ = r.build_scene(world, cfg, r._scene_rng(0, scene))
+            bodies, _ = r.build_scene(world, cfg, r.scene_rng(0, scene))
             for b in bodies:
                 R_wo, t_wo = world.mesh_pose(b)
                 ups.append(R_wo[2, 2] > 0.9)  # the box's z axis points up
@@ -457,8 +457,8 @@ def test_cycles_images_line_up_with_the_ground_truth_masks(models_dir, tmp_path)
     blender = _blender_python()
     K = np.array([[200.0, 0.0, 70.3], [0.0, 200.0, 64.8], [0.0, 0.0, 1.0]])
     cfg = small_cfg(K=tuple(map(tuple, K)), objects_per_scene=(3, 3), frames_per_scene=2)
-    world = r._World(find_models(models_dir, OBJECTS), tmp_path / "w")
-    rng = r._scene_rng(1, 0)
+    world = r.World(find_models(models_dir, OBJECTS), tmp_path / "w")
+    rng = r.scene_rng(1, 0)
     bodies, centre = r.build_scene(world, cfg, rng)
     poses = r.camera_path(cfg, rng, centre, 2)
     job = cycles_job(world, cfg, bodies, centre, K, poses, rng, tmp_path / "job", threads=2)
@@ -480,9 +480,8 @@ def test_real_rendered_redraws_each_annotated_object_where_the_frame_shows_it(re
     """benchmarks/real_rendered.py on a rendered folder: drawn at the ground-truth poses over grey, the objects
     cover the pixels the folder's visible masks give them (IoU > 0.95, the renderer's own segmentation as the
     reference); the rest is grey; the copy keeps its ground truth, and --data is left as it was."""
-    from bench_scripts import load_benchmark
+    from models.data.render import rerender as tool
 
-    tool = load_benchmark("real_rendered")
     out, _ = rendered
     before = sorted(p.name for p in (out / "000000" / "rgb").iterdir())
     copy = tmp_path / "copy"
@@ -503,12 +502,12 @@ def test_real_rendered_redraws_each_annotated_object_where_the_frame_shows_it(re
 
 
 def test_real_rendered_refuses_to_overwrite_its_input(rendered, tmp_path):
-    from bench_scripts import load_benchmark
+    from benchmarks import real_rendered
+    from models.data.render import rerender as tool
 
-    tool = load_benchmark("real_rendered")
     out, _ = rendered
     with pytest.raises(SystemExit):
-        tool.main(["--data", str(out), "--out", str(out)])
+        real_rendered.main(["--data", str(out), "--out", str(out)])
     with pytest.raises(SystemExit, match="no BOP scene"):
         tool.rerender_folder(tmp_path, tmp_path / "x", Path("."), progress=False)
 
@@ -575,8 +574,8 @@ def test_cycles_regions_line_up_with_the_ground_truth_masks(models_dir, tmp_path
     K = np.array([[200.0, 0.0, 70.3], [0.0, 200.0, 64.8], [0.0, 0.0, 1.0]])
     cfg = small_cfg(K=tuple(map(tuple, K)), objects_per_scene=(3, 3), frames_per_scene=2, engine="cycles",
                     cycles_region=True)
-    world = r._World(find_models(models_dir, OBJECTS), tmp_path / "w")
-    rng = r._scene_rng(1, 0)
+    world = r.World(find_models(models_dir, OBJECTS), tmp_path / "w")
+    rng = r.scene_rng(1, 0)
     bodies, centre = r.build_scene(world, cfg, rng)
     poses = r.camera_path(cfg, rng, centre, 2)
     job = cycles_job(world, cfg, bodies, centre, K, poses, rng, tmp_path / "job", threads=2)

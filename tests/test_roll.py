@@ -4,13 +4,13 @@ trained without it."""
 
 import numpy as np
 import pytest
-import torch
 from scipy.spatial.transform import Rotation
+import torch
 
 import export
 import models
-from models.fusion import canonical_roll, roll_angle
-from models.train import _rotate_in_plane
+from models.data.augment import rotate_in_plane
+from models.nets.fusion import canonical_roll, roll_angle
 
 SMALL = {"conv_channels": [8, 8], "fuse_width": 32, "pose_widths": [16, 32], "head_widths": [16, 8]}
 
@@ -62,12 +62,12 @@ def test_canonical_roll_points_the_axis_up_and_turns_the_pose_with_the_image():
 
 def test_canonical_roll_turns_crops_as_the_training_in_plane_turn_does():
     """The graph's turn and train --inplane's turn are one rule: poses whose roll is -phi are turned by +phi, giving
-    the pixels and the pose q_z(phi) * q that _rotate_in_plane gives for the same phi (it rounds to uint8)."""
+    the pixels and the pose q_z(phi) * q that rotate_in_plane gives for the same phi (it rounds to uint8)."""
     crops = torch.randint(0, 256, (6, 32, 32, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
     gen_seed, max_deg = 1, 170.0
-    images, _, q_turn = _rotate_in_plane(crops, None, max_deg, torch.Generator().manual_seed(gen_seed))
+    images, _, q_turn = rotate_in_plane(crops, None, max_deg, torch.Generator().manual_seed(gen_seed))
     phi = ((torch.rand(6, generator=torch.Generator().manual_seed(gen_seed), dtype=torch.float64) * 2 - 1)
-           * np.radians(max_deg)).numpy()  # the angles _rotate_in_plane drew
+           * np.radians(max_deg)).numpy()  # the angles rotate_in_plane drew
     upright = Rotation.from_euler("x", 90, degrees=True)  # the object z axis -> image up
     r = Rotation.from_euler("z", -phi[:, None]) * upright
     q = _wxyz(r)
@@ -88,7 +88,7 @@ def _smooth_crops(n: int, size: int, seed: int) -> np.ndarray:
 
 
 def test_the_runtime_turn_is_the_training_turn():
-    """refiner_rt.preprocess.canonical_roll (OpenCV, uint8, plain floats) against models.fusion.canonical_roll
+    """refiner_rt.preprocess.canonical_roll (OpenCV, uint8, plain floats) against models.nets.fusion.canonical_roll
     (PyTorch GridSample, float): the same angle, the same rotation, pixels within a grey level (its rounding)."""
     from refiner_rt.preprocess import canonical_roll as runtime_roll
     from refiner_rt.preprocess import roll_angles
@@ -181,11 +181,11 @@ def test_a_roll_export_recovers_and_quantises_with_the_turn(tmp_path):
 
 
 def test_the_quarter_roll_turns_by_the_nearest_quarter_and_the_runtime_moves_the_same_pixels(tmp_path):
-    """models.fusion.quarter_roll turns each crop by the multiple of 90 degrees nearest the canonical turn (so the
+    """models.nets.fusion.quarter_roll turns each crop by the multiple of 90 degrees nearest the canonical turn (so the
     axis then points within 45 degrees of up; views already there are left alone), as the continuous turn would at
     those angles; refiner_rt.preprocess.quarter_roll gives the same pixels and rotations, and a quarter-roll network
     runs through the runtime as in PyTorch."""
-    from models.fusion import quarter_roll, turn_grid
+    from models.nets.fusion import quarter_roll, turn_grid
     from refiner_rt import RefinerSession
     from refiner_rt.preprocess import quarter_roll as runtime_quarter
 
@@ -220,7 +220,7 @@ def test_the_quarter_roll_turns_by_the_nearest_quarter_and_the_runtime_moves_the
 
 
 def test_training_and_runtime_know_the_same_rolls():
-    from models.fusion import ROLLS
+    from models.nets.fusion import ROLLS
     from refiner_rt.metadata import ROLLS as CONTRACT_ROLLS
     from refiner_rt.preprocess import ROLL_TURNS
 
@@ -236,7 +236,7 @@ def test_a_network_without_the_roll_goes_on_with_it_with_the_same_weights(tmp_pa
     """data_scaling --init accepts a checkpoint whose config differs only in roll, keeping every weight."""
     from types import SimpleNamespace
 
-    from bench_scripts import load_benchmark
+    from tests.bench_scripts import load_benchmark
 
     scaling = load_benchmark("data_scaling")
     torch.manual_seed(0)
@@ -254,8 +254,8 @@ def test_a_network_without_the_roll_goes_on_with_it_with_the_same_weights(tmp_pa
 
 
 def test_refiner_rt_train_init_goes_on_with_the_roll_and_keeps_every_weight(tmp_path):
-    from models.recipe import TrainRecipe
-    from models.training import load_init
+    from models.train.recipe import TrainRecipe
+    from models.train.run import load_init
 
     torch.manual_seed(0)
     plain = models.build_refiner("fusion", input_size=32, **SMALL)
@@ -275,7 +275,7 @@ def test_refiner_rt_train_init_goes_on_with_the_roll_and_keeps_every_weight(tmp_
 def test_roll_bins_measures_the_roll_and_the_axis_to_the_ray_as_scipy_does():
     """benchmarks/studies/real_levers/roll_bins.py's bins: the angle of the object's z axis to the viewing ray (from
     SciPy's matrix) and the magnitude of the turn's roll angle."""
-    from bench_scripts import load_benchmark
+    from tests.bench_scripts import load_benchmark
 
     study = load_benchmark("studies/real_levers/roll_bins")
     r = Rotation.random(100, random_state=8)
@@ -329,7 +329,7 @@ def test_the_session_refuses_a_bad_roll_step():
 
 
 def test_a_network_goes_on_with_per_crop_input_norm_and_the_roll_at_once_with_the_same_weights():
-    from models.fusion import with_roll
+    from models.nets.fusion import with_roll
 
     torch.manual_seed(0)
     plain = models.build_refiner("fusion", input_size=32, **SMALL)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import onnx_fixtures as fx
 from refiner_rt import RefinerSession
 from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import crop_to_square, resize_crop, validate_boxes
 from refiner_rt.geometry import MAX_VIEWS, VIEW_JITTER, ray_quaternion_rows, ray_quaternions, view_boxes
+from tests import onnx_fixtures as fx
 
 RNG = np.random.default_rng(0)
 IMG = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)

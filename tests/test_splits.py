@@ -6,10 +6,10 @@ import logging
 import random
 from collections import Counter
 
-import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+import numpy as np
+import pytest
 
 from models.data import Sample, SplitSizes, make_splits
 from models.data.splits import PARTS

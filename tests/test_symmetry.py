@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from models.symmetry import closest_label, symmetric_error, symmetry_quaternions, symmetry_table, validate_symmetry
+from models.data.symmetry import closest_label, symmetric_error, symmetry_quaternions, symmetry_table, validate_symmetry
 from refiner_rt import quaternion as rq
 
 HALF_TURN_X = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1]  # BOP symmetries_discrete entry (mm translation)
@@ -71,8 +71,8 @@ def test_closest_label_picks_the_symmetric_label_nearest_the_prediction():
 
 def test_training_with_a_symmetry_records_it_and_evaluates_with_it(tmp_path):
     import models
-    from cube_dataset import make_cube_dataset
-    from models.recipe import RecipeError, TrainRecipe
+    from tests.cube_dataset import make_cube_dataset
+    from models.train.recipe import RecipeError, TrainRecipe
 
     make_cube_dataset(tmp_path / "cubes", scenes=3, frames=8)
     tiny = {"input_size": 32, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [32, 64],
@@ -82,10 +82,10 @@ def test_training_with_a_symmetry_records_it_and_evaluates_with_it(tmp_path):
         base_per_object=8, per_object=0, val_per_object=4, test_per_object=4, epochs_mse=1, epochs_geodesic=1,
         batch_size=8, threads=1, cache_root=str(tmp_path / "cache"), symmetries={"003_cracker_box": ABOUT_Z}))
     out = tmp_path / "sym.pt"
-    models.train(recipe, out=out, progress=False)
+    models.run_training(recipe, out=out, progress=False)
     _, info = models.load_checkpoint(out)
     assert info["symmetries"] == {"003_cracker_box": ABOUT_Z}
-    from models.eval_cli import run_eval
+    from models.evaluate.cli import run_eval
 
     result = run_eval(out, tmp_path / "cubes", cache_root=tmp_path / "cache", threads=1, progress=False)
     assert result["error"].startswith("symmetry-aware") and result["symmetries"] == info["symmetries"]

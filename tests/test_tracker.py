@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import onnx_fixtures as fx
 from refiner_rt import RefinerSession
-from refiner_rt import quaternion as rq
 from refiner_rt import RefinerTracker
-from test_pretrained import weights  # noqa: F401  (the made-up shipped models)
+from refiner_rt import quaternion as rq
+from tests import onnx_fixtures as fx
+from tests.test_pretrained import weights  # noqa: F401  (the made-up shipped models)
 
 RNG = np.random.default_rng(0)
 IMG = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)
@@ -765,8 +765,8 @@ def test_tracking_benchmark_on_a_tiny_rendered_path(tmp_path):
     the initial pose, and per-frame refinement's error is the drawn coarse error (mean near 15 degrees)."""
     import json
 
-    from bench_scripts import load_benchmark
-    from data_fixtures import bop_instance, write_bop_scene
+    from tests.bench_scripts import load_benchmark
+    from tests.data_fixtures import bop_instance, write_bop_scene
 
     bench = load_benchmark("tracking")
     data = tmp_path / "data"
@@ -830,8 +830,8 @@ def test_tracking_benchmark_runs_the_shipped_cascade_with_settle_deg(tmp_path, c
     """--settle-deg reaches the cascades of the cascade methods (their second coarse pass) and is recorded."""
     import json
 
-    from bench_scripts import load_benchmark
-    from data_fixtures import bop_instance, write_bop_scene
+    from tests.bench_scripts import load_benchmark
+    from tests.data_fixtures import bop_instance, write_bop_scene
     from refiner_rt import pretrained_models
 
     if not any(m.object_id == "003_cracker_box" and "fine" in m.stages for m in pretrained_models()):
@@ -890,7 +890,7 @@ def test_tracker_takes_matrices_and_ros_ordered_quaternions_as_scipy_gives_them(
 
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
-    from onnx_fixtures import constant_model
+    from tests.onnx_fixtures import constant_model
 
     sess = RefinerSession(constant_model([1, 0, 0, 0]))
     K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])

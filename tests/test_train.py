@@ -10,10 +10,11 @@ import pytest
 import torch
 
 import models
-from models.cropset import CropSet
-from models.metrics import format_markdown, format_table, summarize_errors
-from models.noise import NoiseSpec, perturb
-from models.train import TrainConfig, train_refiner, validation_errors
+from models.data.cropset import CropSet
+from models.data.noise import NoiseSpec, perturb
+from models.evaluate.metrics import format_markdown, format_table, summarize_errors
+from models.train.config import TrainConfig
+from models.train.loop import train_refiner, validation_errors
 from refiner_rt import quaternion as rq
 
 TESTS = Path(__file__).parent
@@ -135,7 +136,7 @@ def test_bf16_training_learns_like_float32_and_keeps_float32_weights():
 def test_weight_average_follows_the_ema_recurrence():
     """The average is ``a <- d * a + (1 - d) * w`` with ``d = min(decay, (1 + t) / (10 + t))``, written out here in
     float64 numpy; integer buffers (batch-norm's step counter) are copied, not averaged."""
-    from models.train import _WeightAverage
+    from models.train.loop import _WeightAverage
 
     torch.manual_seed(0)
     model = models.build_refiner("fusion", input_size=16, conv_channels=[4], fuse_width=16, pose_widths=[16],
@@ -205,11 +206,11 @@ def test_decoupled_weight_decay_shrinks_the_weights():
 
 
 def test_in_plane_turn_matches_a_rotation_about_the_viewing_ray():
-    """A crop centred on the principal point, turned by ``_rotate_in_plane``, shows what the camera sees of the
+    """A crop centred on the principal point, turned by ``rotate_in_plane``, shows what the camera sees of the
     scene rotated by the returned ``q_z`` (checked with SciPy and a pinhole projection); masks turn with it."""
     from scipy.spatial.transform import Rotation
 
-    from models.train import _rotate_in_plane
+    from models.data.augment import rotate_in_plane
 
     size, f = 64, 80.0
     points = np.array([[0.12, -0.05, 1.0], [-0.08, 0.1, 1.2], [0.02, 0.15, 0.9]])
@@ -225,7 +226,7 @@ def test_in_plane_turn_matches_a_rotation_about_the_viewing_ray():
         images[i][blob] = 255
         masks[i][blob] = 1
     gen = torch.Generator().manual_seed(3)
-    out, out_masks, q_turn = _rotate_in_plane(torch.from_numpy(images), torch.from_numpy(masks), 90.0, gen)
+    out, out_masks, q_turn = rotate_in_plane(torch.from_numpy(images), torch.from_numpy(masks), 90.0, gen)
     assert out.dtype == torch.uint8 and out.shape == images.shape and q_turn.shape == (len(points), 4)
     angles = rq.geodesic_angle(q_turn, np.tile([1.0, 0, 0, 0], (len(points), 1)))  # degrees
     assert angles.max() <= 90 + 1e-9 and angles.max() > 10  # real turns, within the range asked for

@@ -6,11 +6,11 @@ model give the same evaluation, and that the per-object fine-tuned models are fo
 
 import json
 
-import pytest
 from click.testing import CliRunner
+import pytest
 
-from cube_dataset import make_cube_dataset
 from refiner_rt.cli import main
+from tests.cube_dataset import make_cube_dataset
 
 ARCH = "fusion"
 SMALL = json.dumps({"input_size": 32, "conv_channels": [8, 8], "fuse_width": 128, "pose_widths": [32, 128], "head_widths": [64, 32]})
@@ -33,8 +33,8 @@ def trained(tmp_path_factory):
 
 def test_training_lowers_the_error_on_training_data(trained):
     import models
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import DataSpec, cropset_for, load_splits
 
     root, data, out = trained
     model, info = models.load_checkpoint(out)
@@ -86,7 +86,7 @@ def test_logs_of_a_resumed_run_keep_every_column(tmp_path):
     # A run resumed by a newer version mixes epoch rows without a column (here "samples") with rows that have it.
     import csv
 
-    from models.train_cli import write_logs
+    from models.train.cli import write_logs
 
     old = {"stage": "base", "epoch": 1, "train_loss": 0.5, "seconds": 2.0, "val_mean_deg": 9.0}
     new = {"stage": "base", "epoch": 2, "train_loss": 0.4, "samples": 128, "seconds": 2.0, "val_mean_deg": 8.0}

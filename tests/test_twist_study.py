@@ -2,8 +2,9 @@
 
 import numpy as np
 import pytest
-from bench_scripts import load_benchmark
 from scipy.spatial.transform import Rotation
+
+from tests.bench_scripts import load_benchmark
 
 twist_study = load_benchmark("studies/can_twist/twist")
 

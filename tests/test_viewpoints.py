@@ -1,16 +1,12 @@
 """benchmarks/viewpoints.py: the camera's elevation above an object's own z axis, its distance and roll, against the
 world-frame geometry they describe (SciPy draws the poses)."""
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.viewpoints import viewpoints  # noqa: E402
-from models.data.render import look_at  # noqa: E402
+from benchmarks.viewpoints import viewpoints
+from models.data.render import look_at
 
 
 def test_elevation_distance_and_roll_match_the_world_geometry():

@@ -14,6 +14,7 @@ are listed in docs/design.md §6.1.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable
 
 __all__ = [
@@ -25,7 +26,12 @@ __all__ = [
     "BOP_YCBV_OBJ_IDS",
     "validate_object_ids",
     "SCAN_FRAME_SYMMETRIES",
+    "OBJECT_NAME_PATTERN",
+    "object_names",
 ]
+
+# An object's name: a YCB id, a mesh folder or file name, or ``obj_NNNNNN`` of a BOP models/ folder.
+OBJECT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_+-]*$")
 
 # YCB-Video classes.txt, in order: class index i (1-based) is YCBV_CLASSES[i - 1].
 YCBV_CLASSES: tuple[str, ...] = (
@@ -69,7 +75,7 @@ PAPER_OBJECTS: tuple[str, ...] = tuple(PAPER_NAMES)
 # BOP's symmetry of the paper's objects that have one (YCB-Video's models_info.json: the master chef can turns about
 # its axis; the other eight have none), in the scan frame of models/data/ycb_models, where the can's axis is z (its
 # side is a cylinder of radius 49.8 mm about x = -17.1, y = -9.7 mm, the fitted centre moving under 0.1 mm over 60 mm
-# of height). Scoring uses it (the error to the closest turn about the axis, models.symmetry); the real YCB-Video
+# of height). Scoring uses it (the error to the closest turn about the axis, models.data.symmetry); the real YCB-Video
 # frames also need it, their can annotations being unreliable about that axis.
 SCAN_FRAME_SYMMETRIES = {
     "002_master_chef_can": {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [-17.1, -9.7, 0]}]},
@@ -161,3 +167,16 @@ def obj_id_map_for(data) -> dict[int, str]:
     ids = dict(BOP_YCBV_OBJ_IDS)
     ids.update({v["obj_id"]: name for name, v in dataset_objects(data).items()})
     return ids
+
+
+def object_names(text: str) -> list[str]:
+    """Comma-separated object names (each :data:`OBJECT_NAME_PATTERN`): the one parser of ``--objects`` lists.
+
+    Raises:
+        ValueError: an empty list or a name with other characters, the text quoted.
+    """
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    if not names or not all(OBJECT_NAME_PATTERN.match(n) for n in names):
+        raise ValueError(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, digits, "
+                         f"_ + -); got {text!r}")
+    return names

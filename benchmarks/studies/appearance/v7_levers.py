@@ -1,7 +1,7 @@
 """Version 7 pilot: does a training lever make the shipped refiner robust to appearance? Three seeds per row.
 
 Every row continues one object's version-6 model (its fp32 file in the package, recovered as
-``benchmarks/pretrained.py build`` does) for ``--samples`` samples on the robot-layout renders with the version-6
+``export/release/coarse.py build`` does) for ``--samples`` samples on the robot-layout renders with the version-6
 recipe (``robot-roll-v6``: the fusion network with the canonical roll, box and colour jitter, new backgrounds for half
 the crops, float32, one thread), changing one thing:
 
@@ -11,7 +11,7 @@ lever        training
 ``control``  the version-6 recipe as it is: the same amount of further training, so a lever's gain is not the
              gain of training longer
 ``photo``    plus camera-like photometric augmentation at the probabilities the BOP winners use
-             (:data:`PHOTO`: CosyPose's and GDRNPP's lists, the strengths of models.augment)
+             (:data:`PHOTO`: CosyPose's and GDRNPP's lists, the strengths of models.data.augment)
 ``aa``       the network's crop filter ``antialias`` (block averages before the crop's bilinear shrink,
              docs/design.md §3) in training as at run time; version 6 had it at run time only
 ``norm``     the network's input normalisation ``per_crop`` (each crop by its own per-channel mean and spread,
@@ -29,12 +29,12 @@ exported (fp32) and scored where appearance is the problem, which is where the c
 
 Usage (from the repository root; resumable: a finished row is kept in the JSON, a trained checkpoint is reused)::
 
-    python benchmarks/studies/appearance/v7_levers.py --robot data/ycb9_robot --real REAL \\
+    python -m benchmarks.studies.appearance.v7_levers --robot data/ycb9_robot --real REAL \\
         --cycles data/ycb9_robot_cycles_val_s43 --tiny data/ycb9_robot_tiny_val_s43 \\
         --fresh data/ycb9_robot_fresh_s41 --objects 006_mustard_bottle,011_banana \\
         --run ~/.cache/refiner-rt/runs/v7_levers --samples 60000 \\
         --json benchmarks/studies/appearance/v7_levers.json
-    python benchmarks/studies/appearance/v7_levers.py --table benchmarks/studies/appearance/v7_levers.json
+    python -m benchmarks.studies.appearance.v7_levers --table benchmarks/studies/appearance/v7_levers.json
 """
 
 from __future__ import annotations
@@ -42,18 +42,13 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[3]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from benchmarks.study_cli import write_json  # noqa: E402
+from models.evaluate.record import write_json
 
 # CosyPose trains on renders with blur (p 0.4), sharpness, contrast and colour (0.3 each) and brightness (0.5);
-# GDRNPP adds noise, JPEG-like degradation and colour casts at about 0.3 each. models.augment's strengths are a
+# GDRNPP adds noise, JPEG-like degradation and colour casts at about 0.3 each. models.data.augment's strengths are a
 # working camera's (narrower than theirs); the probabilities are theirs.
 PHOTO = {"downscale": 0.2, "motion_blur": 0.2, "blur": 0.4, "sensor_noise": 0.3, "white_balance": 0.3,
          "brightness": 0.5, "gamma": 0.3, "contrast": 0.3, "colour": 0.3, "sharpness": 0.3, "jpeg": 0.3}
@@ -67,7 +62,7 @@ def row_folder(run: Path, lever: str, seed: int) -> Path:
 
 def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: int, seed: int) -> tuple[Path, dict]:
     """Train ``obj`` for ``lever`` with ``seed`` (reusing its checkpoint when there) and export it (fp32)."""
-    from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
+    from export.release.coarse import card_command, data_scaling_command, recover_shipped, run_training_command
     from export.onnx_export import export_checkpoint
 
     folder = row_folder(run, lever, seed)
@@ -87,25 +82,25 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     init_dir.mkdir(exist_ok=True)
     init, _ = recover_shipped(obj, data, init_dir, cache, weights=weights, any_version=True)
     # the version-6 split of the same set (its validation and test scenes stay out of training)
-    cmd = train_command(data, obj, folder, samples, sizes, cache, init=init,
+    cmd = data_scaling_command(data, obj, folder, samples, sizes, cache, init=init,
                         photometric=LEVERS[lever], seed=seed)
     if lever in CONFIG:
         at = cmd.index("--config") + 1
         cmd[at] = json.dumps({**json.loads(cmd[at]), **CONFIG[lever]})
     t0 = time.perf_counter()
-    ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
+    ckpt = run_training_command(cmd, folder / obj, folder / f"{obj}.log", obj)
     train_s = time.perf_counter() - t0
     onnx = folder / f"{obj}.onnx"
     if not onnx.is_file():
         export_checkpoint(ckpt, onnx)
     row = json.loads((folder / f"{obj}.train.json").read_text())["rows"][-1]
-    return onnx, {"command": _card_command(cmd), "train_s": round(train_s, 1),
+    return onnx, {"command": card_command(cmd), "train_s": round(train_s, 1),
                   **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "wall_s")}}
 
 
 def score(onnx: Path, obj: str, real: Path, rendered: dict[str, Path], work: Path) -> dict:
     """The stress test on ``real`` (clean, worst and mean cost), and each rendered set's mean and drift."""
-    from benchmarks.appearance import run_rendered, run_stress
+    from models.evaluate.appearance import run_rendered, run_stress
 
     stress = run_stress({obj: onnx}, real, work, draws=10, seed=2024, progress=False)
     out = {"real": {"mean_deg": round(stress["clean_deg"], 3), "drift_mean_deg": round(stress["clean_drift_deg"], 3)},
@@ -194,7 +189,7 @@ def main(argv=None) -> int:
     missing = [f"--{k}" for k in ("robot", "real", "cycles", "tiny", "fresh", "run", "json") if getattr(args, k) is None]
     if missing:
         ap.error(f"{', '.join(missing)} required (or --table JSON)")
-    from benchmarks.appearance import DEFAULT_WORK
+    from models.evaluate.appearance import DEFAULT_WORK
     from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
 
     levers = args.levers.split(",")

@@ -5,7 +5,7 @@ visible pixel, the share cut by the border (``bbox_obj``, the whole silhouette, 
 kept by ``--min-visib 0.3`` (BOP ``visib_fract``, border counted) and the median visible box height. Used to choose
 ``RenderConfig.distance``.
 
-    python benchmarks/studies/camera_distance/camera_distance.py --scenes 60 --workers 2 \
+    python -m benchmarks.studies.camera_distance.camera_distance --scenes 60 --workers 2 \
         --json benchmarks/studies/camera_distance/camera_distance.json
 """
 
@@ -13,16 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
-from benchmarks.study_cli import write_json  # noqa: E402
-from models.data.render import RenderConfig, default_models_dir, render_dataset  # noqa: E402
+from models.data.render import RenderConfig, default_models_dir, render_dataset
+from models.evaluate.record import write_json
 
 
 def cut_stats(out: Path, width: int, height: int) -> dict:

@@ -6,9 +6,9 @@ the object in a folder of fresh rendered scenes (the crops, filters and coarse i
 ``visib_fract >= 0.3``, U(0, 30) degrees, seed 2024). The slope of the refined twist against the input twist says
 how much of the turn the network corrects: 0 all of it, 1 none.
 
-    python benchmarks/studies/can_twist/twist.py --heldout data/ycb9_fresh_s21 \\
+    python -m benchmarks.studies.can_twist.twist --heldout data/ycb9_fresh_s21 \\
         --json benchmarks/studies/can_twist/twist_v4.json                      # the shipped can, INT8 and fp32
-    python benchmarks/studies/can_twist/twist.py --heldout data/ycb9_fresh_s21 --model runs/x/can.onnx
+    python -m benchmarks.studies.can_twist.twist --heldout data/ycb9_fresh_s21 --model runs/x/can.onnx
 """
 
 from __future__ import annotations
@@ -19,11 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.study_cli import provenance, write_json  # noqa: E402
-from refiner_rt import quaternion as rq  # noqa: E402
+from models.evaluate.record import provenance, write_json
+from refiner_rt import quaternion as rq
 
 
 def twist_swing(q_err: np.ndarray, axis) -> tuple[np.ndarray, np.ndarray]:
@@ -49,11 +46,12 @@ def _parts(q: np.ndarray, q_true: np.ndarray, axis) -> dict:
 
 def measure(model: Path, obj: str, heldout: Path, axis) -> dict:
     """The twist/swing split of ``model``'s errors on every instance of ``obj`` in ``heldout``."""
-    from benchmarks.pretrained import _metadata, whole_folder_spec
-    from models.evaluate import evaluate_errors, onnx_predictor
-    from models.pipeline import cropset_for, load_splits
+    from export.release.card import metadata_props
+    from models.data.pipeline import whole_folder_spec
+    from models.evaluate.errors import evaluate_errors, onnx_predictor
+    from models.data.pipeline import cropset_for, load_splits
 
-    meta = _metadata(model)
+    meta = metadata_props(model)
     spec = whole_folder_spec(heldout, obj, "test")
     splits = load_splits(spec)
     test = cropset_for(splits, "test", spec, int(meta["input_size"]), float(meta["crop_context"]),
@@ -97,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(args.json, {"object": args.object, "axis": axis, "heldout": args.heldout.resolve().name,
                                "noise": "uniform:0:30", "seed": 2024, "rows": rows,
-                               **provenance("studies/can_twist/twist.py", argv)})
+                               **provenance("benchmarks.studies.can_twist.twist", argv)})
     return 0
 
 

@@ -1,7 +1,7 @@
 """The floor curve: output error against input error for the coarse refiner, the fine refiner and the cascade.
 
 For every object with a shipped fine refiner, every instance of it in each folder is refined through the runtime on
-its full frame (``benchmarks/fine.py``'s ``runtime_errors``: the INT8 files that ship, ``RefinerCascade`` with its
+its full frame (``export/release/fine.py``'s ``runtime_errors``: the INT8 files that ship, ``RefinerCascade`` with its
 defaults) from U(0, 30) inputs (``--draws`` per instance) and from the true pose (the drift); the output error is
 averaged in 1-degree bins of the input error. Rendered folders are scored with the plain geodesic error (as the model
 card); real frames (``--real``) as ``refiner-rt eval --all`` scores them (the can up to turns about its axis).
@@ -9,27 +9,23 @@ The real frames only measure: nothing is chosen on them.
 
 Usage (from the repository root)::
 
-    python benchmarks/studies/cascade/cascade.py --fresh data/ycb9_fresh_s21 --real REAL \\
+    python -m benchmarks.studies.cascade.cascade --fresh data/ycb9_fresh_s21 --real REAL \\
         --json benchmarks/studies/cascade/cascade.json --plot benchmarks/studies/cascade/floor.png
-    python benchmarks/studies/cascade/cascade.py --table benchmarks/studies/cascade/cascade.json
+    python -m benchmarks.studies.cascade.cascade --table benchmarks/studies/cascade/cascade.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.fine import FLOOR_BINS, objects_with_fine, runtime_errors, summarise  # noqa: E402
-from benchmarks.real import _data_name  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
+from models.evaluate.cascade import FLOOR_BINS, objects_with_fine, runtime_errors, summarise
+from models.evaluate.record import data_name
+from models.evaluate.record import write_json
 
 STAGES = ("coarse", "fine", "cascade")
 
@@ -131,7 +127,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     gates = None
     if args.gate_on is not None:
-        from benchmarks.fine import choose_gate
+        from models.evaluate.cascade import choose_gate
         from refiner_rt.pretrained import pretrained_model
 
         gates = {}
@@ -139,18 +135,18 @@ def main(argv=None) -> int:
             m = pretrained_model(obj)
             gates[obj], _ = choose_gate(runtime_errors(obj, m.path(int8=True), m.path(int8=True, stage="fine"),
                                                        args.gate_on, seed=7))
-            print(f"  {obj}: gates {gates[obj][0]:g} / {gates[obj][1]:g} deg, chosen on {_data_name(args.gate_on)}",
+            print(f"  {obj}: gates {gates[obj][0]:g} / {gates[obj][1]:g} deg, chosen on {data_name(args.gate_on)}",
                   flush=True)
     sets = {}
     for folder, draws, real in ((args.fresh, args.draws, False), (args.real, args.real_draws, True)):
         if folder is None:
             continue
-        name = _data_name(folder)
+        name = data_name(folder)
         print(f"{name}:", flush=True)
         sets[name] = {"label": ("real frames, " if real else "fresh renders, ") + name, "draws": draws,
                       "real": real, **measure(objects, folder, draws, symmetric=real, gates=gates)}
     doc = {"objects": objects, "sets": sets, "floor_bins_deg": 1, "wall_s": round(time.perf_counter() - t0, 1),
-           "gates": "shipped" if gates is None else {"chosen_on": _data_name(args.gate_on),
+           "gates": "shipped" if gates is None else {"chosen_on": data_name(args.gate_on),
                                                      **{o: list(g) for o, g in gates.items()}}}
     print(table(doc))
     if args.json:

@@ -5,24 +5,21 @@ Both fine refiners in fp32; each one's gates chosen on ``--calibration`` (``benc
 scenes the card does not score), then the card's renders (``--heldout``) and the real frames (``--real``, ten U(0, 30)
 inputs per instance; measuring only). The trial's fine refiner is trained first with
 
-    python benchmarks/fine.py train --data data/ycb9_robot --extra-train data/ycb9_tabletop_s32_next \\
+    python -m export.release.fine train --data data/ycb9_robot --extra-train data/ycb9_tabletop_s32_next \\
         --run runs/fine_v2 --objects OBJ --cache CACHE
 
-    python benchmarks/studies/cascade/fine_v2_probe.py --object OBJ --run runs/fine_v2 --heldout data/ycb9_fresh_s21 \\
+    python -m benchmarks.studies.cascade.fine_v2_probe --object OBJ --run runs/fine_v2 --heldout data/ycb9_fresh_s21 \\
         --calibration data/ycb9_calib_s22 --real REAL --json benchmarks/studies/cascade/fine_v2_OBJ.json
 """
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
-
-from benchmarks.fine import measure_cascade, runtime_errors, summarise  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
-from export.onnx_export import export_checkpoint  # noqa: E402
-from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name  # noqa: E402
+from export.onnx_export import export_checkpoint
+from models.evaluate.cascade import measure_cascade, runtime_errors, summarise
+from models.evaluate.record import write_json
+from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
 
 
 def main(argv=None) -> int:

@@ -1,29 +1,26 @@
 """How far the cascade's gates can trade its U(0, 30) mean for its drift: every object's gates chosen on the
-calibration renders by ``mean + W * drift`` for several weights ``W``, over a wider grid than ``benchmarks/fine.py``
+calibration renders by ``mean + W * drift`` for several weights ``W``, over a wider grid than ``export/release/fine.py``
 weighs, then scored on the card's renders.
 
-``benchmarks/fine.py`` chooses each object's ``(gate_deg, coarse_gate_deg)`` on ``--calibration`` (rendered scenes the
+``export/release/fine.py`` chooses each object's ``(gate_deg, coarse_gate_deg)`` on ``--calibration`` (rendered scenes the
 card does not score) as the smallest ``mean + drift`` (``W = 1``). Both paths of the cascade are run for every
 instance once (``benchmarks.fine.runtime_errors``, cached as ``.npz`` under ``--cache``), so every gate and weight is
 read off the same arrays. ``--real`` adds the real frames (ten U(0, 30) inputs per instance; measuring only, nothing
 is chosen there).
 
-    python benchmarks/studies/cascade/gate_sweep.py --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
+    python -m benchmarks.studies.cascade.gate_sweep --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
         --cache runs/gate_sweep --json benchmarks/studies/cascade/gate_sweep.json
 """
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
-
-from benchmarks.fine import objects_with_fine, runtime_errors, with_gate  # noqa: E402
-from benchmarks.real import _data_name  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
-from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name  # noqa: E402
+from models.evaluate.cascade import objects_with_fine, runtime_errors, with_gate
+from models.evaluate.record import data_name
+from models.evaluate.record import write_json
+from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
 
 FINE_GATES = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0)
 COARSE_GATES = (4.0, 6.0, 8.0, 12.0, 16.0, 20.0, None)
@@ -95,7 +92,7 @@ def main(argv=None) -> int:
                                        f"drift {row[n]['drift_mean_deg']:.2f} 0-3 {row[n]['input_0_3_mean_deg']:.2f}"
                                        for n in sets), flush=True)
     write_json(args.json, {"objects": objects, "fine_gates": list(FINE_GATES), "coarse_gates": list(COARSE_GATES),
-                           "sets": {n: _data_name(f) for n, (f, _) in sets.items()}, "rows": rows})
+                           "sets": {n: data_name(f) for n, (f, _) in sets.items()}, "rows": rows})
     return 0
 
 

@@ -19,7 +19,7 @@ re-implementation for speed, close to but not the tracker itself: ``benchmarks/t
 
 Usage::
 
-    python benchmarks/studies/cascade/track_probe.py [--ego] --data data/tracking_calib_s556 --json OUT.json \
+    python -m benchmarks.studies.cascade.track_probe [--ego] --data data/tracking_calib_s556 --json OUT.json \
         [--scenes A:B] [--steps 1,2,4] [--rules R | --variants V]
 """
 
@@ -36,13 +36,10 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[2]
-for p in (REPO, REPO / "benchmarks"):
-    if str(p) not in sys.path:
-        sys.path.insert(0, str(p))
 
-from refiner_rt import RefinerCascade  # noqa: E402
-from refiner_rt import quaternion as rq  # noqa: E402
-from tracking import DIVERGED_DEG, load_sequences, sequence_rng  # noqa: E402
+from refiner_rt import RefinerCascade
+from refiner_rt import quaternion as rq
+from models.evaluate.tracking import DIVERGED_DEG, load_sequences, sequence_rng
 
 
 def toward(q: np.ndarray, r: np.ndarray, frac: float | None = None, max_deg: float | None = None) -> np.ndarray:

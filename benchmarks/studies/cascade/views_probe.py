@@ -1,5 +1,5 @@
 """Does averaging more box-jittered views take the cascade to its render goals? For each ``COARSExFINE`` pair of
-view counts, every object's gates are chosen on the calibration renders as ``benchmarks/fine.py gate`` chooses them
+view counts, every object's gates are chosen on the calibration renders as ``export/release/fine.py gate`` chooses them
 (the smallest U(0, 30) mean plus drift over ``benchmarks.fine.GATES``), then the cascade is scored on the card's
 renders and, measuring only, on the real frames (ten U(0, 30) inputs per instance, the can up to its turns).
 
@@ -7,24 +7,21 @@ Both paths of the cascade are run for every instance once per pair (``benchmarks
 ``.npz`` under ``--cache``), so objects can be run in separate processes and the table written by a last run that
 finds every array cached.
 
-    python benchmarks/studies/cascade/views_probe.py --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
+    python -m benchmarks.studies.cascade.views_probe --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
         --real REAL --views 1x4,4x4,1x8,4x8 --cache runs/views_probe --json benchmarks/studies/cascade/views_probe.json
 """
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
-
-from benchmarks.fine import choose_gate, objects_with_fine, runtime_errors, with_gate  # noqa: E402
-from benchmarks.real import _data_name  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
-from refiner_rt.cascade import shipped_gate  # noqa: E402
-from refiner_rt.geometry import MAX_VIEWS  # noqa: E402
-from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name  # noqa: E402
+from models.evaluate.cascade import choose_gate, objects_with_fine, runtime_errors, with_gate
+from models.evaluate.record import data_name
+from models.evaluate.record import write_json
+from refiner_rt.cascade import shipped_gate
+from refiner_rt.geometry import MAX_VIEWS
+from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
 
 
 def parse_views(text: str, error) -> list[tuple[int, int]]:
@@ -101,7 +98,7 @@ def main(argv=None) -> int:
             f"cascade {row[n]['mean_deg']:.2f} "
             f"drift {row[n]['drift_mean_deg']:.2f} 0-3 {row[n]['input_0_3_mean_deg']:.2f}" for n in sets), flush=True)
     if args.json:
-        write_json(args.json, {"objects": objects, "sets": {n: _data_name(f) for n, (f, _) in sets.items()},
+        write_json(args.json, {"objects": objects, "sets": {n: data_name(f) for n, (f, _) in sets.items()},
                                "gate_rule": "benchmarks.fine.choose_gate on the calibration set", "rows": rows})
     return 0
 

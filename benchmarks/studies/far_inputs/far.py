@@ -17,31 +17,27 @@ turns about its axis) and only measure.
 
 Usage (from the repository root)::
 
-    python benchmarks/studies/far_inputs/far.py --data data/ycb9_calib_s22 --choose     # the choice of settle_deg
-    python benchmarks/studies/far_inputs/far.py --data data/ycb9_fresh_s21 --real REAL \\
+    python -m benchmarks.studies.far_inputs.far --data data/ycb9_calib_s22 --choose     # the choice of settle_deg
+    python -m benchmarks.studies.far_inputs.far --data data/ycb9_fresh_s21 --real REAL \\
         --json benchmarks/studies/far_inputs/far.json
-    python benchmarks/studies/far_inputs/far.py --table benchmarks/studies/far_inputs/far.json
+    python -m benchmarks.studies.far_inputs.far --table benchmarks/studies/far_inputs/far.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
+from models.evaluate.cascade import objects_with_fine
+from models.evaluate.record import data_name
+from models.evaluate.record import write_json
+from models.evaluate.report import FAR_INPUTS, far_mean
 
-from benchmarks.fine import objects_with_fine  # noqa: E402
-from benchmarks.real import _data_name  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
-
-INPUTS = {"near": "uniform:0:30", "far": "uniform:30:60", "truth": None}  # the three inputs, by name
 SETTLES = (1.0, 1.5, 2.0, 3.0, 5.0, 8.0)  # the settle_deg values scored
 SEED = 7
 
@@ -53,9 +49,9 @@ def refine_paths(obj: str, folder: Path) -> dict:
     with ``x`` the input and ``gt`` the truth."""
     import cv2
 
-    from benchmarks.pretrained import whole_folder_spec
-    from models.noise import NoiseSpec, perturb
-    from models.pipeline import load_splits
+    from models.data.pipeline import whole_folder_spec
+    from models.data.noise import NoiseSpec, perturb
+    from models.data.pipeline import load_splits
     from refiner_rt import RefinerSession
     from refiner_rt import quaternion as rq
     from refiner_rt.cascade import DEFAULT_COARSE_VIEWS, DEFAULT_FINE_VIEWS
@@ -63,7 +59,7 @@ def refine_paths(obj: str, folder: Path) -> dict:
     samples = list(load_splits(whole_folder_spec(folder, obj, "test")).test)
     gt = np.array([rq.from_matrix(s.R) for s in samples])
     rng = np.random.default_rng(SEED)
-    starts = {k: gt if spec is None else perturb(gt, NoiseSpec.parse(spec), rng)[0] for k, spec in INPUTS.items()}
+    starts = {k: gt if spec is None else perturb(gt, NoiseSpec.parse(spec), rng)[0] for k, spec in FAR_INPUTS.items()}
     coarse = RefinerSession.pretrained(obj, int8=True, threads=1)
     fine = RefinerSession.pretrained(obj, int8=True, threads=1, stage="fine")
     out = {k: {"x": x, "gt": gt, **{p: np.zeros_like(gt) for p in ("c1", "c2", "k1", "k2", "f0", "f1", "f2")}}
@@ -112,8 +108,8 @@ def settled(r: dict, settle: float | None, cascade: bool, gate: tuple) -> np.nda
 
 def score(obj: str, paths: dict, symmetric: bool) -> dict:
     """Mean error (degrees) per input, refiner (``coarse``, ``cascade``) and settle (``"off"`` or the value)."""
-    from benchmarks.pretrained import SYMMETRIES
-    from models.symmetry import symmetric_error
+    from models.data.objects import SCAN_FRAME_SYMMETRIES as SYMMETRIES
+    from models.data.symmetry import symmetric_error
     from refiner_rt import quaternion as rq
     from refiner_rt.cascade import shipped_gate
 
@@ -141,8 +137,8 @@ def check(obj: str, folder: Path, paths: dict, settle: float) -> float:
     the near ones and the true pose mostly do not)."""
     import cv2
 
-    from benchmarks.pretrained import whole_folder_spec
-    from models.pipeline import load_splits
+    from models.data.pipeline import whole_folder_spec
+    from models.data.pipeline import load_splits
     from refiner_rt import RefinerCascade, RefinerSession
     from refiner_rt import quaternion as rq
     from refiner_rt.cascade import shipped_gate
@@ -151,7 +147,7 @@ def check(obj: str, folder: Path, paths: dict, settle: float) -> float:
     coarse = RefinerSession.pretrained(obj, int8=True, threads=1)
     cascade = RefinerCascade.pretrained(obj, settle_deg=settle)
     worst = 0.0
-    for name in INPUTS:
+    for name in FAR_INPUTS:
         r = {k: v[: len(samples)] for k, v in paths[name].items()}
         for i, s in enumerate(samples):
             image = cv2.imread(s.image_path, cv2.IMREAD_COLOR)
@@ -164,14 +160,10 @@ def check(obj: str, folder: Path, paths: dict, settle: float) -> float:
     return worst
 
 
-def mean_of(doc_set: dict, name: str, refiner: str, settle: str) -> float:
-    return float(np.mean([o[name][refiner][settle] for o in doc_set["objects"].values()]))
-
-
 def choose(doc_set: dict, refiner: str) -> tuple[str, dict]:
     """The settle value (of :data:`SETTLES`) with the smallest mean, over the near, far and truth inputs, of the
     nine-object mean error; and every value's three means."""
-    means = {s: {n: round(mean_of(doc_set, n, refiner, s), 3) for n in INPUTS} for s in [f"{v:g}" for v in SETTLES]}
+    means = {s: {n: round(far_mean(doc_set, n, refiner, s), 3) for n in FAR_INPUTS} for s in [f"{v:g}" for v in SETTLES]}
     return min(means, key=lambda s: np.mean(list(means[s].values()))), means
 
 
@@ -183,22 +175,10 @@ def table(doc: dict) -> str:
         for refiner in ("coarse", "cascade"):
             for s in ["off", *[f"{v:g}" for v in SETTLES]]:
                 label = "one pass" if (refiner, s) == ("coarse", "off") else s
-                vals = [mean_of(res, n, refiner, s) for n in INPUTS]
+                vals = [far_mean(res, n, refiner, s) for n in FAR_INPUTS]
                 lines.append(f"| {res['label']} | {refiner} | {label} | " + " | ".join(f"{v:.2f}" for v in vals) + " |")
-        vals = [float(np.mean([o[n]["coarse_two_passes"] for o in res["objects"].values()])) for n in INPUTS]
+        vals = [float(np.mean([o[n]["coarse_two_passes"] for o in res["objects"].values()])) for n in FAR_INPUTS]
         lines.append(f"| {res['label']} | coarse | two passes, all kept | " + " | ".join(f"{v:.2f}" for v in vals) + " |")
-    return "\n".join(lines)
-
-
-def short_table(doc: dict, settle: str) -> str:
-    """Markdown for the README: per folder, the coarse refiner and the cascade without settling and at ``settle``."""
-    lines = ["| images | refiner | U(0, 30) inputs | U(30, 60) inputs | from the true pose |", "|---|---|---:|---:|---:|"]
-    for res in doc["sets"].values():
-        for refiner, s, label in (("coarse", "off", "coarse, one pass"),
-                                  ("coarse", settle, f"coarse, `iterations=2, settle_deg={settle}`"),
-                                  ("cascade", "off", "cascade"), ("cascade", settle, f"cascade, `settle_deg={settle}`")):
-            vals = [mean_of(res, n, refiner, s) for n in INPUTS]
-            lines.append(f"| {res['label']} | {label} | " + " | ".join(f"{v:.2f}" for v in vals) + " |")
     return "\n".join(lines)
 
 
@@ -226,7 +206,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     sets = {}
     for folder, real in [(f, False) for f in args.data] + [(f, True) for f in args.real]:
-        name = _data_name(folder)
+        name = data_name(folder)
         res = {"label": ("real frames, " if real else "renders, ") + name, "real": real, "objects": {}}
         for obj in objects:
             t1 = time.perf_counter()
@@ -248,7 +228,7 @@ def main(argv=None) -> int:
         if args.choose and not real:
             print(f"{name}: settle_deg chosen for the coarse refiner {res['choice_coarse']}, for the cascade "
                   f"{res['choice_cascade']} (smallest mean of the U(0, 30), U(30, 60) and true-pose means)")
-    doc = {"objects": objects, "inputs": INPUTS, "settles": list(SETTLES), "seed": SEED, "checked_settle_deg":
+    doc = {"objects": objects, "inputs": FAR_INPUTS, "settles": list(SETTLES), "seed": SEED, "checked_settle_deg":
            settle_check, "sets": sets, "wall_s": round(time.perf_counter() - t0, 1)}
     print(table(doc))
     if args.json:

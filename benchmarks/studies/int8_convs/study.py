@@ -10,7 +10,7 @@ folder of other fresh scenes with ``--calibration``); then, in one run:
 3. speed of the full ``refine()`` path with K (batch 1, one thread, a 640x480 frame), candidates interleaved call
    by call over several rounds, medians; ratios only within this run;
 4. session options on the fastest candidate (graph optimisation level, denormals as zero, spinning with 2 threads);
-5. accuracy through the runtime on the object's held-out test scenes (``benchmarks/pretrained.py``'s ``evaluate``)
+5. accuracy through the runtime on the object's held-out test scenes (``export/release/coarse.py``'s ``evaluate``)
    or on every instance of a folder of fresh scenes (``evaluate_fresh``, ``--heldout``), as the change of the mean
    error against fp32;
 6. onnxruntime's QDQPropagationTransformer on and off for the shipped conv scheme (bare ``session.run`` and profile).
@@ -18,8 +18,8 @@ folder of other fresh scenes with ``--calibration``); then, in one run:
 Usage (from the repository root; DATA is the rendered dataset, RUN the build's run folder with the checkpoints; or,
 without checkpoints, HELDOUT and CALIB: rendered scenes of seeds no model trained on, benchmarks/DATA.md)::
 
-    python benchmarks/studies/int8_convs/study.py --data DATA --run RUN --json benchmarks/studies/int8_convs/results.json
-    python benchmarks/studies/int8_convs/study.py --heldout HELDOUT --calibration CALIB \\
+    python -m benchmarks.studies.int8_convs.study --data DATA --run RUN --json benchmarks/studies/int8_convs/results.json
+    python -m benchmarks.studies.int8_convs.study --heldout HELDOUT --calibration CALIB \\
         --json benchmarks/studies/int8_convs/results_vnni.json
 
 Candidates (``static-qdq-int8-conv`` variants differ in which convolutions are quantised, by input channels, and
@@ -41,16 +41,12 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from refiner_rt import RefinerSession  # noqa: E402
-from export.bench import machine_info  # noqa: E402
-from refiner_rt.bench import FRAME_K, frame_K, synthetic_frame  # noqa: E402
-from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, parse_metadata  # noqa: E402
-from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models  # noqa: E402
-from refiner_rt.session import DISABLED_OPTIMIZERS, default_session_options  # noqa: E402
+from refiner_rt import RefinerSession
+from export.bench import machine_info
+from refiner_rt.bench import FRAME_K, frame_K, synthetic_frame
+from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION, parse_metadata
+from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models
+from refiner_rt.session import DISABLED_OPTIMIZERS, default_session_options
 
 # name -> (scheme written to the metadata, quantiser options); "fp32" and the two older schemes take none.
 _BIG = 65536  # weights of a "large" fully connected layer (export.quantize.large_fully_connected)
@@ -247,7 +243,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, help="rendered dataset (training crops calibrate, test crops score)")
     ap.add_argument("--run", type=Path, help="the build's run folder: RUN/<obj>/*.pt")
     ap.add_argument("--heldout", type=Path, help="instead of --data/--run: rendered scenes no model trained on, every "
-                    "instance scored (benchmarks/pretrained.py requantize --heldout)")
+                    "instance scored (export/release/coarse.py requantize --heldout)")
     ap.add_argument("--calibration", type=Path, help="with --heldout: other such scenes, every instance calibrates")
     ap.add_argument("--cache", type=Path, help="crop cache (default DATA/.crops or HELDOUT/.crops)")
     ap.add_argument("--objects", help="comma-separated YCB ids (default: every shipped object)")
@@ -258,7 +254,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, required=True)
     args = ap.parse_args(argv)
     from export.quantize import dataset_calibration
-    from pretrained import evaluate, evaluate_fresh, scoring_mode, whole_folder_spec
+    from export.release.coarse import evaluate, evaluate_fresh, scoring_mode
+    from models.data.pipeline import whole_folder_spec
 
     fresh = scoring_mode(ap, args)
     cache = args.cache or (args.heldout if fresh else args.data) / ".crops"
@@ -270,7 +267,7 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     # A rerun with --skip-speed or --skip-accuracy updates its own keys of an existing file and keeps the rest.
     doc = json.loads(args.json.read_text()) if args.json.is_file() else {}
-    command = "python benchmarks/studies/int8_convs/study.py " + " ".join(
+    command = "python -m benchmarks.studies.int8_convs.study " + " ".join(
         a if not a.startswith("/") else Path(a).name for a in (argv or sys.argv[1:]))
     doc.update({"schema": "refiner-rt/study-int8-convs/1", "candidates": {k: [v[0], v[1]] for k, v in CANDIDATES.items()}})
     doc.setdefault("objects", {})

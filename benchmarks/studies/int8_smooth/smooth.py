@@ -1,7 +1,7 @@
 """How far the shipped refiners' output moves when the coarse rotation moves a little: fp32 against INT8, before and
 after the fixes, with each suspect isolated. Render-free: the package's sample frames (refiner_rt/samples).
 
-    python benchmarks/studies/int8_smooth/smooth.py --calibration data/ycb9_calib_s22 \\
+    python -m benchmarks.studies.int8_smooth.smooth --calibration data/ycb9_calib_s22 \\
         --heldout data/ycb9_robot_fresh_s41 --out benchmarks/studies/int8_smooth/results.json
 
 Sweep: every sample instance of each shipped object, refined by that object's model from DRAWS coarse rotations
@@ -16,7 +16,7 @@ rotation input moves (``q only``), and the crop turned as for the moved rotation
 (``crop only``).
 
 ``--heldout``: mean error of each model and roll step on every instance of each object in a folder of rendered scenes
-no shipped model trained on (one pass, inputs U(0, 30)), as benchmarks/pretrained.py scores the card. Speed: median
+no shipped model trained on (one pass, inputs U(0, 30)), as export/release/coarse.py scores the card. Speed: median
 ``refine()`` time at batch 1 on 1 thread, the three models interleaved in one run.
 """
 
@@ -28,24 +28,19 @@ import math
 import platform
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from refiner_rt import RefinerSession  # noqa: E402
-from refiner_rt import quaternion as rq  # noqa: E402
-from refiner_rt.demo import load_samples  # noqa: E402
-from refiner_rt.geometry import ray_quaternions  # noqa: E402
-from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION  # noqa: E402
-from refiner_rt.preprocess import ROLL_STEP_DEG, canonical_roll, crop_to_square, roll_angle  # noqa: E402
-from refiner_rt.pretrained import WEIGHTS_DIR, pretrained_models  # noqa: E402
+from refiner_rt import RefinerSession
+from refiner_rt import quaternion as rq
+from refiner_rt.demo import load_samples
+from refiner_rt.geometry import ray_quaternions
+from refiner_rt.metadata import INPUT_IMAGE, INPUT_QUATERNION
+from refiner_rt.preprocess import ROLL_STEP_DEG, canonical_roll, crop_to_square, roll_angle
+from refiner_rt.pretrained import WEIGHTS_DIR, pretrained_models
 
 STEPS = (1e-4, 1e-3, 1e-2, 0.1, 0.6)
 DRAWS = 16
@@ -55,13 +50,14 @@ NEW_SCHEME = "static-qdq-int8-conv-float-pose"
 
 def float_pose_model(obj: str, calibration: Path, out: Path, cache: Path) -> Path:
     """The object's shipped fp32 file quantised with :data:`NEW_SCHEME`, calibrated as the shipped INT8 file was
-    (every instance of ``obj`` in ``calibration``, ``benchmarks/pretrained.py``'s ``_fresh_quantization``)."""
+    (every instance of ``obj`` in ``calibration``, ``export/release/coarse.py``'s ``_fresh_quantization``)."""
     from export.quantize import dataset_calibration, quantize_model
-    from pretrained import _metadata, whole_folder_spec
+    from export.release.card import metadata_props
+    from models.data.pipeline import whole_folder_spec
     from refiner_rt.metadata import parse_metadata
 
     fp32 = WEIGHTS_DIR / f"{obj}.onnx"
-    c = parse_metadata(_metadata(fp32))
+    c = parse_metadata(metadata_props(fp32))
     cal = dataset_calibration(calibration, c, cache_root=cache, spec=whole_folder_spec(calibration, obj, "train_base"))
     dst = out / f"{obj}.{NEW_SCHEME}.onnx"
     quantize_model(fp32, dst, scheme=NEW_SCHEME, calibration=cal)
@@ -129,7 +125,7 @@ def sweep(objects: list[str], paths: dict[str, dict[str, Path]]) -> dict:
 
 def heldout(objects: list[str], paths: dict[str, dict[str, Path]], folder: Path, cache: Path) -> dict:
     """Mean error per object, model and roll step on every instance of the object in ``folder``."""
-    from pretrained import evaluate_fresh
+    from export.release.coarse import evaluate_fresh
 
     out = {}
     for obj in objects:
@@ -200,7 +196,7 @@ def main(argv=None) -> int:
         shown = f"--calibration data/{args.calibration.resolve().name}" + (
             f" --heldout data/{args.heldout.resolve().name}" if args.heldout is not None else "") + (
             f" --objects {args.objects}" if args.objects else "")  # folder names only: no machine paths
-        doc = {"command": f"python benchmarks/studies/int8_smooth/smooth.py {shown}",
+        doc = {"command": f"python -m benchmarks.studies.int8_smooth.smooth {shown}",
                "cpu": cpu(), "roll_step_deg": ROLL_STEP_DEG, "steps_deg": list(STEPS), "objects": objects,
                "sweep": sweep(objects, paths)}
         if args.heldout is not None:

@@ -1,7 +1,7 @@
 """What each lever gives on real camera frames: the scene layout, camera-like photometric augmentation, and both.
 
 Every row continues one object's version-5 model (its fp32 file in ``--v5``, a copy of what shipped, recovered as
-``benchmarks/pretrained.py build`` does) for ``--samples`` samples with the build's recipe (``robot-real-v6``'s
+``export/release/coarse.py build`` does) for ``--samples`` samples with the build's recipe (``robot-real-v6``'s
 network, rates and jitter: box and colour jitter, new backgrounds for half the crops, float32, one thread), with or
 without its photometric augmentation, changing one thing:
 
@@ -10,7 +10,7 @@ lever                  training data, augmentation
 =====================  ========================================================================================
 ``v5``                 no training: the version-5 model
 ``tabletop``           scenes of the earlier layout (``render --layout tabletop``), the recipe's augmentation
-``tabletop+photo``     the same scenes, plus the photometric augmentation of ``robot-real-v6`` (models.augment)
+``tabletop+photo``     the same scenes, plus the photometric augmentation of ``robot-real-v6`` (models.data.augment)
 ``robot``              scenes of the robot layout (``render``'s default), the recipe's augmentation
 ``robot+photo``        the robot scenes plus the photometric augmentation: ``robot-real-v6``
 ``robot-long``         ``robot`` on every training crop of the set (about 5,000) for ``--long-samples`` samples
@@ -26,10 +26,10 @@ lever                  training data, augmentation
                        the ray that no training scene had, as an object leaning on another or a tilted camera shows
 ``robot+inplane``      ``robot`` with the same turns
 ``mix-long+inplane``   ``mix-long`` with the same turns (``robot-long+inplane`` likewise)
-``tabletop+roll``      ``tabletop`` with the network's canonical roll (``models.fusion.canonical_roll``): every crop
+``tabletop+roll``      ``tabletop`` with the network's canonical roll (``models.nets.fusion.canonical_roll``): every crop
                        is turned, inside the network, so that the coarse pose's object z axis points up in it, so the
                        network sees each viewing direction at one roll (``robot+roll``, ``mix-long+roll`` likewise)
-``tabletop+quarter``   ``tabletop`` with the canonical roll in quarter turns (``models.fusion.quarter_roll``): a crop
+``tabletop+quarter``   ``tabletop`` with the canonical roll in quarter turns (``models.nets.fusion.quarter_roll``): a crop
                        whose axis points within 45 degrees of up is left as it is, the others are turned by 90, 180
                        or 270 degrees (``mix-long+quarter`` likewise)
 =====================  ========================================================================================
@@ -42,7 +42,7 @@ robot layout), one draw each. The real frames only measure; nothing is chosen on
 
 Usage (from the repository root; resumable: a finished row is kept in the JSON, a trained checkpoint is reused)::
 
-    python benchmarks/studies/real_levers/levers.py --robot data/ycb9_robot --tabletop data/ycb9_tabletop_s32 \\
+    python -m benchmarks.studies.real_levers.levers --robot data/ycb9_robot --tabletop data/ycb9_tabletop_s32 \\
         --real REAL --fresh data/ycb9_fresh_s21 --fresh-robot data/ycb9_robot_fresh_s41 \\
         --objects 006_mustard_bottle,011_banana --run runs/levers --v5 runs/v5_shipped --samples 60000 \\
         --json benchmarks/studies/real_levers/levers.json
@@ -57,11 +57,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.real import _data_name  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
+from models.evaluate.record import data_name
+from models.evaluate.record import write_json
 
 LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-long", "mix-long", "cycles",
           "robot-same-scenes", "tabletop+inplane", "robot+inplane", "robot-long+inplane", "mix-long+inplane",
@@ -70,7 +67,7 @@ LEVERS = ("v5", "tabletop", "tabletop+photo", "robot", "robot+photo", "robot-lon
 
 def photometric() -> dict:
     """The photometric augmentation of the ``robot-real-v6`` recipe: ``{operation: probability}``."""
-    from models.recipe import NAMED_RECIPES
+    from models.train.recipe import NAMED_RECIPES
 
     return {k[len("aug_"):]: v for k, v in NAMED_RECIPES["robot-real-v6"].items() if k.startswith("aug_")}
 
@@ -85,7 +82,7 @@ def score_redrawn(docs: list[dict], run: Path, v5: Path, redrawn: Path) -> dict:
     """Every row of ``docs`` scored again, as on the real frames (10 draws, the drift), on ``redrawn``: the real frames
     with their objects re-drawn at the true poses (``benchmarks/real_rendered.py``), so that a row's gain on the
     view can be told from its gain on the appearance. ``{label: {object: {"mean_deg", "drift_mean_deg"}}}``."""
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
     from refiner_rt.pretrained import model_file_name
 
     out: dict = {}
@@ -118,7 +115,7 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     """Train ``obj`` for ``lever`` (its checkpoint reused when it exists) and export it: ``(fp32 ONNX, record)``.
     ``seed``: the training run's seed (default: the recipe's), to see how much a row moves with it alone;
     ``inplane``: the largest in-plane turn of the ``+inplane`` levers (degrees)."""
-    from benchmarks.pretrained import _card_command, _run_training, recover_shipped, train_command
+    from export.release.coarse import card_command, data_scaling_command, recover_shipped, run_training_command
     from export.onnx_export import export_checkpoint
 
     turns = lever.endswith("+inplane")
@@ -129,21 +126,21 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
     (run / data.name).mkdir(exist_ok=True)  # the version-5 checkpoint, its batch-norm statistics from data's crops
     init, _ = recover_shipped(obj, data, run / data.name, cache, weights=v5)
     # The split's validation and test parts are small: the rows are scored on the real frames and fresh renders.
-    cmd = train_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init, extra_train=extra_train,
+    cmd = data_scaling_command(data, obj, folder, samples, sizes, cache, val=200, test=100, init=init, extra_train=extra_train,
                         photometric=photometric() if lever.endswith("+photo") else {}, seed=seed,
                         inplane=inplane if turns else 0.0, roll=roll)
     t0 = time.perf_counter()
-    ckpt = _run_training(cmd, folder / obj, folder / f"{obj}.log", obj)
+    ckpt = run_training_command(cmd, folder / obj, folder / f"{obj}.log", obj)
     train_s = time.perf_counter() - t0
     onnx = folder / f"{obj}.onnx"
     if not onnx.is_file():
         export_checkpoint(ckpt, onnx)
     row = json.loads((folder / f"{obj}.train.json").read_text())["rows"][-1]
-    from benchmarks.pretrained import RECIPE_NAME
+    from export.release.coarse import RECIPE_NAME
 
     return onnx, {"recipe": RECIPE_NAME, **({} if seed is None else {"seed": seed}),
                   **({"inplane_deg": inplane} if turns else {}), **({"roll": roll} if roll else {}),
-                  "command": _card_command(cmd),
+                  "command": card_command(cmd),
                   "train_s": round(train_s, 1),
                   **{k: row.get(k) for k in ("train_crops", "samples", "val_mean_deg", "mean_deg", "wall_s")}}
 
@@ -182,7 +179,7 @@ def same_scenes(robot: Path, cycles: Path, run: Path) -> Path:
 
 def score(onnx: Path, obj: str, real: Path, fresh: list[Path]) -> dict:
     """Real-frame and fresh-render errors of ``onnx`` for ``obj``."""
-    from models.eval_cli import run_eval_all
+    from models.evaluate.cli import run_eval_all
 
     r = run_eval_all(onnx, real, objects=[obj], draws=10, threads=1, progress=False)["objects"][obj]
     out = {"real": {k: round(r[k], 3) for k in ("mean_deg", "median_deg", "input_mean_deg", "drift_mean_deg",
@@ -280,7 +277,7 @@ def main(argv=None) -> int:
                 ap.error("--redrawn needs --run and --v5 (where the rows' models are)")
             scores = score_redrawn(docs, args.run, args.v5, args.redrawn)
             if args.json:
-                write_json(args.json, {"redrawn": _data_name(args.redrawn), "draws": 10, "scores": scores})
+                write_json(args.json, {"redrawn": data_name(args.redrawn), "draws": 10, "scores": scores})
             print(redrawn_table(scores, [r for d in docs for r in d["rows"]]))
             return 0
         print(table(docs))
@@ -331,7 +328,7 @@ def main(argv=None) -> int:
             row = {"lever": lever, "object": obj, **record, **score(Path(onnx), obj, args.real, fresh),
                    "row_s": round(time.perf_counter() - t0, 1)}
             doc["rows"].append(row)
-            doc.update(samples=args.samples, photometric=photometric(), real=_data_name(args.real),
+            doc.update(samples=args.samples, photometric=photometric(), real=data_name(args.real),
                        fresh=[f.name for f in fresh])
             write_json(args.json, doc)
             print(f"{obj:<22}{lever:<16} real {row['real']['mean_deg']:6.2f} (drift {row['real']['drift_mean_deg']:5.2f})"

@@ -7,7 +7,7 @@ Every model is scored on the same crops and coarse poses (every instance of the 
 
 Usage (from the repository root)::
 
-    python benchmarks/studies/real_levers/roll_bins.py --data data/ycb9_fresh_s21 --object 037_scissors \\
+    python -m benchmarks.studies.real_levers.roll_bins --data data/ycb9_fresh_s21 --object 037_scissors \\
         --model v5=runs/v5_shipped/037_scissors.onnx --model roll=runs/levers/mix-long_roll/037_scissors.onnx \\
         --json benchmarks/studies/real_levers/roll_bins_037_scissors.json
 """
@@ -22,10 +22,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks.real import _data_name  # noqa: E402
-from benchmarks.study_cli import write_json  # noqa: E402
+from models.evaluate.record import data_name
+from models.evaluate.record import write_json
 
 ROLL_BINS = ((0, 15), (15, 45), (45, 90), (90, 180.01))  # |roll|, degrees
 AXIS_BINS = ((0, 20), (20, 30), (30, 40), (40, 60), (60, 90.01))  # z axis to the ray, degrees
@@ -57,9 +56,9 @@ def main(argv=None) -> int:
         if not sep or not name or not Path(path).is_file():
             ap.error(f"--model: expected NAME=ONNX with an existing file; got {spec!r}")
         models[name] = Path(path)
-    from benchmarks.pretrained import whole_folder_spec
-    from models.evaluate import evaluate_errors, onnx_predictor
-    from models.pipeline import cropset_for, load_splits
+    from models.data.pipeline import whole_folder_spec
+    from models.evaluate.errors import evaluate_errors, onnx_predictor
+    from models.data.pipeline import cropset_for, load_splits
 
     t0 = time.perf_counter()
     spec = whole_folder_spec(args.data, args.object, "test")
@@ -84,7 +83,7 @@ def main(argv=None) -> int:
         print(f"| {label} | {row['n']} | " + " | ".join("-" if row[m] is None else f"{row[m]:.2f}" for m in names)
               + " |")
     if args.json:
-        write_json(args.json, {"data": _data_name(args.data), "object": args.object, "draws": args.draws,
+        write_json(args.json, {"data": data_name(args.data), "object": args.object, "draws": args.draws,
                                "models": {m: str(p.resolve().relative_to(ROOT)) if p.resolve().is_relative_to(ROOT) else p.name
                                           for m, p in models.items()},
                                "bins": table, "wall_s": round(time.perf_counter() - t0, 1)})

@@ -2,11 +2,11 @@
 
 A cylinder whose colours change only along its axis looks the same after any turn about that axis, so the part of
 the label ``q_noise^-1`` about the axis cannot be seen in the crop: the plain loss asks the network for it anyway;
-the symmetry-aware loss (``models.symmetry``) trains towards the closest equivalent label. Both networks are the
+the symmetry-aware loss (``models.data.symmetry``) trains towards the closest equivalent label. Both networks are the
 same recipe on the same rendered data and split, trained for the same steps, and measured on the same test crops
 and coarse inputs with the symmetry-aware error (and the plain error, for reference).
 
-    python benchmarks/studies/symmetric_loss/symmetric_loss.py --work runs/symmetric_loss \\
+    python -m benchmarks.studies.symmetric_loss.symmetric_loss --work runs/symmetric_loss \\
         --json benchmarks/studies/symmetric_loss/symmetric_loss.json
 """
 
@@ -20,10 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.study_cli import provenance, write_json  # noqa: E402
+from models.evaluate.record import provenance, write_json
 
 NAME = "obj_000001"
 SYMMETRIES = {
@@ -76,9 +73,9 @@ def main(argv=None) -> int:
 
     import models
     from models.data.render import RenderConfig, render_dataset
-    from models.evaluate import evaluate_errors, torch_predictor
-    from models.pipeline import checkpoint_test_set
-    from models.recipe import TrainRecipe
+    from models.evaluate.errors import evaluate_errors, torch_predictor
+    from models.data.pipeline import checkpoint_test_set
+    from models.train.recipe import TrainRecipe
 
     t0 = time.perf_counter()
     write_object(args.work / "models", args.shape)
@@ -98,7 +95,7 @@ def main(argv=None) -> int:
         recipe = base.merged(symmetries=symmetries) if symmetries else base
         out = args.work / "runs" / f"{label.split()[0]}.pt"
         t1 = time.perf_counter()
-        models.train(recipe, out=out, progress=False)
+        models.run_training(recipe, out=out, progress=False)
         net, info = models.load_checkpoint(out)
         test, _ = checkpoint_test_set(net, info, cache_root=args.work / "cache")
         row = {"train_s": round(time.perf_counter() - t1, 1), "best_epoch": info["best_epoch"],
@@ -115,7 +112,7 @@ def main(argv=None) -> int:
               f"plain error {row['plain']['mean_deg']:.2f}", file=sys.stderr)
     doc = {"study": f"plain vs symmetry-aware loss on a rendered banded {args.shape} (symmetric about z)",
            "object": NAME, "shape": args.shape, "symmetry": symmetry, "frames": args.frames, "recipe": base.as_dict(), "rows": rows,
-           "test_noise": args.noise, **provenance("studies/symmetric_loss/symmetric_loss.py", list(sys.argv[1:] if argv is None else argv),
+           "test_noise": args.noise, **provenance("benchmarks.studies.symmetric_loss.symmetric_loss", list(sys.argv[1:] if argv is None else argv),
                                                       args.threads),
            "wall_s": round(time.perf_counter() - t0, 1)}
     if args.json:

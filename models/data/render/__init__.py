@@ -23,15 +23,15 @@ centres at integer coordinates in ``K``; images written BGR.
 
 from models.data.meshes import MODEL_FILES, TEXTURE_FILE, Mesh, find_models, list_models, load_obj  # noqa: F401
 
-from .bop_writer import _bbox, _bop_json, _may_be_occluded  # noqa: F401
-from .builtin import _procedural_texture, builtin_models_dir  # noqa: F401
+from .bop_writer import may_be_occluded  # noqa: F401
+from .builtin import builtin_models_dir  # noqa: F401
 from .camera import camera_path, look_at, projected_bbox, projection_matrix_gl, silhouette, view_matrix_gl  # noqa: F401
 from .cli import YCB_MODELS_DIR, default_models_dir, render_cmd  # noqa: F401
 from .config import (COMMON_CAMERAS, ENGINES, LAYOUTS, ROBOT_DISTANCE, ROBOT_ELEVATION_DEG, TABLE_HALF,  # noqa: F401
                      YCBV_K, RenderConfig)
 from .dataset import render_dataset  # noqa: F401
-from .scene import _place_robot, _scene_rng, _World, build_scene, import_pybullet, scene_camera  # noqa: F401
-from .tiny import _Backdrop, _random_texture, _ToneCurve, render_scene  # noqa: F401
+from .scene import World, build_scene, import_pybullet, place_robot, scene_camera, scene_rng  # noqa: F401
+from .tiny import Backdrop, ToneCurve, random_texture, render_scene  # noqa: F401
 
 __all__ = [
     "RenderConfig",

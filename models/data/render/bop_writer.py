@@ -26,7 +26,7 @@ def _bop_json(path: Path, content: dict) -> None:
     os.replace(tmp, path)
 
 
-def _may_be_occluded(vis: np.ndarray, seg: np.ndarray, b: int, box: np.ndarray, width: int, height: int) -> bool:
+def may_be_occluded(vis: np.ndarray, seg: np.ndarray, b: int, box: np.ndarray, width: int, height: int) -> bool:
     """Whether body ``b`` can be partly hidden: its projection reaches the image border, or its visible
     pixels touch another object's (an occluder always borders what it hides). Otherwise its visible
     pixels are its whole silhouette."""
@@ -63,7 +63,7 @@ def frame_ground_truth(world, bodies: dict[int, str], poses_w: dict, R_cw: np.nd
         mesh = world.meshes[bodies[b]]
         vis = seg == b
         cv2.imwrite(str(mask_dir / f"{im:06d}_{k:06d}.png"), vis.astype(np.uint8) * 255)
-        if _may_be_occluded(vis, seg, b, projected_bbox(mesh, R, t, K), W, H):
+        if may_be_occluded(vis, seg, b, projected_bbox(mesh, R, t, K), W, H):
             # BOP's visib_fract: the whole silhouette counts, the part beyond the image border included, so an
             # object cut in half by the border has about 0.5, as one half hidden by another object has.
             full = silhouette(mesh, R, t, K, W, H, known=vis, border=True)

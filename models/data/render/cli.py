@@ -39,7 +39,7 @@ def default_models_dir() -> Path:
 def _objects_option(ctx, param, value):
     if not value:
         return None
-    from models.recipe import object_names
+    from models.data.objects import object_names
 
     try:
         return tuple(object_names(value))

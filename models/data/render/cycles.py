@@ -39,8 +39,8 @@ import numpy as np
 from .bop_writer import finish_scene, frame_ground_truth
 from .camera import camera_path, projection_matrix_gl, view_matrix_gl
 from .config import TABLE_HALF, RenderConfig
-from .scene import _World, object_appearance
-from .tiny import _random_texture, start_scene
+from .scene import World, object_appearance
+from .tiny import random_texture, start_scene
 
 BLENDER_PYTHON_ENV = "REFINER_RT_BLENDER_PYTHON"
 WORKER = Path(__file__).with_name("cycles_worker.py")
@@ -116,7 +116,7 @@ def _look_from(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([side, np.cross(back, side), back], axis=1)
 
 
-def object_regions(world: _World, bodies: dict[int, str], R_cw: np.ndarray, t_cw: np.ndarray, K: np.ndarray,
+def object_regions(world: World, bodies: dict[int, str], R_cw: np.ndarray, t_cw: np.ndarray, K: np.ndarray,
                    width: int, height: int) -> list[dict]:
     """``cycles_region``: per object in front of the camera whose region meets the image, the region to render
     alone: ``{"body", "percentage", "border": [x0, y0, x1, y1]}``, the border in the pixels of the image scaled by
@@ -158,7 +158,7 @@ def paste_region(frame: np.ndarray, region: np.ndarray, border: list[int], perce
     frame[inside] = warped[inside]
 
 
-def cycles_job(world: _World, cfg: RenderConfig, bodies: dict[int, str], centre: np.ndarray, K: np.ndarray,
+def cycles_job(world: World, cfg: RenderConfig, bodies: dict[int, str], centre: np.ndarray, K: np.ndarray,
                poses: list, rng: np.random.Generator, work: Path, threads: int, seed: int = 0, scene: int = 0) -> dict:
     """The worker's job for one scene (see ``cycles_worker.py``); the table texture is written into ``work``.
     ``seed`` and ``scene`` draw the objects' appearance (``cfg.object_appearance``).
@@ -171,7 +171,7 @@ def cycles_job(world: _World, cfg: RenderConfig, bodies: dict[int, str], centre:
                          f"fy {K[1, 1]:g}")
     work.mkdir(parents=True, exist_ok=True)
     table = work / "table.png"
-    cv2.imwrite(str(table), _random_texture(rng, 512))
+    cv2.imwrite(str(table), random_texture(rng, 512))
     objects = []
     looks = object_appearance(cfg.object_appearance, seed, scene, bodies)
     for b, obj in bodies.items():
@@ -205,7 +205,7 @@ def cycles_job(world: _World, cfg: RenderConfig, bodies: dict[int, str], centre:
     }
 
 
-def render_scene_cycles(world: _World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path, blender: Path,
+def render_scene_cycles(world: World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path, blender: Path,
                         threads: int = 0) -> dict:
     """Render one BOP scene with Cycles into ``out_dir/<scene:06d>`` (see the module doc); returns what
     :func:`models.data.render.tiny.render_scene` returns.

@@ -22,7 +22,9 @@ import json
 import os
 import sys
 
-# This file's folder holds modules (cycles.py, config.py, ...) that would shadow Blender's own add-ons: off the path.
+# This script runs inside Blender's own Python, started with this file's folder first on sys.path; that folder holds
+# modules (cycles.py, config.py, ...) that would shadow Blender's own add-ons, so it comes off the path (the one
+# sys.path edit in the repository; tests/test_layout_training.py allows it).
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != os.path.dirname(os.path.abspath(__file__))]
 
 import bpy  # noqa: E402

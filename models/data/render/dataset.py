@@ -14,7 +14,7 @@ from models.data.meshes import Mesh, find_models
 from models.data.objects import OBJECTS_FILE
 
 from .config import RenderConfig
-from .scene import _World
+from .scene import World
 from .tiny import render_scene
 
 _WORKER: dict = {}
@@ -23,7 +23,7 @@ _WORKER: dict = {}
 def _worker_init(models: dict[str, Mesh], tmp_root: str, blender: str | None = None, threads: int = 0):
     tmp = Path(tmp_root) / f"w{os.getpid()}"
     tmp.mkdir(parents=True, exist_ok=True)
-    _WORKER.update(world=_World(models, tmp), blender=blender, threads=threads)
+    _WORKER.update(world=World(models, tmp), blender=blender, threads=threads)
 
 
 def _worker_render(args):

@@ -53,7 +53,7 @@ def _flush_c_stdio() -> None:
         pass
 
 
-class _World:
+class World:
     """A pybullet client with the meshes loaded once; scenes are built and cleared in it.
 
     Every scene starts from an empty simulation (``resetSimulation``), so a scene depends only on its seed and
@@ -117,7 +117,7 @@ class _World:
         self.offsets.clear()
 
 
-def _scene_rng(seed: int, scene: int) -> np.random.Generator:
+def scene_rng(seed: int, scene: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), int(scene), 0x5EED])
 
 
@@ -140,7 +140,7 @@ def object_appearance(strength: float, seed: int, scene: int, bodies: dict[int, 
     return out
 
 
-def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> tuple[dict[int, str], np.ndarray]:
+def build_scene(world: World, cfg: RenderConfig, rng: np.random.Generator) -> tuple[dict[int, str], np.ndarray]:
     """Drop objects on a textured table in a textured room and let them settle.
 
     Returns:
@@ -150,7 +150,7 @@ def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> t
     world.clear()
     pb.setGravity(0, 0, -9.81, physicsClientId=c)
     # The table takes part in the physics only: TinyRenderer's cost is per covered pixel, so the table
-    # and the room are composited afterwards (see _Backdrop), and only the objects are rendered.
+    # and the room are composited afterwards (see Backdrop), and only the objects are rendered.
     table = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[TABLE_HALF, TABLE_HALF, 0.02], physicsClientId=c)
     table_body = pb.createMultiBody(0, table, -1, basePosition=[0, 0, -0.02], physicsClientId=c)
     lo, hi = cfg.objects_per_scene
@@ -163,7 +163,7 @@ def build_scene(world: _World, cfg: RenderConfig, rng: np.random.Generator) -> t
             orn = pb.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
             bodies[world.add_object(str(obj), pos, orn)] = str(obj)
     else:
-        bodies = _place_robot(world, cfg, rng, [str(o) for o in chosen])
+        bodies = place_robot(world, cfg, rng, [str(o) for o in chosen])
     for _ in range(480):  # 2 s at 240 Hz
         pb.stepSimulation(physicsClientId=c)
     # pybullet draws a body without a visual shape by its collision shape: remove the table once settled.
@@ -185,7 +185,7 @@ def scene_camera(cfg: RenderConfig, rng: np.random.Generator) -> np.ndarray:
     return np.asarray(cfg.K, dtype=np.float64)
 
 
-def _place_robot(world: _World, cfg: RenderConfig, rng: np.random.Generator, chosen: list[str]) -> dict[int, str]:
+def place_robot(world: World, cfg: RenderConfig, rng: np.random.Generator, chosen: list[str]) -> dict[int, str]:
     """The ``"robot"`` layout's objects, before physics settles them: each set down upright (``cfg.upright``: its
     mesh's z axis up, a random turn about it), dropped onto an earlier object (``cfg.stack``), or dropped at a
     random orientation; centres of mass at the mesh's middle, so a dropped object rests in any of its stable poses."""

@@ -15,10 +15,10 @@ import numpy as np
 from .bop_writer import finish_scene, frame_ground_truth
 from .camera import camera_path, projection_matrix_gl, view_matrix_gl
 from .config import TABLE_HALF, RenderConfig
-from .scene import _scene_rng, _World, build_scene, object_appearance, scene_camera
+from .scene import scene_rng, World, build_scene, object_appearance, scene_camera
 
 
-def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
+def random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     """A random surface texture (wood-like grain, checker, or blotches), BGR uint8."""
     kind = rng.integers(3)
     base = rng.integers(40, 220, 3)
@@ -38,7 +38,7 @@ def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-class _Backdrop:
+class Backdrop:
     """The table top (a textured plane, exact perspective by ray casting) over a random room texture.
 
     Both are drawn with OpenCV where the renderer drew no object; their brightness follows the
@@ -47,8 +47,8 @@ class _Backdrop:
 
     def __init__(self, rng: np.random.Generator, K: np.ndarray, width: int, height: int, light: dict,
                  gloss: float = 0.0, shininess: float = 20.0):
-        self.table = _random_texture(rng, 512).astype(np.float32)
-        room = _random_texture(rng, 256)
+        self.table = random_texture(rng, 512).astype(np.float32)
+        room = random_texture(rng, 256)
         self.room = cv2.resize(room, (width, height), interpolation=cv2.INTER_LINEAR).astype(np.float32)
         d = np.asarray(light["lightDirection"], dtype=np.float64)
         self.light_dir = d / np.linalg.norm(d)  # towards the light, world frame (z up)
@@ -126,7 +126,7 @@ class _Backdrop:
         return np.where(inside[..., None], table, self.room * self.room_gain)
 
 
-class _ToneCurve:
+class ToneCurve:
     """A camera's exposure, white balance and tone curve, drawn per scene: ``y = shoulder((gain * wb * x) ** gamma)``
     on ``x`` in [0, 1], where the soft shoulder ``(1 - exp(-k y)) / (1 - exp(-k))`` compresses highlights (k -> 0 is
     linear)."""
@@ -156,11 +156,11 @@ class _ToneCurve:
         return {"gain": self.gain, "white_balance_bgr": self.wb.tolist(), "gamma": self.gamma, "shoulder": self.k}
 
 
-def start_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path):
+def start_scene(world: World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path):
     """What every engine does first for scene ``scene``: its generator, its final folder and an empty temporary one
     (``rgb/``, ``mask_visib/``), the settled arrangement and the camera's intrinsics: ``(rng, final, tmp, bodies,
     centre, K)``."""
-    rng = _scene_rng(seed, scene)
+    rng = scene_rng(seed, scene)
     final, tmp = out_dir / f"{scene:06d}", out_dir / f".{scene:06d}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "rgb").mkdir(parents=True)
@@ -169,7 +169,7 @@ def start_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_dir
     return rng, final, tmp, bodies, centre, scene_camera(cfg, rng)
 
 
-def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path) -> dict:
+def render_scene(world: World, cfg: RenderConfig, seed: int, scene: int, out_dir: Path) -> dict:
     """Render one BOP scene into ``out_dir/<scene:06d>`` (written to a temporary folder, then renamed).
 
     Returns:
@@ -190,7 +190,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
         lightSpecularCoeff=float(rng.uniform(0.0, 0.5)),
         shadow=0,  # TinyRenderer's shadows would fall only on other objects and double the cost; see cast_shadows
     )
-    backdrop = _Backdrop(rng, K, W, H, light, gloss=rng.uniform(*cfg.table_gloss),
+    backdrop = Backdrop(rng, K, W, H, light, gloss=rng.uniform(*cfg.table_gloss),
                          shininess=float(np.exp(rng.uniform(np.log(8.0), np.log(80.0)))))
     if cfg.shadows:
         points = []
@@ -198,7 +198,7 @@ def render_scene(world: _World, cfg: RenderConfig, seed: int, scene: int, out_di
             R_wo, t_wo = world.mesh_pose(b)
             points.append(world.meshes[obj].vertices[::8] @ R_wo.T + t_wo)
         backdrop.cast_shadows(points, softness=rng.uniform(1.0, 6.0))
-    tone = _ToneCurve(rng, cfg)
+    tone = ToneCurve(rng, cfg)
     cv2.setRNGSeed(int(rng.integers(1 << 31)))
     noise_std = rng.uniform(*cfg.noise_std)
     blur = rng.uniform(*cfg.blur_sigma)

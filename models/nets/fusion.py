@@ -1,6 +1,6 @@
 """The project's improved refiner: the paper's shallow CNN with a rotation-matrix pose input and multiplicative fusion.
 
-Differences from the paper's design (``models.shallow``), each chosen by measurement (see
+Differences from the paper's design (``models.nets.shallow``), each chosen by measurement (see
 ``benchmarks/studies/paper_protocol/README.md``):
     * the coarse rotation enters the pose stage as its 3x3 rotation matrix (9 numbers, continuous
       in the rotation and free of the ``q ~ -q`` ambiguity) instead of the raw quaternion;
@@ -24,9 +24,9 @@ import math
 import torch
 from torch import nn
 
-from models.blocks import InputNormalization, RefinementHead, Refiner, mlp, unit_normalize, validate_int_list
-from models.losses import quat_multiply
-from models.registry import register_refiner
+from models.nets.blocks import InputNormalization, RefinementHead, Refiner, mlp, unit_normalize, validate_int_list
+from models.nets.quaternion import quat_multiply
+from models.nets.registry import register_refiner
 
 __all__ = ["FusionRefiner", "quaternion_to_matrix_flat", "matrix_from_6d", "correction_from_matrices", "roll_angle",
            "turn_grid", "canonical_roll", "quarter_roll", "ROLLS", "with_roll"]
@@ -194,7 +194,7 @@ def with_roll(model, config: dict):
     change = {k: config[k] for k in WEIGHTLESS_KEYS if k in config and config[k] != mine.get(k)}
     if not change or {**mine, **change} != {**mine, **config}:
         return model
-    from models.registry import build_refiner
+    from models.nets.registry import build_refiner
 
     turned = build_refiner("fusion", **{**mine, **change})
     turned.load_state_dict(model.state_dict())
@@ -205,7 +205,7 @@ def with_roll(model, config: dict):
 class FusionRefiner(Refiner):
     """Shallow CNN + rotation-matrix pose stage + multiplicative fusion ``concat[a, b, a*b]``.
 
-    Config keys (beyond the common ones of :class:`models.blocks.Refiner`):
+    Config keys (beyond the common ones of :class:`models.nets.blocks.Refiner`):
         * ``conv_channels`` (list of ints, default ``[16, 16]``): one ``conv k x k - BN - ReLU - maxpool 2``
           block per entry.
         * ``kernel_size`` (odd int, default 3; the paper's network uses 5).

@@ -25,14 +25,14 @@ log = logging.getLogger(__name__)
 
 def _siblings(model: Path) -> dict[str, Path]:
     """Per-object fine-tuned models next to ``model``: ``{object: path}``."""
-    from models.paths import per_object_siblings
+    from models.train.paths import per_object_siblings
 
     return per_object_siblings(model)
 
 
 def _load(model: Path, threads: int, device: str = "auto"):
     """``(predictor, contract dict)`` for a checkpoint or an ONNX file."""
-    from models.evaluate import onnx_predictor, torch_predictor
+    from models.evaluate.errors import onnx_predictor, torch_predictor
 
     if model.suffix == ".onnx":
         pred = onnx_predictor(model, threads=threads)
@@ -49,9 +49,9 @@ def _load(model: Path, threads: int, device: str = "auto"):
             "symmetries": json.loads(meta["symmetries"]) if meta.get("symmetries") else {},
         }
     import models
-    from models.train import set_threads
+    from models.train.loop import set_threads
 
-    from models.training import resolve_device
+    from models.train.run import resolve_device
 
     set_threads(threads)
     net, info = models.load_checkpoint(model)
@@ -90,8 +90,8 @@ def run_eval(
     device: str = "auto",
 ) -> dict:
     """Evaluate ``model`` on the test split of ``data``; returns the JSON-ready result (see the module doc)."""
-    from models.evaluate import evaluate_errors
-    from models.pipeline import DataSpec, cropset_for, load_splits
+    from models.evaluate.errors import evaluate_errors
+    from models.data.pipeline import DataSpec, cropset_for, load_splits
 
     t0 = time.perf_counter()
     predictor, c = _load(model, threads, device)
@@ -147,10 +147,10 @@ def run_eval_all(model: Path, data: Path, *, noise: str = "uniform:0:30", draws:
                  progress: bool = True, device: str = "auto", base_only: bool = False) -> dict:
     """Evaluate ``model`` on every instance of ``data`` (``visib_fract >= 0.3``, the visible box, boxes of 16 px
     or more): ``draws`` coarse inputs per instance and the drift from the true pose
-    (:func:`models.evaluate.evaluate_folder`). Objects with a symmetry (the model's, or
+    (:func:`models.evaluate.errors.evaluate_folder`). Objects with a symmetry (the model's, or
     :data:`models.data.objects.SCAN_FRAME_SYMMETRIES`) are scored to the closest symmetric pose."""
     from models.data.objects import SCAN_FRAME_SYMMETRIES
-    from models.evaluate import evaluate_folder, folder_cropset
+    from models.evaluate.errors import evaluate_folder, folder_cropset
 
     t0 = time.perf_counter()
     predictor, c = _load(model, threads, device)
@@ -223,8 +223,8 @@ def eval_cmd(model, data, json_path, md_path, noise, resample, iterations, settl
 
     With --all, on every instance of DIR instead (a folder of real frames: `refiner-rt eval M --data
     real_ycbv_dev/test --all`)."""
-    from models.metrics import format_markdown, format_table
-    from models.noise import NoiseSpec
+    from models.evaluate.metrics import format_markdown, format_table
+    from models.data.noise import NoiseSpec
 
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     try:

@@ -2,7 +2,7 @@
 
 CNN stage: ``conv(3 -> 16, 5x5, pad 2) - BN - ReLU - maxpool 2`` twice (the second conv 16 -> 16), flattened:
 ``16 x 16 x 16 = 4096`` features at the default 64x64 input, matching the paper's 4096-d image features.
-Pose and refinement stages are the shared ones of :mod:`models.blocks`.
+Pose and refinement stages are the shared ones of :mod:`models.nets.blocks`.
 
 Conventions: image ``(N, 64, 64, 3)`` uint8 NHWC BGR by default; quaternions ``wxyz``, object-to-camera;
 ``q_refined = q_in * q_out``.
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from torch import nn
 
-from models.blocks import Refiner, validate_int_list
-from models.registry import register_refiner
+from models.nets.blocks import Refiner, validate_int_list
+from models.nets.registry import register_refiner
 
 __all__ = ["ShallowRefiner"]
 
@@ -22,7 +22,7 @@ __all__ = ["ShallowRefiner"]
 class ShallowRefiner(Refiner):
     """The paper's refiner with its shallow CNN feature stage.
 
-    Config keys (beyond the common ones of :class:`models.blocks.Refiner`):
+    Config keys (beyond the common ones of :class:`models.nets.blocks.Refiner`):
         * ``input_size`` (int, default 64, multiple of 4).
         * ``conv_channels`` (2 ints, default ``[16, 16]``): output channels of the two conv layers.
         * ``kernel_size`` (odd int, default 5): conv kernel side ("same" padding).

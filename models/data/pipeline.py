@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from models.cropset import CropSet
+from models.data.cropset import CropSet
 from refiner_rt.geometry import ray_quaternions
 
 __all__ = ["DataSpec", "detect_format", "load_samples", "load_splits", "cropset_for", "checkpoint_spec",
-           "checkpoint_test_set", "PARTS"]
+           "checkpoint_test_set", "whole_folder_spec", "PARTS"]
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +143,22 @@ def load_samples(spec: DataSpec, objects: list[str] | None = None) -> list:
     if not samples:
         raise ValueError(f"{spec.data}: no samples of {objects} with visib_fract >= {spec.min_visib}")
     return samples
+
+
+def whole_folder_spec(data: str | Path, obj: str, part: str) -> DataSpec:
+    """A :class:`DataSpec` that puts every instance of ``obj`` in ``data`` (the usual filters:
+    ``visib_fract >= 0.3``, boxes of 16 px or more) into one part, ``"train_base"`` or ``"test"``: for a folder of
+    scenes rendered apart from any training set (calibration crops, or fresh held-out scenes).
+
+    Raises:
+        ValueError: ``data`` is not a dataset, or has no visible instance of ``obj``.
+    """
+    spec = DataSpec(data=str(data), objects=[obj], split_mode="scenes", sizes=(0, 0, 0, 0))
+    try:
+        n = len(load_samples(spec))
+    except (FileNotFoundError, ValueError) as exc:  # not a dataset, or no visible instance of obj
+        raise ValueError(f"{data}: {exc}") from None
+    return DataSpec.from_dict({**spec.as_dict(), "sizes": (n, 0, 0, 0) if part == "train_base" else (0, 0, 0, n)})
 
 
 def load_splits(spec: DataSpec):

@@ -1,6 +1,6 @@
 """TrainRecipe: the one definition of a training run (data and split, network, stages, augmentations, run).
 
-Every way of starting training reads its options from here: ``models.train(recipe, out=...)``, ``refiner-rt train``
+Every way of starting training reads its options from here: ``models.run_training(recipe, out=...)``, ``refiner-rt train``
 (its click options are generated from the fields below, in sections), ``benchmarks/paper.py`` and
 ``benchmarks/data_scaling.py``. A recipe is saved as JSON beside every checkpoint (``<ckpt stem>.recipe.json``) and
 read back from JSON or TOML files; named recipes ship in :data:`NAMED_RECIPES`.
@@ -20,7 +20,9 @@ import re
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
-from models.augment import PHOTOMETRIC_OPS
+from models.data.augment import PHOTOMETRIC_OPS
+from models.data.objects import OBJECT_NAME_PATTERN, object_names
+from models.train.config import RecipeError, TrainConfig, check_inplane_frame, check_masks
 
 __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_recipe", "check_masks",
            "check_inplane_frame", "epoch_plan", "OBJECT_NAME_PATTERN", "object_names",
@@ -28,16 +30,6 @@ __all__ = ["TrainRecipe", "RecipeError", "NAMED_RECIPES", "SECTIONS", "load_reci
 
 SECTIONS = ("data", "model", "optimisation", "augmentation", "run")
 
-# An object's name: a YCB id, a mesh folder or file name, or ``obj_NNNNNN`` of a BOP models/ folder.
-OBJECT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_+-]*$")
-
-
-class RecipeError(ValueError):
-    """A recipe value that is out of range or contradicts another field; ``field`` names the offending field."""
-
-    def __init__(self, field_name: str, message: str):
-        super().__init__(message)
-        self.field = field_name
 
 
 def _opt(default, section: str, help: str, *, flag: str | None = None, cli: bool = True, factory: bool = False):
@@ -136,7 +128,7 @@ class TrainRecipe:
     inplane: float = _opt(0.0, "augmentation", "Turn every training crop about its centre by up to this many degrees, "
                           "the coarse pose with it (new rotations about the viewing ray); needs --rotation-frame ray. "
                           "0: off.")
-    # Camera-like photometric augmentation (models.augment): the probability per crop of each operation, 0 = off.
+    # Camera-like photometric augmentation (models.data.augment): the probability per crop of each operation, 0 = off.
     aug_motion_blur: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['motion_blur']}.")
     aug_blur: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['blur']}.")
     aug_sensor_noise: float = _opt(0.0, "augmentation", f"Probability per crop: {PHOTOMETRIC_OPS['sensor_noise']}.")
@@ -158,7 +150,7 @@ class TrainRecipe:
     # ---- validation: every rule about a recipe's values, in one place ----
     def validate(self) -> "TrainRecipe":
         """Check ranges and cross-field rules; returns self. Raises :class:`RecipeError` naming the field."""
-        from models.noise import NoiseSpec
+        from models.data.noise import NoiseSpec
 
         def need(ok: bool, name: str, expected: str):
             if not ok:
@@ -187,7 +179,7 @@ class TrainRecipe:
         need(isinstance(self.bf16, bool) and isinstance(self.augment, bool), "bf16", "true or false")
         need(isinstance(self.arch_config, dict), "arch_config", "a JSON object of architecture config overrides")
         need(isinstance(self.symmetries, dict), "symmetries", "an object of object name -> symmetry")
-        from models.symmetry import validate_symmetry
+        from models.data.symmetry import validate_symmetry
 
         for obj, sym in self.symmetries.items():
             if not sym:
@@ -246,7 +238,7 @@ class TrainRecipe:
 
     @property
     def photometric(self) -> dict[str, float]:
-        """The photometric augmentations switched on: ``{operation: probability}`` (:mod:`models.augment`)."""
+        """The photometric augmentations switched on: ``{operation: probability}`` (:mod:`models.data.augment`)."""
         return {op: float(getattr(self, f"aug_{op}")) for op in PHOTOMETRIC_OPS if getattr(self, f"aug_{op}") > 0}
 
     @property
@@ -254,9 +246,7 @@ class TrainRecipe:
         return self.ft_lr or self.lr / 3
 
     def stage_config(self, stage: str, n_train: int):
-        """The :class:`models.train.TrainConfig` of one stage (``"base"`` or ``"finetune"``) on ``n_train`` crops."""
-        from models.train import TrainConfig
-
+        """The :class:`models.train.config.TrainConfig` of one stage (``"base"`` or ``"finetune"``) on ``n_train`` crops."""
         if stage not in ("base", "finetune"):
             raise ValueError(f"stage must be 'base' or 'finetune'; got {stage!r}")
         epochs_mse, epochs_geodesic = (self.epochs_mse, self.epochs_geodesic) if stage == "base" else self.ft_epochs
@@ -274,8 +264,8 @@ class TrainRecipe:
         )
 
     def data_spec(self):
-        """The :class:`models.pipeline.DataSpec` of this recipe's data and split."""
-        from models.pipeline import DataSpec
+        """The :class:`models.data.pipeline.DataSpec` of this recipe's data and split."""
+        from models.data.pipeline import DataSpec
 
         if self.data is None:
             raise RecipeError("data", "data is not set: give the dataset folder (--data DIR)")
@@ -332,31 +322,6 @@ def _expand(objects: list[str] | None) -> list[str] | None:
     return objects
 
 
-def check_inplane_frame(inplane: float, rotation_frame: str, *, as_flags: bool = True) -> None:
-    """In-plane turns of a crop are rotations about the viewing ray, so they need the ray frame.
-
-    ``as_flags``: name the values as command-line flags (``--inplane 30``) rather than fields (``inplane``).
-    """
-    if inplane > 0 and rotation_frame != "ray":
-        why = ("a crop turned about its centre shows the object turned about the viewing ray, not the camera axis")
-        if as_flags:
-            message = f"--inplane {inplane:g} needs --rotation-frame ray ({why}); got --rotation-frame {rotation_frame}"
-        else:
-            message = f"inplane needs rotation_frame='ray': {why}; got rotation_frame={rotation_frame!r}"
-        raise RecipeError("inplane", message)
-
-
-def check_masks(background: float, occlude: float, has_masks: bool, where: str, *, as_flags: bool = True) -> None:
-    """New backgrounds and pasted occluders cut the object out by its instance mask: refuse them without masks."""
-    spell = (lambda n, p: f"--{n} {p:g}") if as_flags else (lambda n, p: f"{n}={p}")
-    wanted = [spell(name, p) for name, p in (("background", background), ("occlude", occlude)) if p > 0]
-    if wanted and not has_masks:
-        raise RecipeError("background" if background > 0 else "occlude",
-                          f"{' '.join(wanted)} needs instance masks, but {where} has none "
-                          "(BOP mask_visib/<im_id>_<gt_idx>.png or YCB-Video <frame>-label.png; `refiner-rt render` "
-                          "writes mask_visib/)")
-
-
 def epoch_plan(samples: int, n_train: int, epoch_samples: int, batch_size: int) -> tuple[int, int, int]:
     """``(epochs_mse, epochs_geodesic, max_steps_per_epoch)`` of a sample budget.
 
@@ -372,7 +337,7 @@ def epoch_plan(samples: int, n_train: int, epoch_samples: int, batch_size: int) 
 NAMED_RECIPES: dict[str, dict] = {
     # The paper's recipe as `refiner-rt train` runs it by default (the dataclass defaults).
     "paper": {},
-    # The shipped pretrained models (benchmarks/pretrained.py's RECIPE): five conv blocks, box and colour jitter, new
+    # The shipped pretrained models (export/release/coarse.py's RECIPE): five conv blocks, box and colour jitter, new
     # backgrounds for half the crops, cosine learning rate from 1e-3, the viewing-ray frame, the scenes split drawn
     # over the paper's nine objects, one network per object (--objects ID), no fine-tuning stage; 3,500 training
     # crops and 300,000 samples per object, what every shipped model was trained with (the build's defaults).
@@ -384,7 +349,7 @@ NAMED_RECIPES: dict[str, dict] = {
     },
     # heldout-scenes-v1 on a four times larger rendered set (benchmarks/DATA.md, ycb9_v2: 10,000 scenes of 4
     # frames): up to 16,000 training crops per object at the same 300,000 samples (the scene-count study: at a fixed
-    # budget, more scenes trade memorising for fitting). What `benchmarks/pretrained.py build` trains (model version 2).
+    # budget, more scenes trade memorising for fitting). What `export/release/coarse.py build` trains (model version 2).
     "heldout-scenes-v2": {
         "arch": "fusion", "arch_config": {"conv_channels": [16, 32, 64, 128, 128]}, "rotation_frame": "ray",
         "lr": 1e-3, "lr_schedule": "cosine", "augment": True, "background": 0.5, "split_mode": "scenes",
@@ -402,9 +367,9 @@ NAMED_RECIPES: dict[str, dict] = {
         "split_objects": ["paper"], "per_object": 0, "val_per_object": 300, "test_per_object": 700, "seed": 0,
         "samples": 500_000, "base_per_object": 16000, "bf16": True,
     },
-    # heldout-scenes-v3 with camera-like photometric augmentation (models.augment: the probability per crop of each
+    # heldout-scenes-v3 with camera-like photometric augmentation (models.data.augment: the probability per crop of each
     # operation), for scenes rendered in the robot layout (`refiner-rt render`, benchmarks/DATA.md): what
-    # `benchmarks/pretrained.py build` would train model version 6 with, continuing each version-5 model. Not yet
+    # `export/release/coarse.py build` would train model version 6 with, continuing each version-5 model. Not yet
     # shown to pay (benchmarks/studies/real_levers): 60,000 samples of it moved the real dev frames by -0.54 deg over
     # four objects but cost 1.2 on the tabletop renders, and its photometric part made the real frames worse than
     # the same run without it for three of the four. float32: on
@@ -417,8 +382,8 @@ NAMED_RECIPES: dict[str, dict] = {
         "aug_motion_blur": 0.2, "aug_blur": 0.3, "aug_sensor_noise": 0.3, "aug_white_balance": 0.3,
         "aug_brightness": 0.4, "aug_contrast": 0.3, "aug_colour": 0.3, "aug_sharpness": 0.3, "aug_jpeg": 0.3,
     },
-    # What `benchmarks/pretrained.py build` trains model version 6 with: heldout-scenes-v3's network with the canonical
-    # roll (models.fusion.canonical_roll: each crop turned so that the coarse pose's object z axis points up), float32,
+    # What `export/release/coarse.py build` trains model version 6 with: heldout-scenes-v3's network with the canonical
+    # roll (models.nets.fusion.canonical_roll: each crop turned so that the coarse pose's object z axis points up), float32,
     # continuing each version-5 model on the robot layout with tabletop scenes joining (build --extra-train), no
     # photometric augmentation. Measured in benchmarks/studies/real_levers ("The views the training scenes lack"):
     # 150,000 samples of it took the real dev frames' gelatin box 12.87 -> 5.20 deg, the banana 19.78 -> 9.26 and the
@@ -468,19 +433,6 @@ def load_recipe(name_or_path: str | Path) -> TrainRecipe:
 def field_default(f) -> object:
     """A dataclass field's default value (calling its factory)."""
     return f.default_factory() if f.default is MISSING else f.default
-
-
-def object_names(text: str) -> list[str]:
-    """Comma-separated object names (each :data:`OBJECT_NAME_PATTERN`): the one parser of ``--objects`` lists.
-
-    Raises:
-        ValueError: an empty list or a name with other characters, the text quoted.
-    """
-    names = [v.strip() for v in text.split(",") if v.strip()]
-    if not names or not all(OBJECT_NAME_PATTERN.match(n) for n in names):
-        raise ValueError(f"expected comma-separated object names like 003_cracker_box,my_widget (letters, digits, "
-                         f"_ + -); got {text!r}")
-    return names
 
 
 def _comma_names(text: str) -> list[str]:

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from models.cropset import CropSet
-from models.metrics import summarize_errors
-from models.noise import NoiseSpec, perturb
-from models.symmetry import symmetric_error
+from models.data.cropset import CropSet
+from models.evaluate.metrics import summarize_errors
+from models.data.noise import NoiseSpec, perturb
+from models.data.symmetry import symmetric_error
 from refiner_rt import quaternion as rq
 # Imported with the module, not when a long training run first scores its test split: a process that started before
 # the runtime's files changed on disk must not fail at its end on a mix of the old and the new.
@@ -72,7 +72,7 @@ def evaluate_errors(
         iterations: refinement iterations (``q <- q * q_out`` repeated).
         rotation_frame: the models' frame, ``"camera"`` or ``"ray"``. Errors are frame-independent.
         symmetries: object name -> symmetry (BOP ``models_info.json`` form); those objects' errors are to the
-            closest symmetric pose (:func:`models.symmetry.symmetric_error`), the inputs' too.
+            closest symmetric pose (:func:`models.data.symmetry.symmetric_error`), the inputs' too.
         settle_deg: with ``iterations >= 2``, a later iteration is kept only for the samples it turns by more than
             this many degrees, and the others stop (:meth:`refiner_rt.RefinerSession.refine`'s ``settle_deg``).
 
@@ -143,7 +143,7 @@ def onnx_predictor(model: str | Path | bytes, threads: int = 0, batch_size: int 
 
 def torch_predictor(model, batch_size: int = 256) -> Predictor:
     """A predictor running a PyTorch refiner in eval mode."""
-    from models.train import predict
+    from models.train.loop import predict
 
     return lambda crops, q_in: predict(model, crops, q_in, batch_size)
 
@@ -162,7 +162,7 @@ def folder_cropset(data: str | Path, objects: list[str], size: int, context: flo
         ValueError: no such instance in ``data`` (the message names the folder, the objects and the filter).
     """
     from models.data import CropCache
-    from models.pipeline import DataSpec, load_samples, writable_cache_root
+    from models.data.pipeline import DataSpec, load_samples, writable_cache_root
     from refiner_rt.geometry import ray_quaternions
 
     spec = DataSpec(data=str(data), objects=list(objects), split_mode="scenes", sizes=(0, 0, 0, 0),

@@ -1,7 +1,8 @@
-"""What the checkpoint studies of ``benchmarks/`` share: their common options and the record each JSON carries.
+"""What the benchmarks and studies share: their common options and the record each JSON carries.
 
-``averaging.py``, ``cross_split.py`` and ``error_breakdown.py`` take checkpoints and rebuild their recorded test
-crops; every study writes the command that produced it and the machine it ran on beside its numbers, so a row of
+``benchmarks.averaging``, ``benchmarks.cross_split`` and ``benchmarks.error_breakdown`` take checkpoints and rebuild
+their recorded test crops; every study writes the command that produced it and the machine it ran on beside its
+numbers (:func:`provenance`, :func:`machine`), so a row of
 ``RESULTS.md`` or of a study's README can be traced and rerun. :func:`write_json` also stamps each new file with
 the version of these common fields (:data:`SCHEMA_VERSION`) and the git commit of the code that wrote it; files
 written before that carry neither and are left as they are.
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import shlex
 import subprocess
@@ -20,7 +22,7 @@ from pathlib import Path
 # Version of the fields every result JSON carries (schema_version, git_commit, command, machine): 1 = the first
 # stamped files. Bump it when one of them changes meaning.
 SCHEMA_VERSION = 1
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 
 def checkpoint_parser(description: str, *, data: bool = True, checkpoints_help: str | None = None,
@@ -47,18 +49,51 @@ def parse_checkpoint_args(p: argparse.ArgumentParser, argv: list[str] | None) ->
     return args
 
 
-def provenance(script: str, argv: list[str] | None, threads: int | None = None, **machine) -> dict:
-    """``{"command", "machine"}`` of a study run: the command line as typed (``argv``, default ``sys.argv[1:]``)
-    and the Python and processor it ran with; with ``threads`` (a torch study) also its torch threads and torch
-    version, and ``machine``'s entries after those (e.g. ``processes=1``). Without ``threads`` torch is not imported."""
+def provenance(module: str, argv: list[str] | None, threads: int | None = None, **machine) -> dict:
+    """``{"command", "machine"}`` of a study run: the command line as typed (``python -m <module>`` and ``argv``,
+    default ``sys.argv[1:]``) and the Python and processor it ran with; with ``threads`` (a torch study) also its torch
+    threads and torch version, and ``machine``'s entries after those (e.g. ``processes=1``). Without ``threads`` torch
+    is not imported.
+
+    ``module``: the script's module, e.g. ``"benchmarks.data_scaling"`` (scripts run as ``python -m`` from the
+    repository root).
+    """
     record = {"python": platform.python_version(), "processor": platform.processor() or platform.machine()}
     if threads is not None:
         import torch
 
         record.update(threads=threads, torch=torch.__version__)
     record.update(machine)
-    return {"command": shlex.join(["python", f"benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)]),
+    return {"command": shlex.join(["python", "-m", module, *(sys.argv[1:] if argv is None else argv)]),
             "machine": record}
+
+
+def machine() -> dict:
+    """CPU model, instruction-set flags that matter for speed, and core count."""
+    model, flags = platform.processor() or "unknown", []
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        model = next((ln.split(":", 1)[1].strip() for ln in text.splitlines() if ln.startswith("model name")), model)
+        line = next((ln for ln in text.splitlines() if ln.startswith("flags")), "")
+        flags = sorted(f for f in line.split(":", 1)[-1].split() if f.startswith(("avx", "amx", "fma")) or "vnni" in f)
+    except OSError:
+        pass
+    return {"cpu": model, "isa_flags": flags, "cores": os.cpu_count()}
+
+
+def data_name(data: Path) -> str:
+    """A dataset folder's name as records print it: a BOP split folder by its dataset's name
+    (``real_ycbv_dev/test``), so that no record names a folder of the machine it ran on."""
+    data = Path(data).resolve()
+    return f"{data.parent.name}/{data.name}" if data.name in ("test", "val", "train") else data.name
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {text}")
+    return value
 
 
 def git_commit(repo: Path = REPO) -> str | None:

@@ -26,8 +26,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from models.blocks import LocalResponseNorm, Refiner, validate_int_list
-from models.registry import register_refiner
+from models.nets.blocks import LocalResponseNorm, Refiner, validate_int_list
+from models.nets.registry import register_refiner
 
 __all__ = ["MIN_INPUT_SIZE", "VGGMRefiner", "vggm_feature_size"]
 
@@ -63,7 +63,7 @@ MIN_INPUT_SIZE = next(s for s in range(1, 512) if vggm_feature_size(s) >= 1)
 class VGGMRefiner(Refiner):
     """The paper's refiner with a VGG-M (conv1..fc7) feature stage.
 
-    Config keys (beyond the common ones of :class:`models.blocks.Refiner`):
+    Config keys (beyond the common ones of :class:`models.nets.blocks.Refiner`):
         * ``input_size`` (int, default 224; at least ``MIN_INPUT_SIZE`` = 41 so pool5 is non-empty).
         * ``fc_widths`` (2 ints, default ``[4096, 4096]``): widths of fc6 and fc7; fc7 is the image feature size.
         * ``dropout`` (float in [0, 1), default 0.5): dropout after fc6 and fc7 (training only).

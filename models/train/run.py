@@ -1,4 +1,4 @@
-"""``models.train(recipe, out=...)``: a whole training run from a :class:`models.recipe.TrainRecipe`.
+"""``models.run_training(recipe, out=...)``: a whole training run from a :class:`models.train.recipe.TrainRecipe`.
 
 Outputs, next to ``out`` (e.g. ``runs/shallow.pt``):
     * ``out``: the base network (all objects), and ``<stem>.recipe.json``: the resolved recipe;
@@ -23,10 +23,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from models.paths import per_object_path, recipe_path_for
-from models.recipe import RecipeError, TrainRecipe, check_masks
+from models.train.paths import per_object_path, recipe_path_for
+from models.train.recipe import RecipeError, TrainRecipe, check_masks
 
-__all__ = ["train", "resolve_device", "init_distributed", "distributed_backend", "write_logs", "load_base", "load_init",
+__all__ = ["run_training", "resolve_device", "init_distributed", "distributed_backend", "write_logs", "load_base", "load_init",
            "split_like_base", "check_base_split"]
 
 log = logging.getLogger(__name__)
@@ -145,7 +145,7 @@ def load_init(recipe: TrainRecipe):
         message = str(exc) if str(exc).startswith(str(recipe.init)) else f"{recipe.init}: {exc}"
         raise RecipeError("init", message) from None
     if recipe.arch_config and model.arch == recipe.arch:
-        from models.fusion import with_roll
+        from models.nets.fusion import with_roll
 
         model = with_roll(model, {**model.config, **recipe.arch_config})  # going on with another input turn
     _check_same_network(recipe, model, info, recipe.init, "init", "--init")
@@ -165,7 +165,7 @@ def _check_same_network(recipe: TrainRecipe, model, info: dict, path, field_name
                           f"{frame} (got {recipe.rotation_frame!r})")
 
 
-def train(recipe: TrainRecipe, out: str | Path, *, resume: bool = False, progress: bool = True,
+def run_training(recipe: TrainRecipe, out: str | Path, *, resume: bool = False, progress: bool = True,
           echo=None) -> dict[str, str]:
     """Run ``recipe``: its first pass, then each of its ``stages`` continuing from the previous state.
 
@@ -198,8 +198,8 @@ def _train_pass(recipe: TrainRecipe, out: Path, *, resume: bool, progress: bool,
     import torch
 
     import models
-    from models.pipeline import cropset_for, load_splits
-    from models.train import set_threads, train_refiner
+    from models.data.pipeline import cropset_for, load_splits
+    from models.train.loop import set_threads, train_refiner
 
     device = resolve_device(recipe.device)
     rank, world = init_distributed(device)
@@ -325,7 +325,7 @@ def _object_records(spec) -> dict:
 
 def _base_spec(spec, base_info: dict | None):
     """The base network's recorded data spec when it was split from the same dataset as ``spec``, else None."""
-    from models.pipeline import DataSpec
+    from models.data.pipeline import DataSpec
 
     recorded = (base_info or {}).get("data")
     if not recorded or Path(recorded["data"]).resolve() != Path(spec.data).resolve():
@@ -356,7 +356,7 @@ def check_base_split(spec, splits, base_info: dict | None, base_path) -> None:
     Raises:
         ValueError: some validation or test crops come from the base network's training scenes or frames.
     """
-    from models.pipeline import load_splits
+    from models.data.pipeline import load_splits
 
     base = _base_spec(spec, base_info)
     if base is None:

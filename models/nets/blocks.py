@@ -247,7 +247,7 @@ class Refiner(nn.Module):
     """Base class of every refiner: normalisation -> feature stage, pose stage -> refinement head.
 
     A subclass sets ``DEFAULT_CONFIG`` (its own keys; the common keys below are added) and implements
-    :meth:`build_feature_stage`; registering it with :func:`models.registry.register_refiner` makes it buildable
+    :meth:`build_feature_stage`; registering it with :func:`models.nets.registry.register_refiner` makes it buildable
     by name. Subclasses that need a different forward keep its signature and contract.
 
     Common config keys (defaults in ``COMMON_CONFIG``):

@@ -1,9 +1,9 @@
-"""``refiner-rt train``: a :class:`models.recipe.TrainRecipe` from ``--recipe NAME|FILE``, flags over it, then
-:func:`models.training.train`.
+"""``refiner-rt train``: a :class:`models.train.recipe.TrainRecipe` from ``--recipe NAME|FILE``, flags over it, then
+:func:`models.train.run.run_training`.
 
 The options are generated from the recipe's fields (one definition: name, help, section); only the click type of
 each lives here. A flag not given keeps the recipe's value; ``--print-recipe`` prints the resolved recipe as JSON
-(a file ``--recipe`` reads back). Outputs: see :mod:`models.training`; the resolved recipe is saved beside every
+(a file ``--recipe`` reads back). Outputs: see :mod:`models.train.run`; the resolved recipe is saved beside every
 checkpoint as ``<stem>.recipe.json``.
 
 With ``--base BASE.pt`` the base stage is skipped: BASE (a trained base checkpoint) is copied to ``CKPT`` and only
@@ -22,10 +22,10 @@ from pathlib import Path
 
 import click
 
-from models.augment import PHOTOMETRIC_OPS
-from models.recipe import (NAMED_RECIPES, SECTIONS, RecipeError, TrainRecipe, field_default, object_names,
-                           load_recipe, parse_json_object)
-from models.training import write_logs  # noqa: F401  (re-exported: the epoch logs of a run)
+from models.data.augment import PHOTOMETRIC_OPS
+from models.train.recipe import (NAMED_RECIPES, SECTIONS, RecipeError, TrainRecipe, field_default, object_names,
+                                 load_recipe, parse_json_object)
+from models.train.run import write_logs  # noqa: F401  (re-exported: the epoch logs of a run)
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 def _noise(ctx, param, value):
     if value is None:
         return None
-    from models.noise import NoiseSpec
+    from models.data.noise import NoiseSpec
 
     try:
         return str(NoiseSpec.parse(value))
@@ -193,11 +193,11 @@ def train_cmd(recipe_source, print_recipe, out, resume, quiet, **opts):
 
 
 def run(recipe: TrainRecipe, out: Path, *, resume: bool = False, quiet: bool = False) -> dict:
-    """:func:`models.training.train` with its errors as click errors (a bad value: exit 2; bad data: exit 1)."""
-    from models.training import train
+    """:func:`models.train.run.run_training` with its errors as click errors (a bad value: exit 2; bad data: exit 1)."""
+    from models.train.run import run_training
 
     try:
-        return train(recipe, out, resume=resume, progress=not quiet, echo=lambda m: click.echo(m, err=True))
+        return run_training(recipe, out, resume=resume, progress=not quiet, echo=lambda m: click.echo(m, err=True))
     except RecipeError as exc:
         raise click.BadParameter(str(exc), param_hint=flag_of(exc.field)) from None
     except ValueError as exc:  # the data does not give the split asked for (the message says why)

@@ -1,6 +1,6 @@
 """The refiner registry: architectures by name, so training, checkpoints and export build models from a string.
 
-A new architecture is a :class:`models.blocks.Refiner` subclass with a ``DEFAULT_CONFIG`` and a
+A new architecture is a :class:`models.nets.blocks.Refiner` subclass with a ``DEFAULT_CONFIG`` and a
 ``build_feature_stage``, decorated with :func:`register_refiner`::
 
     @register_refiner("tiny")
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from models.blocks import Refiner
+from models.nets.blocks import Refiner
 
 __all__ = ["build_refiner", "get_refiner_class", "list_refiners", "register_refiner"]
 
@@ -34,7 +34,7 @@ def register_refiner(name: str) -> Callable[[type[Refiner]], type[Refiner]]:
 
     def decorate(cls: type[Refiner]) -> type[Refiner]:
         if not (isinstance(cls, type) and issubclass(cls, Refiner)):
-            raise TypeError(f"register_refiner({name!r}) expects a subclass of models.blocks.Refiner; got {cls!r}")
+            raise TypeError(f"register_refiner({name!r}) expects a subclass of models.nets.blocks.Refiner; got {cls!r}")
         if name in _REGISTRY:
             raise ValueError(f"refiner {name!r} is already registered (by {_REGISTRY[name].__qualname__})")
         cls.arch = name
@@ -67,7 +67,7 @@ def _register_builtin() -> None:
     # Importing an architecture's module registers it; done on first lookup so that `models` imports lazily.
     import importlib
 
-    for module in ("models.shallow", "models.vggm", "models.fusion"):
+    for module in ("models.nets.shallow", "models.nets.vggm", "models.nets.fusion"):
         importlib.import_module(module)
 
 

@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 
 from refiner_rt.metadata import file_sha256  # re-exported: the checkpoint's hash in exported models
-from models.blocks import Refiner
-from models.registry import get_refiner_class
+from models.nets.blocks import Refiner
+from models.nets.registry import get_refiner_class
 
 __all__ = ["CHECKPOINT_FORMAT", "file_sha256", "load_checkpoint", "new_temp_file_beside", "save_checkpoint"]
 

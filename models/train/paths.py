@@ -28,7 +28,7 @@ def per_object_siblings(base: str | Path) -> dict[str, Path]:
     """
     import glob
 
-    from models.recipe import OBJECT_NAME_PATTERN
+    from models.data.objects import OBJECT_NAME_PATTERN
 
     base = Path(base)
     out = {}

@@ -1,0 +1,101 @@
+"""export/release: the shipped models are built on the product's path (a named TrainRecipe through
+``models.run_training``), that path is the run the shipped models' records name, and a tiny build runs end to end."""
+
+import json
+import shlex
+from pathlib import Path
+
+import pytest
+
+from export.release import coarse
+from models.train.recipe import load_recipe
+from tests.cube_dataset import make_cube_dataset
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = {"input_size": 32, "conv_channels": [8, 8], "fuse_width": 64, "pose_widths": [32, 64], "head_widths": [32, 16],
+        "roll": "canonical"}
+# Fields in which the two recipes may differ without changing a weight: the name, the device (data_scaling trained
+# on the CPU, train_refiner's default; the release says "cpu"), and the symmetries (data_scaling gave the loss none;
+# the release turns a dataset's recorded symmetry off, for the same plain loss).
+NOT_COMPARED = ("name", "device", "symmetries")
+
+
+def data_scaling_recipe(argv: list[str]):
+    """The recipe ``benchmarks/data_scaling.py`` trains its one run of ``argv`` with (the build's options: one size,
+    ``--skip-plain --skip-jitter``, one ``--background``)."""
+    from benchmarks import data_scaling
+
+    base = load_recipe("data-scaling")
+    args = data_scaling.build_parser(base).parse_args(argv)
+    args.recipe = base
+    assert args.skip_plain and args.skip_jitter and len(args.background) == 1 and not args.occlude
+    recipe = data_scaling.study_recipe(args, args.modes, int(args.sizes))
+    return recipe.merged(augment=args.augment, background=args.background[0], occlude=0.0, relight=args.relight)
+
+
+def comparable(recipe) -> dict:
+    return {k: v for k, v in recipe.as_dict().items() if k not in NOT_COMPARED}
+
+
+def test_the_release_recipe_is_the_data_scaling_run(tmp_path):
+    """The command that built versions 1-6 and the recipe the release trains with now are the same run, for the
+    options a build varies (initial network, extra sets, inputs, rate, augmentations, turns)."""
+    data, run, cache = tmp_path / "data", tmp_path / "run", tmp_path / "cache"
+    cases = [dict(),
+             dict(init=run / "a.init.pt", extra_train=[tmp_path / "more", tmp_path / "more2"]),
+             dict(noise="twist:0:30", lr=1e-3, seed=3),
+             dict(init=run / "a.pt", photometric={}, noise="normal:0:3", lr=1e-4),
+             dict(photometric={"blur": 0.3, "jpeg": 0.2}, inplane=22.5, roll="none")]
+    for kw in cases:
+        cmd = coarse.data_scaling_command(data, "003_cracker_box", run, 450_000, 16_000, cache, **kw)
+        assert cmd[1:3] == ["-m", "benchmarks.data_scaling"]
+        mine = coarse.shipped_recipe(data, "003_cracker_box", 450_000, 16_000, cache, **kw)
+        assert comparable(mine) == comparable(data_scaling_recipe(cmd[3:])), kw
+        assert mine.name == coarse.RECIPE_NAME and mine.device == "cpu"
+        assert mine.symmetries == {"003_cracker_box": {}}
+
+
+def test_each_shipped_model_record_names_the_release_recipe(tmp_path):
+    """Every build record of the current model version: its recorded training command (the data_scaling run that
+    made the shipped weights) is the run :func:`export.release.coarse.shipped_recipe` gives for the same object,
+    sets and budget."""
+    records = [json.loads(p.read_text()) for p in sorted((ROOT / "benchmarks/results/pretrained").glob("0*.json"))]
+    current = [d for d in records if d.get("model_version") == coarse.MODEL_VERSION]
+    if not current:
+        pytest.skip("no model of the current version ships")
+    for d in current:
+        assert d["recipe"] == {**coarse.RECIPE, "split_objects": d["recipe"]["split_objects"]}, d["object_id"]
+        argv = shlex.split(d["train_command"])
+        assert argv[:2] == ["python", "benchmarks/data_scaling.py"]
+        argv = argv[2:]
+        value = lambda flag: argv[argv.index(flag) + 1]  # noqa: E731
+        extra = [Path(argv[i + 1]) for i, a in enumerate(argv) if a == "--extra-train"]
+        init = Path(value("--init")) if "--init" in argv else None
+        mine = coarse.shipped_recipe(Path(value("--data")), d["object_id"], int(value("--samples")),
+                                     int(value("--sizes")), Path(value("--cache")), init=init, extra_train=extra)
+        theirs = data_scaling_recipe(argv)
+        assert comparable(mine) == comparable(theirs), d["object_id"]
+
+
+@pytest.mark.slow
+def test_a_tiny_build_trains_through_the_recipe_path(tmp_path):
+    """A few steps of the release's training on the cube dataset: models.run_training with the shipped recipe (a
+    tiny network), the recipe saved with the checkpoint, and the record the build writes into the card."""
+    import models
+
+    data = tmp_path / "cubes"
+    make_cube_dataset(data, obj_ids=(2, 5), scenes=6, frames=8, masks=True)
+    recipe = coarse.shipped_recipe(data, "003_cracker_box", 40, 10, tmp_path / "cache", val=4, test=4).merged(
+        split_objects=["003_cracker_box", "006_mustard_bottle"], arch_config=TINY, epoch_samples=20)
+    ckpt, row = coarse.train_shipped(recipe, tmp_path / "run" / "003_cracker_box", "003_cracker_box")
+    assert ckpt.is_file() and ckpt.with_name("model.recipe.json").is_file()
+    _, info = models.load_checkpoint(ckpt)
+    assert info["recipe"]["name"] == coarse.RECIPE_NAME and info["recipe"]["samples"] == 40
+    assert row["samples"] >= 40 and row["train_crops"] > 0 and row["wall_s"] is not None
+    assert 0 <= row["mean_deg"] <= 180 and row["epochs"] >= 1
+    # a rerun reuses the checkpoint (a build resumes at the object it was on) and scores the same crops alike
+    again, row2 = coarse.train_shipped(recipe, tmp_path / "run" / "003_cracker_box", "003_cracker_box")
+    assert again == ckpt and row2["wall_s"] is None and row2["mean_deg"] == row["mean_deg"]
+    portable = coarse.portable_recipe(recipe)
+    assert portable["data"] == "cubes" and portable["cache_root"] is None
+    assert str(tmp_path) not in json.dumps(portable)
