@@ -20,6 +20,7 @@ LAZY_COMMANDS = {
     "info": ("refiner_rt.info:info_cmd", "Print a model's metadata contract, inputs/outputs and size."),
     "models": ("refiner_rt.models_cli:models_cmd", "List the pretrained refiners that ship in the package."),
     "demo": ("refiner_rt.demo_cli:demo_cmd", "Refine sample frames (or your image) with the shipped models; draw it."),
+    "estimate": ("refiner_rt.estimate_cli:estimate_cmd", "6D poses (rotation and translation) from images and 2D boxes alone."),
     "track": ("refiner_rt.track_cli:track_cmd", "Track object rotations through a folder of frames with boxes."),
     "bench": ("refiner_rt.bench:bench_cmd", "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8."),
     "render": ("models.data.render:render_cmd", "Render BOP-format training scenes of YCB objects on the CPU."),
