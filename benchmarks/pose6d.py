@@ -54,8 +54,8 @@ MESHES_DIR = REPO / "models" / "data" / "ycb_models"
 BUDGET_MS = 10.0
 # The candidates --choose compares: (hypotheses, passes before the check, ranking). Each costs
 # hypotheses * (passes + 1) coarse network passes and one fine pass per object.
-CANDIDATES = ((8, 2, "return"), (8, 2, "residual"), (12, 1, "return"), (6, 3, "return"), (12, 2, "return"),
-              (16, 2, "return"))
+CANDIDATES = ((8, 2, "return"), (8, 2, "residual"), (12, 1, "return"), (6, 3, "return"), (6, 3, "residual"),
+              (5, 4, "return"), (4, 5, "return"), (8, 3, "return"), (12, 2, "return"), (16, 2, "return"))
 # The budget in network passes: 10 ms per object at the shipped INT8 refiner's 0.29-0.4 ms per pass on one core of
 # the reference machine (README); the machine running this may be shared, so the choice counts passes, and the
 # measured times are recorded beside it.
