@@ -62,6 +62,36 @@ CANDIDATES = ((8, 2, "return"), (8, 2, "residual"), (12, 1, "return"), (6, 3, "r
 PASS_BUDGET = 25
 
 
+EXTENT_DIRECTIONS = 1024
+
+
+def support_points(vertices: np.ndarray, directions: int = EXTENT_DIRECTIONS) -> np.ndarray:
+    """The mesh vertices that are farthest along ``directions`` directions spread over the sphere (a Fibonacci
+    sphere): a small subset of the convex hull whose projected bounding box is the mesh's own, within a fraction of
+    a millimetre, from any viewpoint (the box of a projection depends on the hull only)."""
+    k = np.arange(directions) + 0.5
+    z = 1.0 - 2.0 * k / directions
+    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
+    d = np.stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z], axis=1)
+    centred = vertices - vertices.mean(axis=0)
+    return vertices[np.unique((centred @ d.T).argmax(axis=0))]
+
+
+def write_extents(meshes: Path, path: Path, objects: list[str]) -> None:
+    """Write the package's extent points (``refiner_rt/weights/extents.json``, read by ``refiner_rt.estimate``)."""
+    from models.data.meshes import load_obj
+    from refiner_rt.estimate import EXTENTS_FORMAT
+
+    doc = {"format": EXTENTS_FORMAT, "units": "mm",
+           "object_frame": "YCB google_16k scan frame (models/data/ycb_models/<id>/textured.obj)",
+           "source": f"the mesh vertices farthest along {EXTENT_DIRECTIONS} directions spread over the sphere "
+                     "(python -m benchmarks.pose6d --write-extents)", "objects": {}}
+    for obj in objects:
+        v = load_obj(meshes / obj / "textured.obj")[0] * 1000.0
+        doc["objects"][obj] = {"points_mm": np.round(support_points(v), 1).tolist()}
+    path.write_text(json.dumps(doc, separators=(",", ":")) + "\n")
+
+
 def read_depth_m(sample) -> np.ndarray | None:
     """The depth image of a BOP sample's frame in metres (``depth/<im_id>.png`` x ``depth_scale`` mm), or None."""
     scene = Path(sample.image_path).parent.parent
@@ -216,7 +246,13 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--meshes", type=Path, default=MESHES_DIR, help="folder of <id>/textured.obj (model points)")
     p.add_argument("--out", type=Path, default=RESULTS_DIR, help=f"JSON folder (default {RESULTS_DIR})")
+    p.add_argument("--write-extents", type=Path, metavar="JSON",
+                   help="write the objects' extent points (refiner_rt/weights/extents.json) from --meshes and stop")
     args = p.parse_args(argv)
+    if args.write_extents:
+        write_extents(args.meshes, args.write_extents, [m.object_id for m in pretrained_models()])
+        print(f"wrote {args.write_extents}")
+        return 0
     if not (args.rendered or args.real):
         p.error("give --rendered and/or --real")
     if args.choose and not args.rendered:

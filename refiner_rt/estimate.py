@@ -17,9 +17,11 @@ module finds one by search (docs/pose6d.md):
      scenes wrong rotations far outside the refiner's training range are often fixed points too, so this ranks
      worse: docs/pose6d.md.)
 3. **Polish**: the winner is refined once more by the object's fine refiner (docs/design.md §8), when one ships.
-4. **Translation** from the box, ``K`` and the object's surface points (shipped in ``samples/outlines.json``): the
-   posed points' projected bounding box is fitted to the box (:func:`fit_translation`); with a depth image, the
-   depth of the box's centre region sets the distance (:func:`depth_translation`).
+4. **Translation** from the box, ``K`` and the object's extent points (``weights/extents.json``: the mesh vertices
+   farthest along 1,024 directions, whose projected bounding box is the mesh's own from any viewpoint): the posed
+   points' projected bounding box is fitted to the box (:func:`fit_translation`); with a depth image, the depth of
+   the box's centre region sets the distance (:func:`depth_translation`, with the surface points of
+   ``samples/outlines.json``).
 
 Conventions: rotations object to camera (``x_cam = R @ x_obj + t``), translations in metres, the shipped models'
 object frame (the YCB google_16k scan frame, :mod:`refiner_rt.frames`); quaternions ``wxyz``; images ``H x W x 3``
@@ -33,9 +35,11 @@ Example:
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -44,7 +48,7 @@ from refiner_rt.geometry import ray_quaternions
 from refiner_rt.preprocess import crop_to_square, validate_boxes, validate_image
 from refiner_rt.session import RefinerSession, _validate_K
 
-__all__ = ["PoseEstimator", "PoseEstimate", "super_fibonacci", "fit_translation", "depth_translation",
+__all__ = ["PoseEstimator", "PoseEstimate", "load_extents", "EXTENTS_FILE", "EXTENTS_FORMAT", "super_fibonacci", "fit_translation", "depth_translation",
            "validate_depth", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "BORDER_PX", "MAX_DEPTH_M"]
 
 log = logging.getLogger(__name__)
@@ -65,6 +69,29 @@ DEPTH_CENTRE_SHARE = 0.5
 MAX_DEPTH_M = 20.0
 _DEPTH_GRID = 6  # cells per side of the model's coarse z-buffer over the depth region (depth_translation)
 _FIT_STEPS = 8
+EXTENTS_FORMAT = "refiner-rt/extents/1"
+
+
+def _extents_file():
+    from refiner_rt.pretrained import WEIGHTS_DIR
+
+    return WEIGHTS_DIR / "extents.json"
+
+
+EXTENTS_FILE = _extents_file()
+
+
+@lru_cache(maxsize=1)
+def load_extents() -> dict[str, np.ndarray]:
+    """``{object id: (P, 3) metres}``: the shipped extent points per object (the shipped models' object frame).
+
+    Raises:
+        FileNotFoundError / ValueError: the file is missing or of another format.
+    """
+    doc = json.loads(EXTENTS_FILE.read_text())
+    if doc.get("format") != EXTENTS_FORMAT:
+        raise ValueError(f"{EXTENTS_FILE}: format {doc.get('format')!r} is not {EXTENTS_FORMAT!r}")
+    return {obj: np.asarray(o["points_mm"], dtype=np.float64) / 1000.0 for obj, o in doc["objects"].items()}
 
 
 def super_fibonacci(n: int) -> np.ndarray:
@@ -260,8 +287,9 @@ class PoseEstimator:
 
     Args:
         coarse: the object's coarse :class:`RefinerSession` (runs every hypothesis).
-        points_m: ``(P, 3)`` the object's surface points, metres, in the refiner's object frame (for the
-            translation).
+        points_m: ``(P, 3)`` the object's surface points, metres, in the refiner's object frame (the depth rule).
+        extent_m: ``(Q, 3)`` points whose projected bounding box is the object's (for the box fit), metres, same
+            frame; None: ``points_m``.
         fine: the object's fine refiner, run once on the winning hypothesis, or None.
         hypotheses: rotations tried per box (``1`` to ``1024``).
         passes: coarse passes over every hypothesis before the check pass (``1`` to ``8``).
@@ -270,7 +298,7 @@ class PoseEstimator:
     Cost per box: ``hypotheses * (passes + 1)`` coarse network passes (one batched call per pass) and one fine pass.
     """
 
-    def __init__(self, coarse: RefinerSession, points_m, fine: RefinerSession | None = None, *,
+    def __init__(self, coarse: RefinerSession, points_m, fine: RefinerSession | None = None, *, extent_m=None,
                  hypotheses: int = DEFAULT_HYPOTHESES, passes: int = DEFAULT_PASSES, ranking: str = DEFAULT_RANKING):
         if not isinstance(coarse, RefinerSession) or not (fine is None or isinstance(fine, RefinerSession)):
             raise TypeError("coarse must be a RefinerSession and fine a RefinerSession or None; got "
@@ -279,15 +307,17 @@ class PoseEstimator:
             raise ValueError("PoseEstimator needs a refiner trained in the viewing-ray frame (metadata "
                              f"rotation_frame='ray'); got {coarse.contract.rotation_frame!r}")
         pts = np.asarray(points_m, dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 4 or not np.all(np.isfinite(pts)):
-            raise ValueError(f"points_m must be (P, 3) finite metres, P >= 4; got shape {pts.shape}")
+        ext = pts if extent_m is None else np.asarray(extent_m, dtype=np.float64)
+        for name, a in (("points_m", pts), ("extent_m", ext)):
+            if a.ndim != 2 or a.shape[1] != 3 or len(a) < 4 or not np.all(np.isfinite(a)):
+                raise ValueError(f"{name} must be (P, 3) finite metres, P >= 4; got shape {a.shape}")
         if isinstance(hypotheses, bool) or not isinstance(hypotheses, (int, np.integer)) or not 1 <= hypotheses <= 1024:
             raise ValueError(f"hypotheses must be an integer from 1 to 1024; got {hypotheses!r}")
         if isinstance(passes, bool) or not isinstance(passes, (int, np.integer)) or not 1 <= passes <= 8:
             raise ValueError(f"passes must be an integer from 1 to 8; got {passes!r}")
         if ranking not in RANKINGS:
             raise ValueError(f"ranking must be one of {', '.join(RANKINGS)}; got {ranking!r}")
-        self.coarse, self.fine, self.points_m = coarse, fine, pts
+        self.coarse, self.fine, self.points_m, self.extent_m = coarse, fine, pts, ext
         self.hypotheses, self.passes, self.ranking = int(hypotheses), int(passes), ranking
         self._q_hyp = super_fibonacci(self.hypotheses)
         # One fixed turn per hypothesis for the "return" check, about axes spread over the sphere.
@@ -297,8 +327,9 @@ class PoseEstimator:
     @classmethod
     def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, fine: bool = True,
                    **kwargs) -> "PoseEstimator":
-        """The estimator of a shipped object: its coarse (and fine) refiner and its shipped surface points
-        (``samples/outlines.json``). ``kwargs``: ``hypotheses``, ``passes``, ``ranking``.
+        """The estimator of a shipped object: its coarse (and fine) refiner, its shipped surface points
+        (``samples/outlines.json``) and extent points (``weights/extents.json``). ``kwargs``: ``hypotheses``,
+        ``passes``, ``ranking``.
 
         Raises:
             ValueError: no model or no surface points ship for ``object_id``.
@@ -306,15 +337,15 @@ class PoseEstimator:
         from refiner_rt.demo import load_outlines
         from refiner_rt.pretrained import pretrained_models
 
-        outlines = load_outlines()
-        if object_id not in outlines:
-            raise ValueError(f"no surface points ship for object {object_id!r}; shipped for: "
-                             f"{', '.join(sorted(outlines))}")
+        outlines, extents = load_outlines(), load_extents()
+        if object_id not in outlines or object_id not in extents:
+            raise ValueError(f"no surface or extent points ship for object {object_id!r}; shipped for: "
+                             f"{', '.join(sorted(set(outlines) & set(extents)))}")
         coarse = RefinerSession.pretrained(object_id, int8=int8, threads=threads)
         fine_session = None
         if fine and any(m.object_id == object_id and m.fine for m in pretrained_models()):
             fine_session = RefinerSession.pretrained(object_id, int8=int8, threads=threads, stage="fine")
-        return cls(coarse, outlines[object_id].points_m, fine_session, **kwargs)
+        return cls(coarse, outlines[object_id].points_m, fine_session, extent_m=extents[object_id], **kwargs)
 
     def rotations(self, image_bgr, boxes_xyxy, K) -> tuple[np.ndarray, np.ndarray]:
         """The rotation search alone (checked inputs): ``(q (N, 4) wxyz, residual_deg (N,))``."""
@@ -377,7 +408,7 @@ class PoseEstimator:
         R = rq.to_matrix(q) if len(q) else np.zeros((0, 3, 3))
         t = np.zeros((len(boxes), 3))
         for i, box in enumerate(boxes):
-            t[i] = fit_translation(R[i], self.points_m, box, K, image.shape[:2])
+            t[i] = fit_translation(R[i], self.extent_m, box, K, image.shape[:2])
             if depth is not None:
                 t_depth = depth_translation(R[i], self.points_m, t[i], box, K, depth)
                 if t_depth is not None:

@@ -15,8 +15,8 @@ import refiner_rt
 from refiner_rt import quaternion as rq
 from refiner_rt.cli import main
 from refiner_rt.demo import SAMPLES_DIR, load_outlines, load_samples
-from refiner_rt.estimate import (PoseEstimator, _project, depth_translation, fit_translation, super_fibonacci,
-                                 validate_depth)
+from refiner_rt.estimate import (PoseEstimator, _project, depth_translation, fit_translation, load_extents,
+                                 super_fibonacci, validate_depth)
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -60,6 +60,23 @@ def test_fit_translation_recovers_a_known_translation(seed):
     t = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.15, 0.15), rng.uniform(0.6, 1.5)])
     got = fit_translation(R, points, _box_of(points, R, t), K, image_size=(480, 640))
     np.testing.assert_allclose(got, t, atol=1e-6)
+
+
+@pytest.mark.parametrize("object_id", ["003_cracker_box", "011_banana", "035_power_drill"])
+def test_shipped_extent_points_give_the_mesh_box(object_id):
+    """The projected bounding box of the shipped extent points is the mesh's own, from any viewpoint."""
+    from pathlib import Path
+
+    from models.data.meshes import load_obj
+
+    repo = Path(__file__).resolve().parents[1]
+    vertices = load_obj(repo / "models" / "data" / "ycb_models" / object_id / "textured.obj")[0]
+    extent = load_extents()[object_id]
+    assert len(extent) < 1000
+    rng = np.random.default_rng(4)
+    for R in Rotation.random(20, random_state=rng).as_matrix():
+        t = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(0.4, 1.2)])
+        np.testing.assert_allclose(_box_of(extent, R, t), _box_of(vertices, R, t), atol=0.5)  # pixels
 
 
 def test_fit_translation_ignores_sides_cut_by_the_image_border():
@@ -198,7 +215,7 @@ def test_constructor_and_pretrained_checks(estimator):
         PoseEstimator(estimator.coarse, np.zeros((5, 2)))
     with pytest.raises(TypeError, match="RefinerSession"):
         PoseEstimator("model.onnx", estimator.points_m)
-    with pytest.raises(ValueError, match="no surface points ship"):
+    with pytest.raises(ValueError, match="no surface or extent points ship"):
         PoseEstimator.pretrained("999_unknown")
 
 
