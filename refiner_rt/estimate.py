@@ -54,8 +54,8 @@ __all__ = ["PoseEstimator", "PoseEstimate", "load_extents", "EXTENTS_FILE", "EXT
 log = logging.getLogger(__name__)
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
-DEFAULT_HYPOTHESES = 8
-DEFAULT_PASSES = 2
+DEFAULT_HYPOTHESES = 3
+DEFAULT_PASSES = 7
 DEFAULT_RANKING = "return"
 RANKINGS = ("return", "residual")
 # The check pass's turn of each hypothesis for the "return" ranking (within the refiner's 30-degree training range).
@@ -292,7 +292,7 @@ class PoseEstimator:
             frame; None: ``points_m``.
         fine: the object's fine refiner, run once on the winning hypothesis, or None.
         hypotheses: rotations tried per box (``1`` to ``1024``).
-        passes: coarse passes over every hypothesis before the check pass (``1`` to ``8``).
+        passes: coarse passes over every hypothesis before the check pass (``1`` to ``32``).
         ranking: ``"return"`` or ``"residual"`` (module docstring): how the check pass ranks the hypotheses.
 
     Cost per box: ``hypotheses * (passes + 1)`` coarse network passes (one batched call per pass) and one fine pass.
@@ -313,8 +313,8 @@ class PoseEstimator:
                 raise ValueError(f"{name} must be (P, 3) finite metres, P >= 4; got shape {a.shape}")
         if isinstance(hypotheses, bool) or not isinstance(hypotheses, (int, np.integer)) or not 1 <= hypotheses <= 1024:
             raise ValueError(f"hypotheses must be an integer from 1 to 1024; got {hypotheses!r}")
-        if isinstance(passes, bool) or not isinstance(passes, (int, np.integer)) or not 1 <= passes <= 8:
-            raise ValueError(f"passes must be an integer from 1 to 8; got {passes!r}")
+        if isinstance(passes, bool) or not isinstance(passes, (int, np.integer)) or not 1 <= passes <= 32:
+            raise ValueError(f"passes must be an integer from 1 to 32; got {passes!r}")
         if ranking not in RANKINGS:
             raise ValueError(f"ranking must be one of {', '.join(RANKINGS)}; got {ranking!r}")
         self.coarse, self.fine, self.points_m, self.extent_m = coarse, fine, pts, ext
