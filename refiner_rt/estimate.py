@@ -16,6 +16,9 @@ module finds one by search (docs/pose6d.md):
    * ``"residual"``: the fixed-point residual, the check pass starts from the hypothesis itself. (On rendered
      scenes wrong rotations far outside the refiner's training range are often fixed points too, so this ranks
      worse: docs/pose6d.md.)
+   * ``"return+shape"``: the return residual plus :data:`SHAPE_WEIGHT_DEG` times the hypothesis's box-shape
+     disagreement (:func:`shape_disagreement`): a rotation whose projected box has another width-to-height ratio
+     than the detected box is less likely (no network pass; boxes cut by the image border are not judged).
 3. **Polish**: the winner is refined once more by the object's fine refiner (docs/design.md §8), when one ships.
 4. **Translation** from the box, ``K`` and the object's extent points (``weights/extents.json``: the mesh vertices
    farthest along 1,024 directions, whose projected bounding box is the mesh's own from any viewpoint): the posed
@@ -49,15 +52,18 @@ from refiner_rt.preprocess import crop_to_square, validate_boxes, validate_image
 from refiner_rt.session import RefinerSession, _validate_K
 
 __all__ = ["PoseEstimator", "PoseEstimate", "load_extents", "EXTENTS_FILE", "EXTENTS_FORMAT", "super_fibonacci", "fit_translation", "depth_translation",
-           "validate_depth", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "BORDER_PX", "MAX_DEPTH_M"]
+           "validate_depth", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG", "shape_disagreement", "BORDER_PX", "MAX_DEPTH_M"]
 
 log = logging.getLogger(__name__)
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
 DEFAULT_HYPOTHESES = 3
-DEFAULT_PASSES = 7
-DEFAULT_RANKING = "return"
-RANKINGS = ("return", "residual")
+DEFAULT_PASSES = 5
+DEFAULT_RANKING = "return+shape"
+RANKINGS = ("return", "residual", "return+shape")
+# "return+shape": degrees of ranking residual per unit of box-shape disagreement (shape_disagreement), chosen on
+# rendered scenes (docs/pose6d.md).
+SHAPE_WEIGHT_DEG = 30.0
 # The check pass's turn of each hypothesis for the "return" ranking (within the refiner's 30-degree training range).
 RETURN_TURN_DEG = 15.0
 # A box side within this many pixels of the image border is taken to be cut by the border (the object goes on
@@ -218,6 +224,36 @@ def fit_translation(R, points_m, box_xyxy, K, image_size: tuple[int, int] | None
     return t
 
 
+def shape_disagreement(q_cam, extent_m, boxes_xyxy, K, image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """``(M,)`` in ``[0, 1)``: how far the projected box of each posed object disagrees in shape with its box,
+    ``1 - min(rw, rh) / max(rw, rh)`` with ``rw, rh`` the box's width and height over the projection's (the object
+    placed on the box's viewing ray at the distance its size suggests). 0 for a box with a side at the image border
+    (:data:`BORDER_PX`; needs ``image_size``): its shape is the border's.
+
+    Args:
+        q_cam: ``(M, 4)`` wxyz rotations, object to camera. extent_m: ``(P, 3)`` extent points, metres.
+        boxes_xyxy: ``(M, 4)`` pixels, continuous coordinates. K: ``(3, 3)`` pinhole intrinsics.
+    """
+    boxes = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+    K = np.asarray(K, dtype=np.float64)
+    R = rq.to_matrix(np.asarray(q_cam, dtype=np.float64).reshape(-1, 4))
+    pts = np.einsum("mij,pj->mpi", R, np.asarray(extent_m, dtype=np.float64))
+    centre = np.stack([0.5 * (boxes[:, 0] + boxes[:, 2]) - 0.5, 0.5 * (boxes[:, 1] + boxes[:, 3]) - 0.5,
+                       np.ones(len(boxes))], axis=1)
+    rays = np.linalg.solve(K, centre.T).T
+    side = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    size = np.maximum(np.ptp(pts[..., 0], axis=1), np.ptp(pts[..., 1], axis=1))
+    z = 0.5 * (K[0, 0] + K[1, 1]) * size / side
+    uv = _project(pts - pts.mean(axis=1, keepdims=True) + (rays * z[:, None])[:, None, :], K)
+    rw = (boxes[:, 2] - boxes[:, 0]) / np.maximum(np.ptp(uv[..., 0], axis=1), 1e-9)
+    rh = (boxes[:, 3] - boxes[:, 1]) / np.maximum(np.ptp(uv[..., 1], axis=1), 1e-9)
+    out = 1.0 - np.minimum(rw, rh) / np.maximum(rw, rh)
+    if image_size is not None:
+        cut = ~np.array([_box_sides_trusted(b, image_size).all() for b in boxes], dtype=bool)
+        out[cut] = 0.0
+    return out
+
+
 def validate_depth(depth, image_shape) -> np.ndarray:
     """Check a depth image: ``H x W`` float metres matching the colour image; 0 or non-finite where unknown.
 
@@ -358,6 +394,7 @@ class PoseEstimator:
         return self._rotations(image, boxes, K)
 
     def _rotations(self, image: np.ndarray, boxes: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(q (N, 4) wxyz object to camera, ranking residual (N,) degrees)`` of the chosen hypotheses."""
         n, h = len(boxes), self.hypotheses
         if n == 0:
             return np.zeros((0, 4)), np.zeros(0)
@@ -371,12 +408,18 @@ class PoseEstimator:
             q = self.coarse.refine_crops(crops, q).q_refined
         start = q if self.ranking == "residual" else rq.multiply(q, np.tile(self._q_turn, (n, 1)))
         residual = rq.geodesic_angle(self.coarse.refine_crops(crops, start).q_refined, q)
+        q_ray_box = ray_quaternions(K, boxes)
+        if self.ranking == "return+shape":
+            rows_boxes = np.repeat(boxes, h, axis=0)
+            q_all = rq.multiply(np.repeat(q_ray_box, h, axis=0), q)
+            residual = residual + SHAPE_WEIGHT_DEG * shape_disagreement(q_all, self.extent_m, rows_boxes, K,
+                                                                        image.shape[:2])
         best = residual.reshape(n, h).argmin(axis=1)
         rows = np.arange(n) * h + best
         q_ray = q[rows]
         if self.fine is not None:
             q_ray = self.fine.refine_crops(crops[rows], q_ray).q_refined
-        q_cam = rq.canonical(rq.normalize(rq.multiply(ray_quaternions(K, boxes), q_ray)))
+        q_cam = rq.canonical(rq.normalize(rq.multiply(q_ray_box, q_ray)))
         return q_cam, residual[rows]
 
     def estimate(self, image_bgr, boxes_xyxy, K, depth=None) -> PoseEstimate:

@@ -16,7 +16,7 @@ from refiner_rt import quaternion as rq
 from refiner_rt.cli import main
 from refiner_rt.demo import SAMPLES_DIR, load_outlines, load_samples
 from refiner_rt.estimate import (PoseEstimator, _project, depth_translation, fit_translation, load_extents,
-                                 super_fibonacci, validate_depth)
+                                 shape_disagreement, super_fibonacci, validate_depth)
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -116,6 +116,22 @@ def test_depth_translation_puts_the_front_surface_at_the_measured_depth():
     got = depth_translation(R, points, t_box, box, K, depth)
     np.testing.assert_allclose(got, t, atol=1e-6)
     assert depth_translation(R, points, t_box, box, K, np.zeros_like(depth)) is None  # no valid depth
+
+
+def test_shape_disagreement_prefers_the_rotation_that_made_the_box():
+    extent = load_extents()["003_cracker_box"]
+    rng = np.random.default_rng(5)
+    R = Rotation.random(6, random_state=rng).as_matrix()
+    t = np.array([0.05, -0.04, 0.9])
+    boxes = np.array([_box_of(extent, r, t) for r in R])
+    q = rq.from_matrix(R)
+    own = shape_disagreement(q, extent, boxes, K, (480, 640))
+    assert own.shape == (6,) and np.all((own >= 0) & (own < 0.02))  # near 0 (weak perspective off the axis)
+    other = shape_disagreement(q[[1, 2, 3, 4, 5, 0]], extent, boxes, K, (480, 640))
+    assert np.mean(other) > 5 * np.mean(own)
+    cut = boxes.copy()
+    cut[:, 0] = 0.0  # every box at the left border: no shape to judge
+    assert np.all(shape_disagreement(q[[1, 2, 3, 4, 5, 0]], extent, cut, K, (480, 640)) == 0.0)
 
 
 def test_validate_depth_refuses_millimetres_and_wrong_shapes():
