@@ -57,8 +57,8 @@ CANDIDATES = ((3, 5, "return"), (3, 5, "residual"), (3, 5, "return+shape"), (2, 
               (4, 4, "return"), (4, 4, "return+shape"), (5, 3, "return"), (3, 7, "return"), (3, 7, "residual"),
               (3, 7, "return+shape"), (4, 5, "return+shape"))
 # The choice: the highest ADD-S AUC among the candidates of at most PASS_BUDGET network passes per object. The budget
-# is counted, not timed: 10 ms at the 0.42-0.5 ms of CPU time one crop's coarse pass took on the shared development
-# machine, less the 1.8 ms the crop, the fine pass and the translation took (docs/pose6d.md); timing each candidate
+# is counted, not timed: 10 ms at the 0.4-0.5 ms of CPU time one crop's coarse pass took on the shared development
+# machine, less the 1.7 ms the crop, the fine pass and the translation took (docs/pose6d.md); timing each candidate
 # there put the same candidate at 9.7 ms in one run and 11.9 in the next.
 PASS_BUDGET = 19
 
