@@ -39,7 +39,6 @@ Example:
 from __future__ import annotations
 
 import json
-import logging
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -49,22 +48,24 @@ import numpy as np
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import ray_quaternions
 from refiner_rt.preprocess import crop_to_square, validate_boxes, validate_image
+from refiner_rt.pretrained import WEIGHTS_DIR
 from refiner_rt.session import RefinerSession, _validate_K
 
-__all__ = ["PoseEstimator", "PoseEstimate", "load_extents", "EXTENTS_FILE", "EXTENTS_FORMAT", "super_fibonacci", "fit_translation", "depth_translation",
-           "validate_depth", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG", "shape_disagreement", "BORDER_PX", "MAX_DEPTH_M"]
-
-log = logging.getLogger(__name__)
+__all__ = ["PoseEstimator", "PoseEstimate", "load_extents", "EXTENTS_FILE", "EXTENTS_FORMAT", "super_fibonacci",
+           "fit_translation", "depth_translation", "shape_disagreement", "validate_depth", "DEFAULT_HYPOTHESES",
+           "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG", "BORDER_PX",
+           "MAX_DEPTH_M"]
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
 DEFAULT_HYPOTHESES = 3
 DEFAULT_PASSES = 5
 DEFAULT_RANKING = "return+shape"
 RANKINGS = ("return", "residual", "return+shape")
-# "return+shape": degrees of ranking residual per unit of box-shape disagreement (shape_disagreement), chosen on
-# rendered scenes (docs/pose6d.md).
+# "return+shape": degrees of ranking residual per unit of box-shape disagreement (shape_disagreement); 30 lies
+# between the two best weights of 5-160 tried on rendered scenes (docs/pose6d.md, "Choosing the search").
 SHAPE_WEIGHT_DEG = 30.0
-# The check pass's turn of each hypothesis for the "return" ranking (within the refiner's 30-degree training range).
+# The check pass's turn of each hypothesis for the "return" ranking, within the refiner's 30-degree training range
+# (15 ranked better than 25 and 40 on rendered scenes: docs/pose6d.md).
 RETURN_TURN_DEG = 15.0
 # A box side within this many pixels of the image border is taken to be cut by the border (the object goes on
 # beyond it): the translation fit does not use it.
@@ -76,15 +77,7 @@ MAX_DEPTH_M = 20.0
 _DEPTH_GRID = 6  # cells per side of the model's coarse z-buffer over the depth region (depth_translation)
 _FIT_STEPS = 10  # at most; each step cuts the error about twentyfold, and it stops once converged
 EXTENTS_FORMAT = "refiner-rt/extents/1"
-
-
-def _extents_file():
-    from refiner_rt.pretrained import WEIGHTS_DIR
-
-    return WEIGHTS_DIR / "extents.json"
-
-
-EXTENTS_FILE = _extents_file()
+EXTENTS_FILE = WEIGHTS_DIR / "extents.json"
 
 
 @lru_cache(maxsize=1)
