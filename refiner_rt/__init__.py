@@ -12,7 +12,8 @@ __version__ = "0.1.0"
 from refiner_rt.errors import ModelError, ModelNotFoundError
 
 __all__ = ["ModelError", "ModelNotFoundError", "Refiner", "load", "RefinerSession", "RefineResult", "RefinerCascade",
-           "RefinerTracker", "SETTLE_DEG", "quaternion", "pretrained_models", "__version__"]
+           "RefinerTracker", "SETTLE_DEG", "PoseEstimator", "PoseEstimate", "quaternion", "pretrained_models",
+           "__version__"]
 
 
 def __getattr__(name):
@@ -33,6 +34,10 @@ def __getattr__(name):
         from refiner_rt.tracker import RefinerTracker
 
         return RefinerTracker
+    if name in ("PoseEstimator", "PoseEstimate"):
+        from refiner_rt import estimate
+
+        return getattr(estimate, name)
     if name == "pretrained_models":
         from refiner_rt.pretrained import pretrained_models
 

@@ -200,6 +200,8 @@ BAD_INVOCATIONS = [
     (["render", "--preview", "{tmp}/p.png", "--data", "{bop}"], "scene_gt.json"),
     (["demo", "--image", "{random.onnx}", "--box", "1,1,5,5", "--q", "1,0,0,0", "--K", "500,500,32,24", "--object",
       "003_cracker_box"], "random.onnx"),
+    (["estimate", "{random.onnx}", "--K", "500,500,32,24", "--object", "003_cracker_box", "--box", "1,1,5,5"],
+     "random.onnx"),
     (["render", "--out", "{tmp}/scenes", "--frames", "1", "--models", "{meshes}", "--objects", "003_cracker_box",
       "--width", "64", "--height", "48", "--quiet"], "textured_simple.obj"),
 ]

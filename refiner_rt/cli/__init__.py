@@ -46,6 +46,8 @@ RUNTIME_COMMANDS = {
     "models": LazyCommand("refiner_rt.cli.models:models_cmd", "List the pretrained refiners that ship in the package."),
     "demo": LazyCommand("refiner_rt.cli.demo:demo_cmd",
                         "Refine sample frames (or your image) with the shipped models; draw it."),
+    "estimate": LazyCommand("refiner_rt.cli.estimate:estimate_cmd",
+                            "6D poses (rotation and translation) from images and 2D boxes alone."),
     "track": LazyCommand("refiner_rt.cli.track:track_cmd",
                          "Track object rotations through a folder of frames with boxes."),
     "bench": LazyCommand("refiner_rt.cli.bench:bench_cmd",

@@ -9,10 +9,10 @@ import click
 import cv2
 import numpy as np
 
-__all__ = ["demo_cmd"]
+__all__ = ["demo_cmd", "numbers_callback"]
 
 
-def _numbers(count: int, names: str, positive: tuple[int, ...] = ()):
+def numbers_callback(count: int, names: str, positive: tuple[int, ...] = ()):
     """A click callback parsing ``count`` comma-separated finite numbers (``names`` says which, e.g. 'x1,y1,x2,y2')."""
 
     def parse(ctx, param, value):
@@ -39,11 +39,11 @@ def _numbers(count: int, names: str, positive: tuple[int, ...] = ()):
               help="Threads per model (0: every core).")
 @click.option("--image", "image_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Refine your own image instead of the samples; needs --box, --q, --K and --object.")
-@click.option("--box", callback=_numbers(4, "x1,y1,x2,y2"), metavar="X1,Y1,X2,Y2",
+@click.option("--box", callback=numbers_callback(4, "x1,y1,x2,y2"), metavar="X1,Y1,X2,Y2",
               help="With --image: the object's box in pixels.")
-@click.option("--q", "q", callback=_numbers(4, "w,x,y,z"), metavar="W,X,Y,Z",
+@click.option("--q", "q", callback=numbers_callback(4, "w,x,y,z"), metavar="W,X,Y,Z",
               help="With --image: the coarse rotation, object to camera, quaternion wxyz (scalar first).")
-@click.option("--K", "K", callback=_numbers(4, "fx,fy,cx,cy", positive=(0, 1)), metavar="FX,FY,CX,CY",
+@click.option("--K", "K", callback=numbers_callback(4, "fx,fy,cx,cy", positive=(0, 1)), metavar="FX,FY,CX,CY",
               help="With --image: the camera intrinsics in pixels.")
 @click.option("--object", "object_id", metavar="YCB_ID", help="With --image: the object, e.g. 003_cracker_box.")
 @click.option("--cascade", is_flag=True,
