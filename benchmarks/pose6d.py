@@ -307,7 +307,7 @@ def main(argv=None) -> int:
     path = args.out / ("pose6d.json" if not chosen else
                        "pose6d_" + "_".join(f"{k}{v}" for k, v in chosen.items()).replace("+", "_") + ".json")
     path.write_text(json.dumps(record, indent=1) + "\n")
-    print(f"\nwrote {path} ({record['wall_s']} s; {record['machine']['cpu']}, {record['machine']['simd']}, 1 thread)")
+    print(f"\nwrote {path} ({record['wall_s']} s; {record['machine']['cpu']}, {' '.join(record['machine']['isa_flags']) or 'no AVX'}, 1 thread)")
     return 0
 
 
