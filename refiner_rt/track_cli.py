@@ -22,6 +22,7 @@ y2)`` in pixels, continuous coordinates; ``K`` in pixels (OpenCV convention).
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import time
@@ -97,26 +98,18 @@ def _numbers(value, shape, what: str) -> np.ndarray:
     return arr
 
 
-def annotate(image: np.ndarray, boxes: dict, rotations: dict) -> np.ndarray:
-    """A copy of ``image`` (BGR) with each object's box and its rotation's axes drawn at the box centre.
+def annotate(image: np.ndarray, K: np.ndarray, objects: list) -> np.ndarray:
+    """A copy of ``image`` (BGR) with each object's outline at its refined rotation (and at the detector's input,
+    where the frame gives one), its box and its label, and a legend: :func:`refiner_rt.draw.annotate_poses` with the
+    package's outline points (``objects``: :class:`refiner_rt.draw.PoseOverlay`)."""
+    return draw.annotate_poses(image, K, objects, _outlines())
 
-    The axes are the columns of the object-to-camera rotation matrix, drawn orthographically (camera ``x`` right,
-    ``y`` down) with half the box's shorter side as length: x red, y green, z blue.
-    """
-    out = image.copy()
-    for object_id, q in rotations.items():
-        x1, y1, x2, y2 = boxes[object_id]
-        cv2.rectangle(out, (int(x1), int(y1)), (int(x2), int(y2)), (255, 255, 255), 1, cv2.LINE_AA)
-        centre = np.array([(x1 + x2) / 2, (y1 + y2) / 2])
-        length = 0.5 * min(x2 - x1, y2 - y1)
-        R = rq.to_matrix(q)
-        for axis in np.argsort(R[2])[::-1]:  # the axis pointing farthest away first, so nearer ones stay on top
-            tip = centre + length * R[:2, axis]
-            cv2.line(out, tuple(np.round(centre).astype(int)), tuple(np.round(tip).astype(int)),
-                     draw.AXIS_COLOURS[axis], 2, cv2.LINE_AA)
-        cv2.putText(out, object_id, (int(x1), max(int(y1) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    (255, 255, 255), 1, cv2.LINE_AA)
-    return out
+
+@functools.lru_cache(maxsize=1)
+def _outlines() -> dict:
+    from refiner_rt.demo import load_outlines
+
+    return load_outlines()
 
 
 class _VideoOutput:
@@ -360,7 +353,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.ClickException(str(exc)) from None
 
     video = _VideoOutput(video_path, len(files), strip_frames, fps) if video_path else None
-    results, lost, refined, seconds = {}, {}, 0, 0.0
+    results, scores, lost, refined, seconds = {}, {}, {}, 0, 0.0
     for index, path in enumerate(files):
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
@@ -380,10 +373,13 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         seconds += time.perf_counter() - t0
         refined += len(out)
         results[path.name] = {o: [round(v, 9) for v in q.tolist()] for o, q in out.items()}
+        scores[path.name] = {o: round(float(tracker.scores[o]), 4) for o in out if o in tracker.scores}
         if tracker.lost:
             lost[path.name] = list(tracker.lost)
         if video is not None:
-            video.add(index, annotate(image, boxes, out))
+            video.add(index, annotate(image, K, [
+                draw.PoseOverlay(o, np.asarray(boxes[o], dtype=np.float64), q, q_input=frame_dets[o]["q"],
+                                 lost=o in tracker.lost, score=tracker.scores.get(o)) for o, q in out.items()]))
     if video is not None:
         video.close()
     out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -395,7 +391,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
         "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},
         "frames": results,
-        "lost": lost,  # frame -> objects the loss-of-track check flagged there (empty without --lost-deg)
+        "scores": scores,  # frame -> object -> RefineResult.score of its refinement there (docs/tracking.md)
+        "lost": lost,  # frame -> objects the tracker holds lost there (docs/tracking.md: the loss-of-track check)
     }, indent=1))
     per_frame = 1e3 * seconds / len(files)
     click.echo(f"{len(files)} frames, {len(object_ids)} objects, {refined} refinements: {per_frame:.2f} ms per frame "

@@ -75,6 +75,7 @@ from refiner_rt.cascade import RefinerCascade
 from refiner_rt.distortion import validate_D
 from refiner_rt.preprocess import validate_boxes, validate_image
 from refiner_rt.session import (
+    RefineResult,
     RefinerSession,
     _as_wxyz,
     _conjugate_rows,
@@ -94,6 +95,8 @@ PREDICTIONS = ("object", "scene")
 DEFAULT_MOTION_WINDOW = 4  # updates
 DEFAULT_SCENE_PREDICTION_WEIGHT = 0.3
 DEFAULT_SCENE_MAX_CORRECTION_DEG = 2.0
+# the loss-of-track check's exponential smoothing of the second pass's movement: the newest update's weight (1: none)
+LOST_SMOOTHING = 1.0
 TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the medoid than this and twice the median is left out
 INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
 
@@ -106,7 +109,7 @@ def _object_name(object_id: str) -> str:
 class _Track:
     """One tracked object: its session, current rotation and (for prediction) its last rotation change."""
 
-    __slots__ = ("session", "q", "refined", "velocity", "missed", "history")
+    __slots__ = ("session", "q", "refined", "velocity", "missed", "history", "lost_signal", "lost")
 
     def __init__(self, session: RefinerSession, q: np.ndarray):
         self.session = session
@@ -115,6 +118,8 @@ class _Track:
         self.velocity = None  # [w, x, y, z]: rotation change per update in the camera frame, or None
         self.missed = 0  # updates since this object was last refined (it had no box)
         self.history: list[tuple[int, list]] = []  # (update index, the refiner's result): the scene turn's source
+        self.lost_signal = None  # the loss-of-track check's smoothed movement (degrees), None before the first check
+        self.lost = False  # held lost (the check fired) until re-initialised
 
 
 class RefinerTracker:
@@ -209,13 +214,7 @@ class RefinerTracker:
         if not 0.0 <= float(prediction_weight) < 1.0:
             raise ValueError(f"prediction_weight must be a number in [0, 1) (the prediction's share); got "
                              f"{prediction_weight!r}")
-        if prediction_weight and self.predict is None:
-            raise ValueError(f"prediction_weight={prediction_weight!r} keeps a share of a prediction, and predict is "
-                             "False; pass predict='scene' (or True), or leave prediction_weight at 0")
         self.prediction_weight = float(prediction_weight)
-        if max_correction_deg is not None and self.predict != "scene":
-            raise ValueError(f"max_correction_deg={max_correction_deg!r} limits a track's step from the scene's "
-                             "prediction; it needs predict='scene'")
         if max_correction_deg is None and self.predict == "scene":
             max_correction_deg = DEFAULT_SCENE_MAX_CORRECTION_DEG
         self.max_correction_deg = _optional_in_range(max_correction_deg, "max_correction_deg", 180.0,
@@ -228,6 +227,7 @@ class RefinerTracker:
                              "lost, or fused in every frame); choose one")
         self.lost: list[str] = []  # objects the last update flagged lost (and could not re-detect)
         self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
+        self.scores: dict[str, float] = {}  # the last update's RefineResult.score per refined object
         self.iterations = RefinerSession._validate_iterations(iterations)
         self.views = RefinerSession._validate_views(views)
         self.settle_deg = _validate_settle(settle_deg, self.iterations)
@@ -329,6 +329,7 @@ class RefinerTracker:
         track = self._track(object_id)
         track.q = self._check_q(q, "q")
         track.refined, track.velocity, track.missed, track.history = False, None, 0, []
+        track.lost_signal, track.lost = None, False
 
     # ------------------------------------------------------------------ tracking
     def update(self, image, boxes: Mapping, detector=None) -> dict[str, np.ndarray]:
@@ -392,24 +393,26 @@ class RefinerTracker:
             # a cascade runs its coarse refiner, then its fine one, on every update: with the fine refiner alone from
             # frame to frame its small errors added up (benchmarks/studies/cascade, "Tracking on the cascade")
             coarse = [True] * (len(ids) + len(fused))
-            both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
-                                np.array(q_in + [q for _, q in fused]), coarse).tolist()
+            res = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
+                               np.array(q_in + [q for _, q in fused]), coarse)
+            both = res.q_refined.tolist()
+            score = res.score[: len(ids)].tolist()
             raw = both[: len(ids)]  # the refiner's own results: what it saw move (the scene's turn's source)
             tracked = list(raw)  # the refined tracks (the object velocity's source)
             predicted = [self._predicted(self._tracks[i], turn) for i in ids]
             if self.prediction_weight:  # keep a share of the prediction (not of a coarse start or the last rotation)
                 tracked = [_blend(q, p, self.prediction_weight) if made else q
                            for q, p, made in zip(tracked, q_in, predicted)]
-            if turn is not None and self.max_correction_deg is not None:  # within reach of the scene's prediction
+            if self.max_correction_deg is not None:  # within reach of the prediction
                 tracked = [_within(q, p, self.max_correction_deg) if made else q
                            for q, p, made in zip(tracked, q_in, predicted)]
             refined = list(tracked)
             for (i, _), q_det in zip(fused, both[len(ids):]):
                 refined[i] = _blend(tracked[i], q_det, self.detector_weight)
-            results.append((sess, ids, rows, refined, tracked, raw,
-                            self._flag_lost(sess, image, ids, rows, refined)))
+            results.append((sess, ids, rows, refined, tracked, raw, score,
+                            *self._flag_lost(sess, image, ids, rows, refined)))
         redetected, lost = {}, []
-        for sess, ids, rows, refined, tracked, raw, flagged in results:
+        for sess, ids, rows, refined, tracked, raw, score, flagged, signals in results:
             found, poses = [], []
             for i in flagged:
                 q = self._ask(detector, ids[i])
@@ -419,18 +422,22 @@ class RefinerTracker:
                     found.append(i)
                     poses.append(q)
             if found:
-                again = self._refine(sess, image, [rows[i] for i in found], np.array(poses),
-                                     [True] * len(found)).tolist()
-                redetected.update({ids[i]: q for i, q in zip(found, again)})
-        out = {}
-        for sess, ids, rows, refined, tracked, raw, flagged in results:
-            for object_id, q, q_tracked, q_raw in zip(ids, refined, tracked, raw):
+                again = self._refine(sess, image, [rows[i] for i in found], np.array(poses), [True] * len(found))
+                redetected.update({ids[i]: (q, sc) for i, q, sc in zip(found, again.q_refined.tolist(),
+                                                                       again.score.tolist())})
+        out, scores = {}, {}
+        for sess, ids, rows, refined, tracked, raw, score, flagged, signals in results:
+            for object_id, q, q_tracked, q_raw, sc, signal in zip(ids, refined, tracked, raw, score, signals):
                 track = self._tracks[object_id]
+                scores[object_id] = sc
                 if object_id in redetected:  # a detector's pose, refined: a new start, not motion
-                    track.q, track.refined, track.velocity, track.missed = redetected[object_id], True, None, 0
-                    track.history = []
+                    (track.q, scores[object_id]), track.refined, track.velocity, track.missed = (
+                        redetected[object_id], True, None, 0)
+                    track.history, track.lost_signal, track.lost = [], None, False
                     out[object_id] = np.array(track.q)
                     continue
+                track.lost_signal = signal
+                track.lost = track.lost or object_id in lost
                 if self.predict == "scene":  # the refiner's result (not the prediction's share, nor a detection's
                     # pull) measures the motion: a turn measured from damped rotations would lag behind itself
                     track.history = [(t, h) for t, h in track.history if self._updates - t < self.motion_window]
@@ -449,6 +456,7 @@ class RefinerTracker:
                     track.q = _unit_rows(_multiply_rows([turn], [track.q]))[0]
         self._updates += 1
         self.lost = lost
+        self.scores = scores
         self.redetections += len(redetected)
         return out
 
@@ -492,28 +500,34 @@ class RefinerTracker:
                 self.reset(object_id, q)
         return self.update(image, boxes, detector=fused or None)
 
-    def _refine(self, sess, image, rows: list, q_in, coarse: list) -> np.ndarray:
+    def _refine(self, sess, image, rows: list, q_in, coarse: list) -> RefineResult:
         if isinstance(sess, RefinerCascade):
-            return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse)).q_refined
+            return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse))
         return sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K,
-                           views=self.views, D=self.D, settle_deg=self.settle_deg).q_refined
+                           views=self.views, D=self.D, settle_deg=self.settle_deg)
 
-    def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list) -> list[int]:
-        """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a
-        tracked (not a coarse) rotation, and moved by more than ``lost_deg`` by one more refinement."""
+    def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list
+                   ) -> tuple[list[int], list[float | None]]:
+        """The loss-of-track check (module docstring): the indices into ``ids`` of the objects it holds lost (those
+        held lost already, and those refined from a tracked (not a coarse) rotation whose smoothed second-pass
+        movement exceeds ``lost_deg``), and each object's new smoothed movement (None where not checked)."""
+        signals = [self._tracks[object_id].lost_signal for object_id in ids]
         if self.lost_deg is None:
-            return []
+            return [], signals
         checked = [i for i, object_id in enumerate(ids) if self._tracks[object_id].refined]
+        held = [i for i, object_id in enumerate(ids) if self._tracks[object_id].lost]
         if not checked:
-            return []
+            return held, signals
         if isinstance(sess, RefinerCascade):  # the coarse refiner's verdict: it sees drift the fine one follows
             again = self._refine(sess, image, [rows[i] for i in checked], np.array([refined[i] for i in checked]),
-                                 [True] * len(checked))
+                                 [True] * len(checked)).q_refined
         else:
             again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
                                 K=self.K, views=self.views, D=self.D).q_refined
         moved = rq.geodesic_angle(np.array([refined[i] for i in checked]), again)
-        return [i for i, m in zip(checked, moved) if m > self.lost_deg]
+        for i, m in zip(checked, moved.tolist()):
+            signals[i] = m if signals[i] is None else LOST_SMOOTHING * m + (1.0 - LOST_SMOOTHING) * signals[i]
+        return sorted(set(held) | {i for i in checked if signals[i] > self.lost_deg}), signals
 
     def _ask(self, detector, object_id: str) -> list | None:
         """The detector's coarse pose for an object (checked, unit), or None when it has none."""
@@ -548,8 +562,10 @@ class RefinerTracker:
 
     def _predicted(self, track: _Track, turn: list | None) -> bool:
         """Whether this update's coarse rotation for ``track`` is a prediction (motion measured, a refined track)."""
-        if not track.refined or self.predict is None:
+        if not track.refined:
             return False
+        if self.predict is None:  # the object is taken to hold still: its last rotation is the prediction
+            return True
         return turn is not None if self.predict == "scene" else track.velocity is not None
 
     def _prediction(self, track: _Track, turn: list | None = None) -> list:

@@ -2,14 +2,13 @@
 refined rotation as the next coarse pose, batching per session, the constant-velocity prediction, objects coming
 and going, and the errors."""
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 import onnx_fixtures as fx
-from refiner_rt import RefinerSession
+from refiner_rt import RefineResult, RefinerSession
 from refiner_rt import quaternion as rq
 from refiner_rt import RefinerTracker
 from test_pretrained import weights  # noqa: F401  (the made-up shipped models)
@@ -22,6 +21,13 @@ BOX_B = [30.5, 10.0, 60.0, 40.0]
 Q_OUT = rq.from_axis_angle([0.2, -0.4, 0.9], 7.0)  # every update multiplies by this
 Q0 = rq.normalize(rq.from_xyzw(Rotation.random(2, random_state=3).as_quat()))  # w >= 0
 
+
+
+def _result(q_refined) -> RefineResult:
+    """A RefineResult of fake refinements: ``q_refined`` as given, no correction measured (score 1)."""
+    q = np.asarray(q_refined, dtype=np.float64)
+    identity = np.tile([1.0, 0.0, 0.0, 0.0], (len(q), 1))
+    return RefineResult(q_refined=q, q_out=identity, q_in=q)
 
 def scipy_q(q_wxyz):
     return Rotation.from_quat(rq.to_xyzw(q_wxyz))
@@ -46,6 +52,18 @@ def test_each_update_refines_the_previous_result(frame):
         assert_same_rotation(q, ref)
         assert q.shape == (4,) and q.dtype == np.float64 and q[0] >= 0
         assert_same_rotation(tracker.rotations["003_cracker_box"], ref)
+
+
+@pytest.mark.parametrize("kwargs, share", [(dict(prediction_weight=0.4), 0.6), (dict(max_correction_deg=2.8), 0.4),
+                                           (dict(prediction_weight=0.5, max_correction_deg=2.8), 0.4)])
+def test_the_temporal_filter_without_prediction_holds_back_each_correction(kwargs, share):
+    """With no motion prediction the last rotation is the prediction: from the second update on, a constant 7-degree
+    correction c is kept at (1 - prediction_weight) of its angle, at most max_correction_deg: q = q0 c c^(share (n-1));
+    the first update, from the coarse start, is kept whole."""
+    tracker = RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, **kwargs)
+    for n in range(1, 5):
+        q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
+        assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT) * scipy_q(Q_OUT) ** (share * (n - 1)))
 
 
 def test_objects_sharing_a_session_are_refined_in_one_call(monkeypatch):
@@ -187,7 +205,7 @@ def test_scene_prediction_carries_a_hidden_object_with_the_camera(monkeypatch):
         a = [np.allclose(b, BOX_A) for b in np.asarray(boxes)]
         for is_a, q in zip(a, q_in):
             inputs[clock["t"], is_a] = np.array(q)
-        return SimpleNamespace(q_refined=np.array([truth(Q0[0] if is_a else Q0[1], clock["t"]) for is_a in a]))
+        return _result(np.array([truth(Q0[0] if is_a else Q0[1], clock["t"]) for is_a in a]))
 
     monkeypatch.setattr(shared, "refine", perfect)
     assert rq.geodesic_angle(turn, rq.identity()) == pytest.approx(3.0)
@@ -221,7 +239,7 @@ def test_scene_prediction_follows_a_camera_that_starts_to_turn(monkeypatch):
     clock = {"t": 0}
 
     def perfect(image, boxes, q_in, **kw):
-        return SimpleNamespace(q_refined=np.array([truth(Q0[0] if np.allclose(b, BOX_A) else Q0[1], clock["t"])
+        return _result(np.array([truth(Q0[0] if np.allclose(b, BOX_A) else Q0[1], clock["t"])
                                                    for b in np.asarray(boxes)]))
 
     monkeypatch.setattr(shared, "refine", perfect)
@@ -250,7 +268,7 @@ def test_scene_prediction_starts_reset_and_added_tracks_from_the_pose_given(monk
     def perfect(image, boxes, q_in, **kw):
         ids = ["003_cracker_box" if np.allclose(b, BOX_A) else "011_banana" for b in np.asarray(boxes)]
         inputs.update({(clock["t"], i): np.array(q) for i, q in zip(ids, q_in)})
-        return SimpleNamespace(q_refined=np.array([truth(start[i], clock["t"]) for i in ids]))
+        return _result(np.array([truth(start[i], clock["t"]) for i in ids]))
 
     monkeypatch.setattr(shared, "refine", perfect)
     tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0]}, predict="scene", prediction_weight=0.0)
@@ -331,8 +349,6 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(predict="scene", prediction_weight="0.3"), TypeError, "prediction_weight must be a number in"),
     (dict(predict="scene", motion_window=1), ValueError, "motion_window must be an int >= 2"),
     (dict(predict="scene", prediction_weight=1.0), ValueError, "prediction_weight must be a number in \\[0, 1\\)"),
-    (dict(prediction_weight=0.3), ValueError, "keeps a share of a prediction, and predict is False"),
-    (dict(max_correction_deg=2.0, predict=True), ValueError, "max_correction_deg=2.0 limits .* needs predict='scene'"),
     (dict(predict="scene", max_correction_deg=0), ValueError, r"max_correction_deg must be in \(0, 180\] degrees"),
     (dict(iterations=0), ValueError, "iterations must be an integer from 1 to"),
     (dict(views=99), ValueError, "views must be an integer from 1 to"),
