@@ -573,6 +573,33 @@ def write_sequence(folder, n=3, q0=Q0[0], extra=None):
     return frames, folder / "detections.json", model
 
 
+def test_track_command_writes_each_frames_score_and_the_lost_flag(tmp_path):
+    """The frames path's JSON: per frame each object's RefineResult.score (a constant 7-degree correction scores
+    exp(-7 / SCORE_SCALE_DEG)) and, with --lost-deg, the objects held lost: the second pass moves the track by 7
+    degrees, so from the second frame on (the first is refined from the coarse pose, not checked) it is lost, and
+    held lost."""
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+    from refiner_rt.session import SCORE_SCALE_DEG
+
+    frames, dets, model = write_sequence(tmp_path, n=4)
+    out = tmp_path / "rot.json"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", "5"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert list(doc["scores"]) == [f"{i:06d}.png" for i in range(4)]
+    for name, scores in doc["scores"].items():
+        assert scores["003_cracker_box"] == pytest.approx(np.exp(-7.0 / SCORE_SCALE_DEG), abs=1e-4)
+    assert doc["lost"] == {f"{i:06d}.png": ["003_cracker_box"] for i in range(1, 4)}
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", "8"])
+    assert json.loads(out.read_text())["lost"] == {}
+
+
 def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
     import json
 
