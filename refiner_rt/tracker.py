@@ -95,6 +95,10 @@ PREDICTIONS = ("object", "scene")
 DEFAULT_MOTION_WINDOW = 4  # updates
 DEFAULT_SCENE_PREDICTION_WEIGHT = 0.3
 DEFAULT_SCENE_MAX_CORRECTION_DEG = 2.0
+# without a motion prediction (the last rotation is the prediction): chosen on rendered robot-layout video
+# (tracking_robot_s561, benchmarks/studies/tracking_real) among weights 0-0.65 and limits 3 degrees or none
+DEFAULT_HOLD_PREDICTION_WEIGHT = 0.25
+DEFAULT_HOLD_MAX_CORRECTION_DEG = 3.0
 # the loss-of-track check's exponential smoothing of the second pass's movement: the newest update's weight (1: none)
 LOST_SMOOTHING = 1.0
 TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the medoid than this and twice the median is left out
@@ -206,7 +210,8 @@ class RefinerTracker:
             raise ValueError(f"motion_window must be an int >= 2 (updates); got {motion_window!r}")
         self.motion_window = int(motion_window)
         if prediction_weight is None:
-            prediction_weight = DEFAULT_SCENE_PREDICTION_WEIGHT if self.predict == "scene" else 0.0
+            prediction_weight = {"scene": DEFAULT_SCENE_PREDICTION_WEIGHT, None: DEFAULT_HOLD_PREDICTION_WEIGHT}.get(
+                self.predict, 0.0)
         if isinstance(prediction_weight, bool) or not isinstance(prediction_weight, (int, float, np.integer,
                                                                                     np.floating)):
             raise TypeError(f"prediction_weight must be a number in [0, 1) (the prediction's share) or None; got "
@@ -217,6 +222,8 @@ class RefinerTracker:
         self.prediction_weight = float(prediction_weight)
         if max_correction_deg is None and self.predict == "scene":
             max_correction_deg = DEFAULT_SCENE_MAX_CORRECTION_DEG
+        if max_correction_deg is None and self.predict is None:
+            max_correction_deg = DEFAULT_HOLD_MAX_CORRECTION_DEG
         self.max_correction_deg = _optional_in_range(max_correction_deg, "max_correction_deg", 180.0,
                                                      "a number of degrees", " degrees (180: no limit)")
         self._updates = 0  # update() calls so far: the clock of the scene motion

@@ -11,6 +11,7 @@ import onnx_fixtures as fx
 from refiner_rt import RefineResult, RefinerSession
 from refiner_rt import quaternion as rq
 from refiner_rt import RefinerTracker
+from refiner_rt.tracker import DEFAULT_HOLD_MAX_CORRECTION_DEG
 from test_pretrained import weights  # noqa: F401  (the made-up shipped models)
 
 RNG = np.random.default_rng(0)
@@ -29,6 +30,19 @@ def _result(q_refined) -> RefineResult:
     identity = np.tile([1.0, 0.0, 0.0, 0.0], (len(q), 1))
     return RefineResult(q_refined=q, q_out=identity, q_in=q)
 
+
+# the share of the constant model's 7-degree correction the default filter keeps after the first update (3 degrees)
+HELD = DEFAULT_HOLD_MAX_CORRECTION_DEG / 7.0
+# the exact algebra of the updates, without the default temporal filter (which holds each correction to 3 degrees)
+NO_FILTER = dict(prediction_weight=0.0, max_correction_deg=180.0)
+
+
+def _unfiltered(*args, **kwargs) -> RefinerTracker:
+    """A RefinerTracker without the temporal filter, unless the test gives its own prediction settings."""
+    if kwargs.get("predict") in (None, False):
+        kwargs = {**NO_FILTER, **kwargs}
+    return RefinerTracker(*args, **kwargs)
+
 def scipy_q(q_wxyz):
     return Rotation.from_quat(rq.to_xyzw(q_wxyz))
 
@@ -45,7 +59,7 @@ def assert_same_rotation(q, rotation: Rotation, atol=1e-6):
 @pytest.mark.parametrize("frame", ["camera", "ray"])
 def test_each_update_refines_the_previous_result(frame):
     """After n updates with a model whose correction is always c: q = q0 * c^n (either model frame)."""
-    tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]})
+    tracker = _unfiltered(session(frame=frame), K, {"003_cracker_box": Q0[0]})
     for n in range(1, 6):
         q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
         ref = scipy_q(Q0[0]) * scipy_q(Q_OUT) ** n
@@ -54,8 +68,10 @@ def test_each_update_refines_the_previous_result(frame):
         assert_same_rotation(tracker.rotations["003_cracker_box"], ref)
 
 
-@pytest.mark.parametrize("kwargs, share", [(dict(prediction_weight=0.4), 0.6), (dict(max_correction_deg=2.8), 0.4),
-                                           (dict(prediction_weight=0.5, max_correction_deg=2.8), 0.4)])
+@pytest.mark.parametrize("kwargs, share", [(dict(prediction_weight=0.4, max_correction_deg=180.0), 0.6),
+                                           (dict(max_correction_deg=2.8), 0.4),
+                                           (dict(prediction_weight=0.5, max_correction_deg=2.8), 0.4),
+                                           (dict(), 3.0 / 7.0)])
 def test_the_temporal_filter_without_prediction_holds_back_each_correction(kwargs, share):
     """With no motion prediction the last rotation is the prediction: from the second update on, a constant 7-degree
     correction c is kept at (1 - prediction_weight) of its angle, at most max_correction_deg: q = q0 c c^(share (n-1));
@@ -91,7 +107,7 @@ def test_objects_sharing_a_session_are_refined_in_one_call(monkeypatch):
 
 def test_a_missed_object_keeps_its_rotation_and_others_move_on():
     shared = session(objects=("003_cracker_box", "011_banana"))
-    tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0], "011_banana": Q0[1]})
+    tracker = _unfiltered(shared, K, {"003_cracker_box": Q0[0], "011_banana": Q0[1]})
     out = tracker.update(IMG, {"011_banana": BOX_B})
     assert list(out) == ["011_banana"]
     np.testing.assert_array_equal(tracker.rotations["003_cracker_box"], rq.normalize(Q0[0]))
@@ -409,7 +425,7 @@ def test_the_lost_check_flags_an_object_that_a_second_refinement_moves_too_far(f
     object (not the first, refined from a coarse pose); with lost_deg=10 none does; either way the returned
     rotation is still q0 * c^n (no detector given)."""
     for lost_deg, flagged in ((5.0, True), (10.0, False)):
-        tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]}, lost_deg=lost_deg)
+        tracker = _unfiltered(session(frame=frame), K, {"003_cracker_box": Q0[0]}, lost_deg=lost_deg)
         for n in range(1, 4):
             q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
             assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT) ** n)
@@ -458,7 +474,7 @@ def test_a_fused_detection_moves_the_track_w_of_the_way(frame, w):
     from scipy.spatial.transform import Slerp
 
     q_det = rq.from_axis_angle([1.0, 0.2, 0.0], 25.0)
-    tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]}, detector_weight=w)
+    tracker = _unfiltered(session(frame=frame), K, {"003_cracker_box": Q0[0]}, detector_weight=w)
     q = tracker.update(IMG, {"003_cracker_box": BOX_A}, detector={"003_cracker_box": q_det})["003_cracker_box"]
     ends = Rotation.concatenate([scipy_q(Q0[0]) * scipy_q(Q_OUT), scipy_q(q_det) * scipy_q(Q_OUT)])
     want = Slerp([0.0, 1.0], ends)([w])[0]
@@ -477,7 +493,7 @@ def test_update_from_detector_starts_fuses_or_restarts_from_each_pose():
     q_det = rq.from_axis_angle([1.0, 0.2, 0.0], 25.0)
     c = scipy_q(Q_OUT)
     for w in (None, 0.5):
-        tracker = RefinerTracker({}, K, {}, detector_weight=w)
+        tracker = _unfiltered({}, K, {}, detector_weight=w)
         first = tracker.update_from_detector(IMG, {"003_cracker_box": BOX_A}, {"003_cracker_box": Q0[0]},
                                              sessions={"003_cracker_box": session()})
         assert_same_rotation(first["003_cracker_box"], scipy_q(Q0[0]) * c)
@@ -617,7 +633,8 @@ def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
     doc = json.loads(out.read_text())
     assert doc["format"] == "refiner-rt/track/1" and list(doc["frames"]) == [f"{i:06d}.png" for i in range(4)]
     for i, name in enumerate(doc["frames"]):
-        assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]), scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (i + 1))
+        assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]),
+                             scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (1 + HELD * i))  # the default filter: 3 of 7 degrees
     image = cv2.imread(str(strip))
     assert image.shape == (240, 3 * 320, 3)
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
@@ -698,7 +715,7 @@ def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path)
     doc = json.loads(dets.read_text())
     doc["frames"]["000002.png"]["003_cracker_box"] = {"box": BOX_A, "q": list(q_det)}
     dets.write_text(json.dumps(doc))
-    track = scipy_q(Q0[0]) * scipy_q(Q_OUT) ** 3
+    track = scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (1 + 2 * HELD)  # the track's own update held to 3 degrees
     det = scipy_q(q_det) * scipy_q(Q_OUT)
     for extra, want in (([], det), (["--detector-weight", "0.5"], Slerp([0, 1], Rotation.concatenate([track, det]))([0.5])[0])):
         out = tmp_path / "rot.json"
@@ -974,12 +991,12 @@ def test_settle_deg_keeps_the_second_pass_where_it_turns_by_more(tmp_path):
         assert doc["settle_deg"] == float(settle) and doc["iterations"] == 2
         for i, name in enumerate(doc["frames"]):
             assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]),
-                                 scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (per_update * (i + 1)))
+                                 scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (per_update + HELD * i))
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
                                     "--settle-deg", "180"])
     assert res.exit_code == 2 and "--settle-deg" in res.output and "Traceback" not in res.output
     with pytest.raises(ValueError, match="give iterations=2 or more with it; got iterations=1"):
-        RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, settle_deg=2.0)
-    tracker = RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, iterations=3, settle_deg=10.0)
+        _unfiltered(session(), K, {"003_cracker_box": Q0[0]}, settle_deg=2.0)
+    tracker = _unfiltered(session(), K, {"003_cracker_box": Q0[0]}, iterations=3, settle_deg=10.0)
     q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
     assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT))
