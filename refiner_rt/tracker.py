@@ -99,8 +99,10 @@ DEFAULT_SCENE_MAX_CORRECTION_DEG = 2.0
 # (tracking_robot_s561, benchmarks/studies/tracking_real) among weights 0-0.65 and limits 3 degrees or none
 DEFAULT_HOLD_PREDICTION_WEIGHT = 0.25
 DEFAULT_HOLD_MAX_CORRECTION_DEG = 3.0
-# the loss-of-track check's exponential smoothing of the second pass's movement: the newest update's weight (1: none)
-LOST_SMOOTHING = 1.0
+# the loss-of-track check's threshold to use (RefinerTracker(lost_deg=...), refiner-rt track --lost-deg): chosen on
+# rendered robot-layout video (tracking_robot_s561, benchmarks/studies/tracking_real) with the temporal filter on,
+# the largest share of tracks ending above 30 degrees flagged with at most 10% of good frames (below 15) flagged
+LOST_DEG = 2.5
 TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the medoid than this and twice the median is left out
 INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
 
@@ -113,7 +115,7 @@ def _object_name(object_id: str) -> str:
 class _Track:
     """One tracked object: its session, current rotation and (for prediction) its last rotation change."""
 
-    __slots__ = ("session", "q", "refined", "velocity", "missed", "history", "lost_signal", "lost")
+    __slots__ = ("session", "q", "refined", "velocity", "missed", "history")
 
     def __init__(self, session: RefinerSession, q: np.ndarray):
         self.session = session
@@ -122,8 +124,6 @@ class _Track:
         self.velocity = None  # [w, x, y, z]: rotation change per update in the camera frame, or None
         self.missed = 0  # updates since this object was last refined (it had no box)
         self.history: list[tuple[int, list]] = []  # (update index, the refiner's result): the scene turn's source
-        self.lost_signal = None  # the loss-of-track check's smoothed movement (degrees), None before the first check
-        self.lost = False  # held lost (the check fired) until re-initialised
 
 
 class RefinerTracker:
@@ -336,7 +336,6 @@ class RefinerTracker:
         track = self._track(object_id)
         track.q = self._check_q(q, "q")
         track.refined, track.velocity, track.missed, track.history = False, None, 0, []
-        track.lost_signal, track.lost = None, False
 
     # ------------------------------------------------------------------ tracking
     def update(self, image, boxes: Mapping, detector=None) -> dict[str, np.ndarray]:
@@ -417,9 +416,9 @@ class RefinerTracker:
             for (i, _), q_det in zip(fused, both[len(ids):]):
                 refined[i] = _blend(tracked[i], q_det, self.detector_weight)
             results.append((sess, ids, rows, refined, tracked, raw, score,
-                            *self._flag_lost(sess, image, ids, rows, refined)))
+                            self._flag_lost(sess, image, ids, rows, refined)))
         redetected, lost = {}, []
-        for sess, ids, rows, refined, tracked, raw, score, flagged, signals in results:
+        for sess, ids, rows, refined, tracked, raw, score, flagged in results:
             found, poses = [], []
             for i in flagged:
                 q = self._ask(detector, ids[i])
@@ -433,18 +432,16 @@ class RefinerTracker:
                 redetected.update({ids[i]: (q, sc) for i, q, sc in zip(found, again.q_refined.tolist(),
                                                                        again.score.tolist())})
         out, scores = {}, {}
-        for sess, ids, rows, refined, tracked, raw, score, flagged, signals in results:
-            for object_id, q, q_tracked, q_raw, sc, signal in zip(ids, refined, tracked, raw, score, signals):
+        for sess, ids, rows, refined, tracked, raw, score, flagged in results:
+            for object_id, q, q_tracked, q_raw, sc in zip(ids, refined, tracked, raw, score):
                 track = self._tracks[object_id]
                 scores[object_id] = sc
                 if object_id in redetected:  # a detector's pose, refined: a new start, not motion
                     (track.q, scores[object_id]), track.refined, track.velocity, track.missed = (
                         redetected[object_id], True, None, 0)
-                    track.history, track.lost_signal, track.lost = [], None, False
+                    track.history = []
                     out[object_id] = np.array(track.q)
                     continue
-                track.lost_signal = signal
-                track.lost = track.lost or object_id in lost
                 if self.predict == "scene":  # the refiner's result (not the prediction's share, nor a detection's
                     # pull) measures the motion: a turn measured from damped rotations would lag behind itself
                     track.history = [(t, h) for t, h in track.history if self._updates - t < self.motion_window]
@@ -513,18 +510,14 @@ class RefinerTracker:
         return sess.refine(image, np.array(rows), q_in, iterations=self.iterations, K=self.K,
                            views=self.views, D=self.D, settle_deg=self.settle_deg)
 
-    def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list
-                   ) -> tuple[list[int], list[float | None]]:
-        """The loss-of-track check (module docstring): the indices into ``ids`` of the objects it holds lost (those
-        held lost already, and those refined from a tracked (not a coarse) rotation whose smoothed second-pass
-        movement exceeds ``lost_deg``), and each object's new smoothed movement (None where not checked)."""
-        signals = [self._tracks[object_id].lost_signal for object_id in ids]
+    def _flag_lost(self, sess: RefinerSession, image, ids: list, rows: list, refined: list) -> list[int]:
+        """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a
+        tracked (not a coarse) rotation, and moved by more than ``lost_deg`` by one more refinement."""
         if self.lost_deg is None:
-            return [], signals
+            return []
         checked = [i for i, object_id in enumerate(ids) if self._tracks[object_id].refined]
-        held = [i for i, object_id in enumerate(ids) if self._tracks[object_id].lost]
         if not checked:
-            return held, signals
+            return []
         if isinstance(sess, RefinerCascade):  # the coarse refiner's verdict: it sees drift the fine one follows
             again = self._refine(sess, image, [rows[i] for i in checked], np.array([refined[i] for i in checked]),
                                  [True] * len(checked)).q_refined
@@ -532,9 +525,7 @@ class RefinerTracker:
             again = sess.refine(image, np.array([rows[i] for i in checked]), np.array([refined[i] for i in checked]),
                                 K=self.K, views=self.views, D=self.D).q_refined
         moved = rq.geodesic_angle(np.array([refined[i] for i in checked]), again)
-        for i, m in zip(checked, moved.tolist()):
-            signals[i] = m if signals[i] is None else LOST_SMOOTHING * m + (1.0 - LOST_SMOOTHING) * signals[i]
-        return sorted(set(held) | {i for i in checked if signals[i] > self.lost_deg}), signals
+        return [i for i, m in zip(checked, moved) if m > self.lost_deg]
 
     def _ask(self, detector, object_id: str) -> list | None:
         """The detector's coarse pose for an object (checked, unit), or None when it has none."""

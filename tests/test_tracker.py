@@ -591,9 +591,8 @@ def write_sequence(folder, n=3, q0=Q0[0], extra=None):
 
 def test_track_command_writes_each_frames_score_and_the_lost_flag(tmp_path):
     """The frames path's JSON: per frame each object's RefineResult.score (a constant 7-degree correction scores
-    exp(-7 / SCORE_SCALE_DEG)) and, with --lost-deg, the objects held lost: the second pass moves the track by 7
-    degrees, so from the second frame on (the first is refined from the coarse pose, not checked) it is lost, and
-    held lost."""
+    exp(-7 / SCORE_SCALE_DEG)) and, with --lost-deg, the objects flagged lost: the second pass moves the track by 7
+    degrees, so from the second frame on (the first is refined from the coarse pose, not checked) it is lost."""
     import json
 
     from click.testing import CliRunner

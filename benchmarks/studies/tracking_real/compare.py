@@ -30,13 +30,14 @@ from benchmarks.studies.tracking_real.video import Video, load_videos
 from benchmarks.tracking import cpu_record, sequence_rng
 from refiner_rt import quaternion as rq
 from refiner_rt.session import RefinerSession
-from refiner_rt.tracker import RefinerTracker
+from refiner_rt.tracker import LOST_DEG, RefinerTracker
 
 DIVERGED_DEG = 30.0
 # tracker name -> RefinerTracker keyword arguments (besides the sessions, K and the start poses)
 TRACKERS = {
-    "track_plain": {"prediction_weight": 0.0, "lost_deg": None},  # the tracker before this study: no filter, no check
-    "track": {},  # RefinerTracker's defaults
+    "track_plain": {"prediction_weight": 0.0, "max_correction_deg": 180.0},  # the tracker before: no filter
+    "track": {},  # RefinerTracker's defaults: the temporal filter
+    "track_lost": {"lost_deg": LOST_DEG},  # and the loss-of-track check at its chosen threshold
 }
 
 

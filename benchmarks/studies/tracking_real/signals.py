@@ -6,8 +6,9 @@ For each video (``video.load_videos``) and object, with the shipped INT8 coarse 
   the error after 1, 5 and 15 passes and the last passes' movement (where the refiner settles on this view);
 * ``chain``: from the true pose of the first frame, each frame refined once from the previous frame's result (the
   tracker without a detector): the error and the correction per frame;
-* ``from_coarse``: the same chain from ``--seeds`` draws of a U(0, 30)-degree start, with per frame the signals a
-  loss check can compute without ground truth: ``moved`` (a second pass's movement, today's ``lost_deg`` check),
+* ``from_coarse``: :class:`refiner_rt.RefinerTracker` (its defaults, the temporal filter) from ``--seeds`` draws of
+  a U(0, 30)-degree start and as many of a U(45, 90)-degree start (a track already lost), with per frame the
+  signals a loss check can compute without ground truth: ``moved`` (a second pass's movement, today's ``lost_deg`` check),
   ``probe`` (the mean distance back to the track of the results refined from the track turned by ``PROBE_DEG`` about
   four axes: near the truth the refiner pulls them back), ``spread`` (the spread of four box-jittered views).
 
@@ -29,8 +30,10 @@ import numpy as np
 from benchmarks.studies.tracking_real.video import load_videos
 from refiner_rt import quaternion as rq
 from refiner_rt.session import RefinerSession
+from refiner_rt.tracker import RefinerTracker
 
 PROBE_DEG = 20.0
+START_NEAR, START_FAR = (0, 30), (45, 90)  # U(0, 30): a detector's pose; U(45, 90): a track already lost
 PROBE_AXES = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
 
 
@@ -67,26 +70,27 @@ def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None) -> di
                 chain.append(float(rq.geodesic_angle(q[0], s.q_gt[f])))
             rec["chain"] = {"err": chain, "correction": corr}
             runs = []
-            for seed in range(seeds):
-                rng = np.random.default_rng([seed, int(s.scene), sum(map(ord, s.object_id))])
-                q = rq.multiply(s.q_gt[f0], rq.sample_rotation_noise(1, "uniform", 0, 30, rng)[0])[None]
+            for seed, (lo, hi) in [(k, START_NEAR) for k in range(seeds)] + [(k, START_FAR) for k in range(seeds)]:
+                rng = np.random.default_rng([seed, int(s.scene), sum(map(ord, s.object_id)), lo])
+                q = rq.multiply(s.q_gt[f0], rq.sample_rotation_noise(1, "uniform", lo, hi, rng)[0])[None]
+                tracker = RefinerTracker(sess, v.K, {s.object_id: q[0]})  # its defaults: the temporal filter
                 per = {k: [] for k in ("err", "correction", "moved", "probe", "spread")}
                 for f in frames:
                     im, box = v.images[f], s.boxes[f][None]
-                    r = sess.refine(im, box, q, K=v.K)
-                    q = r.q_refined
+                    q_prev = tracker.rotations[s.object_id]
+                    q = tracker.update(im, {s.object_id: s.boxes[f]})[s.object_id][None]
                     per["err"].append(float(rq.geodesic_angle(q[0], s.q_gt[f])))
-                    per["correction"].append(float(r.correction_deg[0]))
+                    per["correction"].append(float(rq.geodesic_angle(q_prev, q[0])))
                     rows = np.concatenate([q, rq.multiply(q, probes)])
                     again = sess.refine(im, np.repeat(box, len(rows), 0), rows, K=v.K).q_refined
                     per["moved"].append(float(rq.geodesic_angle(again[0], q[0])))
                     per["probe"].append(float(np.mean(rq.geodesic_angle(again[1:], q))))
                     per["spread"].append(float(sess.refine(im, box, q, K=v.K, views=4).views_spread_deg[0]))
-                runs.append({k: [round(x, 3) for x in val] for k, val in per.items()})
+                runs.append({"start_deg": [lo, hi], **{k: [round(x, 3) for x in val] for k, val in per.items()}})
             rec["from_coarse"] = runs
             out.append(rec)
             fp = rec["fixed_point"]
-            last = [r["err"][-1] for r in runs]
+            last = [r["err"][-1] for r in runs if r["start_deg"] == list(START_NEAR)]
             print(f"{v.name} {s.object_id:20s} truth turns {rec['truth_turn_deg']:4.1f} | fixed point "
                   f"{fp['err_1']:4.1f} {fp['err_5']:4.1f} {fp['err_15']:4.1f} | chain from truth mean "
                   f"{np.mean(chain):4.1f} last {chain[-1]:4.1f} corr {np.mean(corr):3.1f} | from U(0,30) last "
