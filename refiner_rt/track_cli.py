@@ -249,7 +249,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Loss-of-track check: flag an object lost when a second refinement moves its rotation by more "
                    "than this many degrees (one more pass per object and frame, N with --views N); the output's "
                    "\"lost\" lists those frames, for a detector's new \"q\" (with --bag: the /refiner_rt/lost "
-                   "topic). Default: no check.")
+                   "topic). 2.5 is the value chosen on rendered video (refiner_rt.tracker.LOST_DEG). Default: no "
+                   "check.")
 @click.option("--detector-weight", type=click.FloatRange(0.0, 1.0, min_open=True), default=None,
               help="Fuse a tracked object's later detector poses (\"q\") instead of restarting from them: refine each "
                    "beside the track and keep the rotation this share of the way to it (0.5: the weight measured "

@@ -152,6 +152,21 @@ def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None, track
             "trackers": trackers, "summary": {m: summarise(all_runs, m) for m in methods}, "videos": per_video}
 
 
+def table(doc: dict) -> str:
+    """The Markdown table of a results file: per video and method the mean and last-frame error, the worst frame,
+    and the sequences ending above 30 degrees (flagged lost / all), then all videos together."""
+    lines = ["| video | objects | method | mean | last frame | worst frame | ended > 30 deg (flagged) | flagged, ended < 30 |",
+             "|---|---|---|---:|---:|---:|---:|---:|"]
+    rows = [(name, ", ".join(o.split("_", 1)[1] for o in v["objects"]), v["summary"]) for name, v in doc["videos"].items()]
+    rows.append(("all", "", doc["summary"]))
+    for name, objects, summary in rows:
+        for m, r in summary.items():
+            lines.append(f"| {name.split('/')[-1]} | {objects} | {m} | {r['mean_deg']:.2f} | {r['last_frame_mean_deg']:.2f} | "
+                         f"{r['max_deg']:.1f} | {r['ended_above_30']} ({r['ended_above_30_flagged_lost']}) | "
+                         f"{r['flagged_lost_at_end_below_30']} |")
+    return "\n".join(lines)
+
+
 def plot(doc: dict, path: Path) -> None:
     import matplotlib
 
@@ -180,13 +195,17 @@ def plot(doc: dict, path: Path) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, required=True, help="a BOP split folder of videos (real or rendered)")
+    p.add_argument("--data", type=Path, help="a BOP split folder of videos (real or rendered)")
     p.add_argument("--max-frames", type=int, default=100, help="frames per video from its first (default 100)")
     p.add_argument("--seeds", type=int, default=3, help="coarse-pose draws per video (default 3)")
     p.add_argument("--scenes", help="comma-separated scene folders (default: all)")
     p.add_argument("--json", type=Path)
     p.add_argument("--plot", type=Path)
+    p.add_argument("--report", type=Path, metavar="JSON", help="print the Markdown table of a results file and exit")
     a = p.parse_args(argv)
+    if a.report:
+        print(table(json.loads(a.report.read_text())))
+        return 0
     t0 = time.time()
     doc = run(a.data, a.max_frames, a.seeds, a.scenes.split(",") if a.scenes else None, TRACKERS)
     doc["wall_s"] = round(time.time() - t0, 1)
