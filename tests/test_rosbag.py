@@ -619,3 +619,25 @@ def test_two_instances_without_ids_are_tracked_apart():
         q = poses[f"{cls}#{n}"].q_wxyz
         np.testing.assert_array_equal(poses[f"{cls}#{n}"].box, o["box_xyxy"])
         assert rq.geodesic_angle(q, _q_in(o, 0)) < rq.geodesic_angle(q, _q_in(other, 0))
+
+
+def test_the_lost_topic_names_each_lost_instance_of_one_class(tmp_path):
+    """Two instances of one class without Detection2D.id, tracked with --lost-deg: /refiner_rt/lost carries each
+    flagged instance as its own detection, with its number as id, and the overlay is written."""
+    image, K, objects = _frames()[0]
+    o = objects[0]
+    x1, y1, x2, y2 = o["box_xyxy"]
+    boxes = [o["box_xyxy"], [x1 + 40.0, y1, x2 + 40.0, y2]]
+    arrays = [_array(i, [_detection(o["object_id"], b, _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW)
+                         for b in boxes]) for i in range(3)]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, arrays)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--lost-deg", "0.001"])
+    assert res.exit_code == 0, res.output
+    got = read_bag(out)
+    lost = got["/refiner_rt/lost"]
+    assert [sorted(d.id for d in m.detections) for _, m in lost] == [[], ["1", "2"], ["1", "2"]]
+    assert all(d.results[0].hypothesis.class_id == o["object_id"] for _, m in lost for d in m.detections)
+    scores = [[d.results[0].hypothesis.score for d in m.detections] for _, m in got["/refiner_rt/detections3d"]]
+    assert [len(s) for s in scores] == [2, 2, 2] and all(0 < v <= 1 for s in scores for v in s)
+    assert len(got["/refiner_rt/overlay/compressed"]) == 3

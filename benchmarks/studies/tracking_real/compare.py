@@ -49,6 +49,7 @@ TRACKERS = {
     "track_plain": {"prediction_weight": 0.0, "max_correction_deg": 180.0},  # the tracker before: no filter
     "track": {},  # RefinerTracker's defaults: the temporal filter
     "track_lost": {"lost_deg": LOST_DEG},  # and the loss-of-track check at its chosen threshold
+    "track_views4": {"views": 4, "lost_deg": LOST_DEG},  # four box-jittered views per update (best on s561)
 }
 
 
