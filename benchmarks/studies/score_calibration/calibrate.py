@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from scipy.stats import spearmanr
 
-from benchmarks.studies.tracking_real.video import SHIPPED
+from benchmarks.studies.tracking_real.video import SHIPPED, dataset_name
 from models.data.bop import load_bop
 from refiner_rt import quaternion as rq
 from refiner_rt.session import RefinerSession
@@ -69,7 +69,7 @@ def run(data: Path, instances: int, seed: int) -> dict:
                 "n": len(a), "share_within": round(float(good.mean()), 3),
                 "spearman_score_error": round(float(spearmanr(-moved, err)[0]), 3), "brier_by_scale": brier,
                 "best_scale_deg": min(SCALES, key=lambda sc: brier[str(sc)]), "bins_at_best_scale": bins}
-    return {"data": Path(data).name, "instances": int(len(picked)), "seed": seed, "within_deg": WITHIN_DEG,
+    return {"data": dataset_name(data), "instances": int(len(picked)), "seed": seed, "within_deg": WITHIN_DEG,
             "model": "shipped INT8 coarse refiners, one view, threads=1", "settings": out}
 
 

@@ -12,9 +12,9 @@ Errors are geodesic angles, the master chef can's to the closest turn about its 
 video and method: the mean error over frames and seeds, the mean last-frame error, the worst frame, and
 the sequences that end above 30 degrees, with how many of those the tracker flags lost at their last frame.
 
-Usage (from the repository root)::
+Usage (from the repository root; REAL: the real dev frames' BOP folder, ``real_ycbv_dev/test``)::
 
-    python -m benchmarks.studies.tracking_real.compare --data ../shared/real_ycbv_dev/test --max-frames 20 \\
+    python -m benchmarks.studies.tracking_real.compare --data REAL --max-frames 20 \\
         --seeds 10 --json benchmarks/studies/tracking_real/real.json --plot benchmarks/studies/tracking_real/real.png
 """
 
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.studies.tracking_real.video import Video, load_videos
+from benchmarks.studies.tracking_real.video import Video, dataset_name, load_videos
 from benchmarks.tracking import cpu_record, sequence_rng
 from models.data.objects import SCAN_FRAME_SYMMETRIES
 from models.symmetry import symmetric_error
@@ -148,7 +148,7 @@ def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None, track
                              "curves": {m: curves(runs, m) for m in methods}}
         line = "  ".join(f"{m} {per_video[v.name]['summary'][m]['mean_deg']:5.2f}" for m in methods)
         print(f"{v.name} ({len(v.seqs)} objects): {line}", flush=True)
-    return {"data": str(data), "max_frames": max_frames, "seeds": seeds, "noise": "uniform:0:30",
+    return {"data": dataset_name(data), "max_frames": max_frames, "seeds": seeds, "noise": "uniform:0:30",
             "model": "shipped INT8 coarse refiners, one pass per object and frame, threads=1",
             "trackers": trackers, "summary": {m: summarise(all_runs, m) for m in methods}, "videos": per_video}
 

@@ -12,9 +12,9 @@ For each video (``video.load_videos``) and object, with the shipped INT8 coarse 
   ``probe`` (the mean distance back to the track of the results refined from the track turned by ``PROBE_DEG`` about
   four axes: near the truth the refiner pulls them back), ``spread`` (the spread of four box-jittered views).
 
-Usage (from the repository root)::
+Usage (from the repository root; REAL: the real dev frames' BOP folder, ``real_ycbv_dev/test``)::
 
-    python -m benchmarks.studies.tracking_real.signals --data ../shared/real_ycbv_dev/test --max-frames 20 \\
+    python -m benchmarks.studies.tracking_real.signals --data REAL --max-frames 20 \\
         --json benchmarks/studies/tracking_real/signals_real.json
 """
 
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.studies.tracking_real.video import load_videos
+from benchmarks.studies.tracking_real.video import dataset_name, load_videos
 from refiner_rt import quaternion as rq
 from refiner_rt.session import RefinerSession
 from refiner_rt.tracker import RefinerTracker
@@ -95,7 +95,7 @@ def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None) -> di
                   f"{fp['err_1']:4.1f} {fp['err_5']:4.1f} {fp['err_15']:4.1f} | chain from truth mean "
                   f"{np.mean(chain):4.1f} last {chain[-1]:4.1f} corr {np.mean(corr):3.1f} | from U(0,30) last "
                   f"mean {np.mean(last):4.1f} max {np.max(last):4.1f}", flush=True)
-    return {"data": str(data), "max_frames": max_frames, "seeds": seeds, "probe_deg": PROBE_DEG,
+    return {"data": dataset_name(data), "max_frames": max_frames, "seeds": seeds, "probe_deg": PROBE_DEG,
             "model": "shipped INT8 coarse refiners, one pass, one thread", "records": out}
 
 

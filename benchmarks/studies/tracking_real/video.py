@@ -38,6 +38,12 @@ class Video:
         return f"{self.dataset}/{self.scene}"
 
 
+def dataset_name(data: Path) -> str:
+    """A BOP folder as the records name it: ``real_ycbv_dev/test`` for a split folder, else the folder's name."""
+    data = Path(data).resolve()
+    return f"{data.parent.name}/{data.name}" if data.name in ("test", "val", "train") else data.name
+
+
 def load_videos(data: Path, scenes: list[str] | None = None, max_frames: int = 100, min_visib: float = 0.3,
                 min_frames: int = 10) -> list[Video]:
     """The videos of ``data`` (a BOP split folder), each cut to its first ``max_frames`` consecutive frames."""
