@@ -38,6 +38,17 @@ carried by the prediction, so a refinement that pulls further (a view the refine
 followed only that far per update. Defaults with ``predict="scene"``: weight 0.3, 2 degrees, window 4 updates, chosen
 on rendered video the tracking benchmark does not score (``benchmarks/studies/cascade``).
 
+The temporal filter (no prediction, the default): the object is taken to hold still, so its last rotation is the
+prediction from its second update on (not the coarse start): the new rotation keeps a quarter of it
+(``prediction_weight=0.25``) and stays within 3 degrees of it (``max_correction_deg=3``). On the real frames a
+refiner's correction from frame to frame is 1-3 degrees while the truth turns by less than 0.1; on rendered video a
+refinement sometimes jumps into a wrong pose that later frames then hold (a view whose refinement has no fixed point
+nearby). The limit follows a camera turning up to 3 degrees per update; ``prediction_weight=0, max_correction_deg=180``
+turns the filter off. Both chosen on rendered robot-layout video (``benchmarks/studies/tracking_real``).
+
+Confidence: :attr:`RefinerTracker.scores` has each refined object's :attr:`refiner_rt.RefineResult.score` of the last
+update (from its last rotation, one pass: a second opinion on it).
+
 Loss-of-track check (``lost_deg``): a tracker that loses an object rarely finds it again, since the refiner is
 trained on coarse poses within 30 degrees of the truth. The check needs no ground truth: the refined rotation is
 refined once more (a second network pass in the same batched call per session), and an object whose rotation that
@@ -86,7 +97,7 @@ from refiner_rt.session import (
     _validate_settle,
 )
 
-__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR"]
+__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "LOST_DEG"]
 
 log = logging.getLogger(__name__)
 
@@ -149,10 +160,12 @@ class RefinerTracker:
             objects (estimated from every track; hidden objects are carried with it).
         motion_window: with ``predict="scene"``, the updates over which each track's change is measured (an int
             ``>= 2``); None (default): 4.
-        prediction_weight: the share of the prediction kept in each new rotation, in ``[0, 1)``; needs a
-            prediction. None (default): 0.3 with ``predict="scene"``, else 0 (the refined rotation as is).
-        max_correction_deg: with ``predict="scene"``, once the scene's turn is measured: the most degrees a new
-            rotation may differ from its prediction, in ``(0, 180]`` (180: no limit). None (default): 2.
+        prediction_weight: the share of the prediction kept in each new rotation, in ``[0, 1)`` (without
+            ``predict`` the last rotation is the prediction: the temporal filter). None (default): 0.3 with
+            ``predict="scene"``, 0.25 without a prediction, 0 with ``predict="object"``.
+        max_correction_deg: the most degrees a new rotation may differ from its prediction (with
+            ``predict="scene"`` once the scene's turn is measured), in ``(0, 180]`` (180: no limit). None
+            (default): 2 with ``predict="scene"``, 3 without a prediction, no limit with ``predict="object"``.
         iterations: refinement passes per update (``>= 1``), as :meth:`RefinerSession.refine` (sessions only: a
             :class:`RefinerCascade` runs its own passes).
         views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`
@@ -160,6 +173,7 @@ class RefinerTracker:
         lost_deg: the loss-of-track check (module docstring): flag an object lost when a second refinement of its
             refined rotation moves it by more than this many degrees; a finite number in ``(0, 180]``, or ``None``
             (default) for no check (one network pass per object and update; the check costs a second).
+            :data:`LOST_DEG` (2.5) is the value chosen on rendered video.
         detector_weight: fuse the detector's poses given to :meth:`update` (module docstring): the weight ``w`` in
             ``(0, 1]`` of the refined detection against the refined track, or ``None`` (default): the detector is
             used only by the loss-of-track check. Fusing costs a second network pass per object with a detection.
