@@ -23,7 +23,7 @@ from refiner_rt.preprocess import crop_matrix
 
 AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 80, 0))  # BGR of the x, y, z axes: red, green, blue
 # BGR colours of the poses drawn: the truth, the coarse (detector's) input and the refined rotation. Cyan and green,
-# not red: many YCB objects are red or yellow. LOST_COLOUR marks a track the tracker holds lost.
+# not red: many YCB objects are red or yellow. LOST_COLOUR marks a track flagged lost.
 POSE_COLOURS = {"truth": (255, 255, 255), "coarse": (255, 215, 0), "refined": (60, 225, 60)}
 LOST_COLOUR = (40, 40, 255)
 
@@ -146,7 +146,7 @@ class PoseOverlay:
         q_input: ``(4,)`` the detector's coarse rotation given in this frame (``wxyz``), or None.
         t: ``(3,)`` the object frame's origin in the camera frame (metres), or None: placed from the box
             (:func:`translation_from_box`).
-        lost: the tracker holds the track lost (drawn in :data:`LOST_COLOUR`).
+        lost: the loss-of-track check flagged the track in this frame (drawn in :data:`LOST_COLOUR`).
         score: the refinement's confidence (:attr:`refiner_rt.RefineResult.score`), printed in the label, or None.
     """
 

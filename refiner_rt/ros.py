@@ -230,8 +230,9 @@ class RefinedPose:
     ``#<Detection2D.id>`` or ``#<n>`` for one of several instances, module docstring), ``q_wxyz`` (object to camera)
     and ``q_xyzw`` (the same, ROS order), ``position`` (the detection's, or ``None``), ``box`` and ``score`` (the
     detection's), ``refine_score``: the refinement's confidence in ``(0, 1]``, :attr:`refiner_rt.RefineResult.score`
-    (in ``"track"`` mode the tracker's, :attr:`refiner_rt.RefinerTracker.scores`), and ``lost``: the tracker holds the
-    track lost in this frame (docs/tracking.md, the loss-of-track check; always False in ``"refine"`` mode)."""
+    (in ``"track"`` mode the tracker's, :attr:`refiner_rt.RefinerTracker.scores`), ``lost``: the loss-of-track check
+    flagged it in this frame (``lost_deg``; always False without it and in ``"refine"`` mode), and ``q_input_wxyz``:
+    the detection's coarse rotation in this frame, or None."""
 
     object_id: str
     q_wxyz: np.ndarray
@@ -240,7 +241,7 @@ class RefinedPose:
     score: float
     lost: bool = False
     refine_score: float | None = None
-    q_input_wxyz: np.ndarray | None = None  # the detection's coarse rotation in this frame (wxyz), or None
+    q_input_wxyz: np.ndarray | None = None
 
     @property
     def q_xyzw(self) -> np.ndarray:

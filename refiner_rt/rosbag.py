@@ -26,7 +26,7 @@ image's time:
 * ``/refiner_rt/detections3d`` (``vision_msgs/Detection3DArray``): per refined instance its class id, the refined
   pose and the refinement's confidence (``RefineResult.score``, in ``(0, 1]``: docs/ros2.md) as the hypothesis score;
 * ``/refiner_rt/lost`` (``vision_msgs/Detection2DArray``, in ``"track"`` mode with ``lost_deg``, at every matched
-  image, empty when none): the detections whose track the tracker holds lost in that frame;
+  image, empty when none): the detections whose track the loss-of-track check flagged in that frame;
 * ``/refiner_rt/overlay/compressed`` (``sensor_msgs/CompressedImage``, JPEG): the image with each object's box, its
   outline at the refined rotation (green; red when its track is lost) and at the detection's coarse rotation where the
   frame gives one (cyan), placed at the detection's position (else from the box), labels with the refinement's score,

@@ -393,7 +393,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},
         "frames": results,
         "scores": scores,  # frame -> object -> RefineResult.score of its refinement there (docs/tracking.md)
-        "lost": lost,  # frame -> objects the tracker holds lost there (docs/tracking.md: the loss-of-track check)
+        "lost": lost,  # frame -> objects the loss-of-track check flagged there (docs/tracking.md; empty without --lost-deg)
     }, indent=1))
     per_frame = 1e3 * seconds / len(files)
     click.echo(f"{len(files)} frames, {len(object_ids)} objects, {refined} refinements: {per_frame:.2f} ms per frame "
