@@ -3,8 +3,8 @@
 A candidate flags a track at a frame when the exponential moving average (weight ``beta`` for the newest frame) of a
 per-frame signal exceeds a threshold. Scored on the ``from_coarse`` chains of a signals file: ``recall``, the share of
 chains ending above 30 degrees flagged at their last frame; ``false_end``, the share of chains ending below 15
-degrees flagged there; ``false_frames``, the share of frames below 15 degrees flagged. The choice: the smallest
-``false_frames`` among the candidates with ``recall >= MIN_RECALL``.
+degrees flagged there; ``false_frames``, the share of frames below 15 degrees flagged. The choice: the highest
+``recall`` among the candidates with ``false_frames <= MAX_FALSE_FRAMES``, then the fewest false frames.
 
 Usage::
 
@@ -18,7 +18,7 @@ import json
 
 import numpy as np
 
-MIN_RECALL = 0.95
+MAX_FALSE_FRAMES = 0.10
 BETAS = (1.0, 0.5, 0.3, 0.2, 0.1)
 THRESHOLDS = {"moved": (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0), "probe": (4, 6, 8, 10, 12, 15, 20),
               "spread": (2, 2.5, 3, 4, 5, 6, 8)}
@@ -48,8 +48,9 @@ def score(chains: list[dict], signal: str, beta: float, thr: float) -> dict:
         frames_near += ok.sum()
         frames_hit += (flag & ok).sum()
     return {"signal": signal, "beta": beta, "threshold": thr, "ended_far": far,
-            "recall": round(far_hit / far, 3) if far else None, "false_end": round(near_hit / max(near, 1), 4),
-            "false_frames": round(frames_hit / max(frames_near, 1), 4)}
+            "recall": round(float(far_hit / far), 3) if far else None,
+            "false_end": round(float(near_hit / max(near, 1)), 4),
+            "false_frames": round(float(frames_hit / max(frames_near, 1)), 4)}
 
 
 def main(argv=None) -> int:
@@ -63,8 +64,8 @@ def main(argv=None) -> int:
             if a.scenes_below is None or int(r["video"].split("/")[-1]) < a.scenes_below:
                 chains += r["from_coarse"]
     rows = [score(chains, s, b, t) for s, ts in THRESHOLDS.items() for b in BETAS for t in ts]
-    ok = [r for r in rows if r["recall"] is not None and r["recall"] >= MIN_RECALL]
-    for r in sorted(ok, key=lambda r: r["false_frames"])[:15]:
+    ok = [r for r in rows if r["recall"] is not None and r["false_frames"] <= MAX_FALSE_FRAMES]
+    for r in sorted(ok, key=lambda r: (-r["recall"], r["false_frames"]))[:10]:
         print(r)
     print("chains", len(chains), "ending above 30:", rows[0]["ended_far"])
     return 0
