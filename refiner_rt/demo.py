@@ -39,7 +39,7 @@ TIMED_CALLS = 20  # refine() calls timed per instance (after one warm-up call pe
 # BGR colours of the picture: the truth, the coarse input and the refined rotation. Cyan and green, not red: many
 # YCB objects are red or yellow. Every line has a dark halo (refiner_rt.draw.HALO), and each pose's axes are drawn in
 # its own colour with x, y, z at their tips, so no axis colour is confused with an outline.
-COLOURS = {"truth": (255, 255, 255), "coarse": (255, 215, 0), "refined": (60, 225, 60)}
+COLOURS = draw.POSE_COLOURS
 PANEL = 192  # side of one view of an object in the picture (pixels); a tile shows two, coarse and refined
 TILE_CONTEXT = 1.7  # the views' window around the box: wider than the crop rule's 1.2, so a coarse outline fits
 

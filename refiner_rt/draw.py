@@ -12,7 +12,8 @@ contour of the result is drawn. It is a silhouette up to about half a point spac
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -21,9 +22,13 @@ from refiner_rt import quaternion as rq
 from refiner_rt.preprocess import crop_matrix
 
 AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 80, 0))  # BGR of the x, y, z axes: red, green, blue
+# BGR colours of the poses drawn: the truth, the coarse (detector's) input and the refined rotation. Cyan and green,
+# not red: many YCB objects are red or yellow. LOST_COLOUR marks a track flagged lost.
+POSE_COLOURS = {"truth": (255, 255, 255), "coarse": (255, 215, 0), "refined": (60, 225, 60)}
+LOST_COLOUR = (40, 40, 255)
 
-__all__ = ["AXIS_COLOURS", "draw_axes_projected", "project", "centroid_translation", "translation_from_box", "outline_mask", "draw_outline", "draw_axes",
-           "crop_view", "annotate"]
+__all__ = ["AXIS_COLOURS", "POSE_COLOURS", "LOST_COLOUR", "PoseOverlay", "annotate_poses", "draw_axes_projected", "project", "centroid_translation", "translation_from_box", "outline_mask", "draw_outline", "draw_axes",
+           "crop_view"]
 
 
 def project(points_m: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,23 +135,110 @@ def crop_view(image: np.ndarray, box_xyxy, size: int, context: float) -> tuple[n
     return view, to_view
 
 
-def annotate(image: np.ndarray, boxes: dict, rotations: dict) -> np.ndarray:
-    """A copy of ``image`` (BGR) with each object's box and its rotation's axes drawn at the box centre.
+@dataclass(frozen=True)
+class PoseOverlay:
+    """One object to draw on a frame by :func:`annotate_poses`.
 
-    The axes are the columns of the object-to-camera rotation matrix, drawn orthographically (camera ``x`` right,
-    ``y`` down) with half the box's shorter side as length: x red, y green, z blue.
+    Attributes:
+        object_id: the instance id (``"003_cracker_box"``, ``"003_cracker_box#2"``): its label, and its outline's.
+        box: ``(4,)`` box ``(x1, y1, x2, y2)`` in pixels.
+        q_refined: ``(4,)`` refined object-to-camera rotation, ``wxyz``.
+        q_input: ``(4,)`` the detector's coarse rotation given in this frame (``wxyz``), or None.
+        t: ``(3,)`` the object frame's origin in the camera frame (metres), or None: placed from the box
+            (:func:`translation_from_box`).
+        lost: the loss-of-track check flagged the track in this frame (drawn in :data:`LOST_COLOUR`).
+        score: the refinement's confidence (:attr:`refiner_rt.RefineResult.score`), printed in the label, or None.
+    """
+
+    object_id: str
+    box: np.ndarray
+    q_refined: np.ndarray
+    q_input: np.ndarray | None = None
+    t: np.ndarray | None = None
+    lost: bool = False
+    score: float | None = None
+
+    @property
+    def label(self) -> str:
+        return self.object_id + ("" if self.score is None else f" {self.score:.2f}") + (" LOST" if self.lost else "")
+
+
+LABEL_FONT, LABEL_SCALE = cv2.FONT_HERSHEY_SIMPLEX, 0.42
+
+
+def annotate_poses(image: np.ndarray, K: np.ndarray, objects: list[PoseOverlay], outlines: Mapping) -> np.ndarray:
+    """A copy of ``image`` (``H x W x 3`` uint8 BGR) with each object's outline at its refined rotation (and at the
+    detector's input rotation, where given), its box, a label that overlaps no other label, and a legend.
+
+    Args:
+        image: the frame, BGR.
+        K: ``(3, 3)`` intrinsics in pixels (a pinhole projection: lens distortion is not drawn).
+        objects: what to draw, one :class:`PoseOverlay` per object.
+        outlines: ``{YCB id: Outline}`` (:func:`refiner_rt.demo.load_outlines`, the points the package ships); an
+            object without outline points (or with a ``#instance`` suffix of one) gets axes from its box centre.
     """
     out = image.copy()
-    for object_id, q in rotations.items():
-        x1, y1, x2, y2 = boxes[object_id]
-        cv2.rectangle(out, (int(x1), int(y1)), (int(x2), int(y2)), (255, 255, 255), 1, cv2.LINE_AA)
-        centre = np.array([(x1 + x2) / 2, (y1 + y2) / 2])
-        length = 0.5 * min(x2 - x1, y2 - y1)
-        R = rq.to_matrix(q)
-        for axis in np.argsort(R[2])[::-1]:  # the axis pointing farthest away first, so nearer ones stay on top
-            tip = centre + length * R[:2, axis]
-            cv2.line(out, tuple(np.round(centre).astype(int)), tuple(np.round(tip).astype(int)),
-                     AXIS_COLOURS[axis], 2, cv2.LINE_AA)
-        cv2.putText(out, object_id, (int(x1), max(int(y1) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    (255, 255, 255), 1, cv2.LINE_AA)
+    K = np.asarray(K, dtype=np.float64)
+    for o in objects:
+        refined = LOST_COLOUR if o.lost else POSE_COLOURS["refined"]
+        x1, y1, x2, y2 = (float(v) for v in o.box)
+        cv2.rectangle(out, (int(x1), int(y1)), (int(x2), int(y2)), (200, 200, 200), 1, cv2.LINE_AA)
+        outline = outlines.get(o.object_id.split("#", 1)[0])
+        poses = [(o.q_input, POSE_COLOURS["coarse"], 1)] if o.q_input is not None else []
+        poses.append((o.q_refined, refined, 2))
+        for q, colour, width in poses:
+            R = rq.to_matrix(rq.normalize(np.asarray(q, dtype=np.float64)))
+            if outline is None:
+                draw_axes(out, (0.5 * (x1 + x2), 0.5 * (y1 + y2)), R, 0.4 * min(x2 - x1, y2 - y1), width, colour)
+                continue
+            t = translation_from_box(outline.points_m, R, K, o.box) if o.t is None else np.asarray(o.t, float)
+            uv, z = project(outline.points_m, R, t, K)
+            depth = float((R @ outline.centroid_m + t)[2])
+            radius = 0.6 * outline.spacing_m * K[0, 0] / max(depth, 1e-3)
+            draw_outline(out, uv, z, radius, colour, width)
+    legend_box = _legend(out, any(o.q_input is not None for o in objects), any(o.lost for o in objects))
+    placed = [legend_box]
+    for o in objects:
+        text = o.label
+        (w, h), base = cv2.getTextSize(text, LABEL_FONT, LABEL_SCALE, 1)
+        rect = _free_spot(o.box, w, h + base, placed, out.shape)
+        placed.append(rect)
+        x, y = rect[0], rect[3] - base
+        cv2.putText(out, text, (x, y), LABEL_FONT, LABEL_SCALE, HALO, 3, cv2.LINE_AA)
+        cv2.putText(out, text, (x, y), LABEL_FONT, LABEL_SCALE, LOST_COLOUR if o.lost else (255, 255, 255), 1,
+                    cv2.LINE_AA)
     return out
+
+
+def _legend(canvas: np.ndarray, with_input: bool, with_lost: bool) -> tuple[int, int, int, int]:
+    """Draw the legend in the top-left corner (in place); returns its rectangle ``(x1, y1, x2, y2)``."""
+    items = [("refined", POSE_COLOURS["refined"])]
+    if with_input:
+        items.append(("detector input", POSE_COLOURS["coarse"]))
+    if with_lost:
+        items.append(("lost", LOST_COLOUR))
+    width = 36 + max(cv2.getTextSize(t, LABEL_FONT, LABEL_SCALE, 1)[0][0] for t, _ in items)
+    height = 6 + 16 * len(items)
+    cv2.rectangle(canvas, (0, 0), (width, height), (24, 24, 24), -1)
+    for k, (text, colour) in enumerate(items):
+        y = 14 + 16 * k
+        cv2.line(canvas, (6, y - 4), (26, y - 4), colour, 2, cv2.LINE_AA)
+        cv2.putText(canvas, text, (32, y), LABEL_FONT, LABEL_SCALE, (230, 230, 230), 1, cv2.LINE_AA)
+    return 0, 0, width, height
+
+
+def _free_spot(box, w: int, h: int, placed: list, shape) -> tuple[int, int, int, int]:
+    """A ``w x h`` label rectangle near ``box`` (above it, below it, then inside it, stepping down) that overlaps
+    none of ``placed`` and stays in the image; the first candidate when none is free."""
+    x1, y1, x2, y2 = (int(round(v)) for v in box)
+    H, W = shape[:2]
+    starts = [(x1, y1 - h - 2), (x1, y2 + 2)] + [(x1, y1 + 2 + k * (h + 2)) for k in range(12)] + [
+        (x1, y2 + 2 + k * (h + 2)) for k in range(1, 12)]
+    candidates = []
+    for x, y in starts:
+        x, y = min(max(x, 0), max(W - w, 0)), min(max(y, 0), max(H - h, 0))
+        candidates.append((x, y, x + w, y + h))
+    for rect in candidates:
+        if not any(rect[0] < r[2] and r[0] < rect[2] and rect[1] < r[3] and r[1] < rect[3] for r in placed):
+            return rect
+    return candidates[0]

@@ -63,6 +63,10 @@ VISION_MSGS = {
     "vision_msgs/msg/Detection2D": ("std_msgs/Header header\nvision_msgs/ObjectHypothesisWithPose[] results\n"
                                     "vision_msgs/BoundingBox2D bbox\nstring id\n"),
     "vision_msgs/msg/Detection2DArray": "std_msgs/Header header\nvision_msgs/Detection2D[] detections\n",
+    "vision_msgs/msg/BoundingBox3D": "geometry_msgs/Pose center\ngeometry_msgs/Vector3 size\n",
+    "vision_msgs/msg/Detection3D": ("std_msgs/Header header\nvision_msgs/ObjectHypothesisWithPose[] results\n"
+                                    "vision_msgs/BoundingBox3D bbox\nstring id\n"),
+    "vision_msgs/msg/Detection3DArray": "std_msgs/Header header\nvision_msgs/Detection3D[] detections\n",
 }
 
 _CONVERSIONS = {"bgr8": None, "rgb8": cv2.COLOR_RGB2BGR, "bgra8": cv2.COLOR_BGRA2BGR, "rgba8": cv2.COLOR_RGBA2BGR,
@@ -225,8 +229,10 @@ class RefinedPose:
     """One refined object of a frame: ``object_id`` (the detection's instance id: the object id, with
     ``#<Detection2D.id>`` or ``#<n>`` for one of several instances, module docstring), ``q_wxyz`` (object to camera)
     and ``q_xyzw`` (the same, ROS order), ``position`` (the detection's, or ``None``), ``box`` and ``score`` (the
-    detection's), and ``lost``: the tracker's loss-of-track check flagged it in this frame (``lost_deg``; always
-    False without it and in ``"refine"`` mode)."""
+    detection's), ``refine_score``: the refinement's confidence in ``(0, 1]``, :attr:`refiner_rt.RefineResult.score`
+    (in ``"track"`` mode the tracker's, :attr:`refiner_rt.RefinerTracker.scores`), ``lost``: the loss-of-track check
+    flagged it in this frame (``lost_deg``; always False without it and in ``"refine"`` mode), and ``q_input_wxyz``:
+    the detection's coarse rotation in this frame, or None."""
 
     object_id: str
     q_wxyz: np.ndarray
@@ -234,6 +240,8 @@ class RefinedPose:
     box: np.ndarray
     score: float
     lost: bool = False
+    refine_score: float | None = None
+    q_input_wxyz: np.ndarray | None = None
 
     @property
     def q_xyzw(self) -> np.ndarray:
@@ -366,7 +374,8 @@ class RosRefiner:
                 {} if self.settle_deg is None else {"iterations": 2, "settle_deg": self.settle_deg})}
             res = model.refine(image, np.array([d.box for d in group]), np.array([d.q_wxyz for d in group]), K=K,
                                D=D, **passes)
-            out += [RefinedPose(d.instance, q, d.position, d.box, d.score) for d, q in zip(group, res.q_refined)]
+            out += [RefinedPose(d.instance, q, d.position, d.box, d.score, refine_score=float(c), q_input_wxyz=d.q_wxyz)
+                    for d, q, c in zip(group, res.q_refined, res.score)]
         return out
 
     def _track(self, image, K, D, dets: list[Detection]) -> list[RefinedPose]:
@@ -388,5 +397,6 @@ class RosRefiner:
         sessions = {key: self._model(seen[key].object_id) for key in poses if key not in tracker}
         refined = tracker.update_from_detector(image, boxes, poses, sessions=sessions)
         lost = set(tracker.lost)
-        return [RefinedPose(key, q, seen[key].position, seen[key].box, seen[key].score, lost=key in lost)
+        return [RefinedPose(key, q, seen[key].position, seen[key].box, seen[key].score, lost=key in lost,
+                            refine_score=tracker.scores.get(key), q_input_wxyz=poses.get(key))
                 for key, q in refined.items()]

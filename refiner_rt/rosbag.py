@@ -23,10 +23,14 @@ image's time:
   the detection's position, passed through (the refiners correct the rotation only);
 * ``/refiner_rt/detections`` (``vision_msgs/Detection2DArray``): the input detections with the refined poses in
   their hypotheses (an empty ``Detection2D.id`` of one of several instances gets its number, ``1``, ``2``...);
+* ``/refiner_rt/detections3d`` (``vision_msgs/Detection3DArray``): per refined instance its class id, the refined
+  pose and the refinement's confidence (``RefineResult.score``, in ``(0, 1]``: docs/ros2.md) as the hypothesis score;
 * ``/refiner_rt/lost`` (``vision_msgs/Detection2DArray``, in ``"track"`` mode with ``lost_deg``, at every matched
   image, empty when none): the detections whose track the loss-of-track check flagged in that frame;
-* ``/refiner_rt/overlay/compressed`` (``sensor_msgs/CompressedImage``, JPEG): the image with each object's box and
-  refined axes drawn (x red, y green, z blue).
+* ``/refiner_rt/overlay/compressed`` (``sensor_msgs/CompressedImage``, JPEG): the image with each object's box, its
+  outline at the refined rotation (green; red when its track is lost) and at the detection's coarse rotation where the
+  frame gives one (cyan), placed at the detection's position (else from the box), labels with the refinement's score,
+  and a legend (:func:`refiner_rt.draw.annotate_poses`; a pinhole projection, lens distortion not drawn).
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ SYNC_TOLERANCE_MS = 20.0
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
+DETECTIONS_3D_TYPE = "vision_msgs/msg/Detection3DArray"
 ROSBAGS_MISSING = ("reading ROS 2 bags needs the rosbags package: pip install 'refiner-rt[ros]' (or pip install "
                    "rosbags)")
 
@@ -178,12 +183,14 @@ def refine_bag(bag: Path, out: Path, refiner: RosRefiner, *, image_topic: str | 
         from rosbags.rosbag2 import StoragePlugin, Writer
     except ModuleNotFoundError:
         raise ModuleNotFoundError(ROSBAGS_MISSING, name="rosbags") from None
-    from refiner_rt.ros import image_from_msg
-    from refiner_rt.draw import annotate
+    from refiner_rt.demo import load_outlines
+    from refiner_rt.draw import PoseOverlay, annotate_poses
+    from refiner_rt.ros import camera_from_info, image_from_msg
 
     if not np.isfinite(sync_tolerance_ms) or sync_tolerance_ms < 0:
         raise ValueError(f"sync_tolerance_ms must be a finite number of milliseconds >= 0; got {sync_tolerance_ms!r}")
     tolerance_ns = int(round(sync_tolerance_ms * 1e6))
+    outlines = load_outlines() if overlay else {}  # the package's outline points, read once
     bag, out = Path(bag), Path(out)
     if out.exists():
         raise FileExistsError(f"{out} exists; the output bag must be a new folder")
@@ -262,12 +269,15 @@ def refine_bag(bag: Path, out: Path, refiner: RosRefiner, *, image_topic: str | 
                         write(TF_TOPIC, "tf2_msgs/msg/TFMessage", TFMessage(transforms=transforms), t)
                         summary.transforms += len(transforms)
                     write(f"{OUTPUT_PREFIX}/detections", DETECTIONS_TYPE, _refined_detections(det, poses), t)
+                    write(f"{OUTPUT_PREFIX}/detections3d", DETECTIONS_3D_TYPE, _detections_3d(store, msg.header, poses),
+                          t)
                     if refiner.checks_loss:
                         write(f"{OUTPUT_PREFIX}/lost", DETECTIONS_TYPE,
                               _refined_detections(det, [p for p in poses if p.lost]), t)
                     if overlay:
-                        drawn = annotate(image_from_msg(msg), {p.object_id: p.box for p in poses},
-                                         {p.object_id: p.q_wxyz for p in poses})
+                        drawn = annotate_poses(image_from_msg(msg), camera_from_info(info, refiner.rectified)[0], [
+                            PoseOverlay(p.object_id, p.box, p.q_wxyz, q_input=p.q_input_wxyz, t=p.position,
+                                        lost=p.lost, score=p.refine_score) for p in poses], outlines)
                         ok, jpeg = cv2.imencode(".jpg", drawn, [cv2.IMWRITE_JPEG_QUALITY, 90])
                         write(f"{OUTPUT_PREFIX}/overlay/compressed", "sensor_msgs/msg/CompressedImage",
                               Compressed(header=msg.header, format="jpeg", data=np.frombuffer(jpeg.tobytes(), np.uint8)),
@@ -290,13 +300,37 @@ def _transform_msg(store, header, p: RefinedPose):
                                                    transform=transform)
 
 
-def _pose_msg(store, header, p: RefinedPose):
+def _pose(store, p: RefinedPose):
+    """``geometry_msgs/Pose``: the refined rotation and the detection's position (zeros without one)."""
     T = store.types
     x, y, z, w = (float(v) for v in p.q_xyzw)
     pos = p.position if p.position is not None else np.zeros(3)
     point = T["geometry_msgs/msg/Point"](x=float(pos[0]), y=float(pos[1]), z=float(pos[2]))
-    pose = T["geometry_msgs/msg/Pose"](position=point, orientation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))
-    return T["geometry_msgs/msg/PoseStamped"](header=header, pose=pose)
+    return T["geometry_msgs/msg/Pose"](position=point, orientation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))
+
+
+def _pose_msg(store, header, p: RefinedPose):
+    return store.types["geometry_msgs/msg/PoseStamped"](header=header, pose=_pose(store, p))
+
+
+def _detections_3d(store, header, poses: list[RefinedPose]):
+    """``vision_msgs/Detection3DArray``: per refined instance one ``Detection3D`` whose hypothesis is the object's
+    class id, the refinement's confidence (:attr:`RefinedPose.refine_score`) as its ``score`` and the refined pose;
+    ``bbox.center`` the same pose, ``bbox.size`` zeros (not measured); ``id`` the instance's (``#`` suffix)."""
+    T = store.types
+    out = []
+    for p in poses:
+        pose = _pose(store, p)
+        covariance = np.zeros(36, dtype=np.float64)
+        hypothesis = T["vision_msgs/msg/ObjectHypothesisWithPose"](
+            hypothesis=T["vision_msgs/msg/ObjectHypothesis"](
+                class_id=p.object_id.split("#", 1)[0],
+                score=float("nan") if p.refine_score is None else float(p.refine_score)),
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=covariance))
+        bbox = T["vision_msgs/msg/BoundingBox3D"](center=pose, size=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0))
+        out.append(T["vision_msgs/msg/Detection3D"](header=header, results=[hypothesis], bbox=bbox,
+                                                    id=p.object_id.split("#", 1)[1] if "#" in p.object_id else ""))
+    return T["vision_msgs/msg/Detection3DArray"](header=header, detections=out)
 
 
 def _refined_detections(det, poses: list[RefinedPose]):

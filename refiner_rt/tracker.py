@@ -38,6 +38,17 @@ carried by the prediction, so a refinement that pulls further (a view the refine
 followed only that far per update. Defaults with ``predict="scene"``: weight 0.3, 2 degrees, window 4 updates, chosen
 on rendered video the tracking benchmark does not score (``benchmarks/studies/cascade``).
 
+The temporal filter (no prediction, the default): the object is taken to hold still, so its last rotation is the
+prediction from its second update on (not the coarse start): the new rotation keeps a quarter of it
+(``prediction_weight=0.25``) and stays within 3 degrees of it (``max_correction_deg=3``). On the real frames a
+refiner's correction from frame to frame is 1-3 degrees while the truth turns by less than 0.1; on rendered video a
+refinement sometimes jumps into a wrong pose that later frames then hold (a view whose refinement has no fixed point
+nearby). The limit follows a camera turning up to 3 degrees per update; ``prediction_weight=0, max_correction_deg=180``
+turns the filter off. Both chosen on rendered robot-layout video (``benchmarks/studies/tracking_real``).
+
+Confidence: :attr:`RefinerTracker.scores` has each refined object's :attr:`refiner_rt.RefineResult.score` of the last
+update (from its last rotation, one pass: a second opinion on it).
+
 Loss-of-track check (``lost_deg``): a tracker that loses an object rarely finds it again, since the refiner is
 trained on coarse poses within 30 degrees of the truth. The check needs no ground truth: the refined rotation is
 refined once more (a second network pass in the same batched call per session), and an object whose rotation that
@@ -75,8 +86,9 @@ from refiner_rt.checks import (as_wxyz, boxes_rows, validate_boxes, validate_D, 
                                validate_K, validate_settle, validate_views)
 from refiner_rt.quaternion import inverse_rows, multiply_rows, normalize_rows
 from refiner_rt.refiner import Refiner, load
+from refiner_rt.session import RefineResult
 
-__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "object_name"]
+__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "LOST_DEG", "object_name"]
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +97,14 @@ PREDICTIONS = ("object", "scene")
 DEFAULT_MOTION_WINDOW = 4  # updates
 DEFAULT_SCENE_PREDICTION_WEIGHT = 0.3
 DEFAULT_SCENE_MAX_CORRECTION_DEG = 2.0
+# without a motion prediction (the last rotation is the prediction): chosen on rendered robot-layout video
+# (tracking_robot_s561, benchmarks/studies/tracking_real) among weights 0-0.65 and limits 3 degrees or none
+DEFAULT_HOLD_PREDICTION_WEIGHT = 0.25
+DEFAULT_HOLD_MAX_CORRECTION_DEG = 3.0
+# the loss-of-track check's threshold to use (RefinerTracker(lost_deg=...), refiner-rt track --lost-deg): chosen on
+# rendered robot-layout video (tracking_robot_s561, benchmarks/studies/tracking_real) with the temporal filter on,
+# the largest share of tracks ending above 30 degrees flagged with at most 10% of good frames (below 15) flagged
+LOST_DEG = 2.5
 TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the medoid than this and twice the median is left out
 INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
 
@@ -131,10 +151,12 @@ class RefinerTracker:
             objects (estimated from every track; hidden objects are carried with it).
         motion_window: with ``predict="scene"``, the updates over which each track's change is measured (an int
             ``>= 2``); None (default): 4.
-        prediction_weight: the share of the prediction kept in each new rotation, in ``[0, 1)``; needs a
-            prediction. None (default): 0.3 with ``predict="scene"``, else 0 (the refined rotation as is).
-        max_correction_deg: with ``predict="scene"``, once the scene's turn is measured: the most degrees a new
-            rotation may differ from its prediction, in ``(0, 180]`` (180: no limit). None (default): 2.
+        prediction_weight: the share of the prediction kept in each new rotation, in ``[0, 1)`` (without
+            ``predict`` the last rotation is the prediction: the temporal filter). None (default): 0.3 with
+            ``predict="scene"``, 0.25 without a prediction, 0 with ``predict="object"``.
+        max_correction_deg: the most degrees a new rotation may differ from its prediction (with
+            ``predict="scene"`` once the scene's turn is measured), in ``(0, 180]`` (180: no limit). None
+            (default): 2 with ``predict="scene"``, 3 without a prediction, no limit with ``predict="object"``.
         iterations: refinement passes per update (``>= 1``), as :meth:`RefinerSession.refine` (sessions only: a
             :class:`RefinerCascade` runs its own passes).
         views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`
@@ -142,6 +164,7 @@ class RefinerTracker:
         lost_deg: the loss-of-track check (module docstring): flag an object lost when a second refinement of its
             refined rotation moves it by more than this many degrees; a finite number in ``(0, 180]``, or ``None``
             (default) for no check (one network pass per object and update; the check costs a second).
+            :data:`LOST_DEG` (2.5) is the value chosen on rendered video.
         detector_weight: fuse the detector's poses given to :meth:`update` (module docstring): the weight ``w`` in
             ``(0, 1]`` of the refined detection against the refined track, or ``None`` (default): the detector is
             used only by the loss-of-track check. Fusing costs a second network pass per object with a detection.
@@ -192,7 +215,8 @@ class RefinerTracker:
             raise ValueError(f"motion_window must be an int >= 2 (updates); got {motion_window!r}")
         self.motion_window = int(motion_window)
         if prediction_weight is None:
-            prediction_weight = DEFAULT_SCENE_PREDICTION_WEIGHT if self.predict == "scene" else 0.0
+            prediction_weight = {"scene": DEFAULT_SCENE_PREDICTION_WEIGHT, None: DEFAULT_HOLD_PREDICTION_WEIGHT}.get(
+                self.predict, 0.0)
         if isinstance(prediction_weight, bool) or not isinstance(prediction_weight, (int, float, np.integer,
                                                                                     np.floating)):
             raise TypeError(f"prediction_weight must be a number in [0, 1) (the prediction's share) or None; got "
@@ -200,15 +224,11 @@ class RefinerTracker:
         if not 0.0 <= float(prediction_weight) < 1.0:
             raise ValueError(f"prediction_weight must be a number in [0, 1) (the prediction's share); got "
                              f"{prediction_weight!r}")
-        if prediction_weight and self.predict is None:
-            raise ValueError(f"prediction_weight={prediction_weight!r} keeps a share of a prediction, and predict is "
-                             "False; pass predict='scene' (or True), or leave prediction_weight at 0")
         self.prediction_weight = float(prediction_weight)
-        if max_correction_deg is not None and self.predict != "scene":
-            raise ValueError(f"max_correction_deg={max_correction_deg!r} limits a track's step from the scene's "
-                             "prediction; it needs predict='scene'")
         if max_correction_deg is None and self.predict == "scene":
             max_correction_deg = DEFAULT_SCENE_MAX_CORRECTION_DEG
+        if max_correction_deg is None and self.predict is None:
+            max_correction_deg = DEFAULT_HOLD_MAX_CORRECTION_DEG
         self.max_correction_deg = _optional_in_range(max_correction_deg, "max_correction_deg", 180.0,
                                                      "a number of degrees", " degrees (180: no limit)")
         self._updates = 0  # update() calls so far: the clock of the scene motion
@@ -219,6 +239,7 @@ class RefinerTracker:
                              "lost, or fused in every frame); choose one")
         self.lost: list[str] = []  # objects the last update flagged lost (and could not re-detect)
         self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
+        self.scores: dict[str, float] = {}  # the last update's RefineResult.score per refined object
         self.iterations = validate_iterations(iterations)
         self.views = validate_views(views)
         self.settle_deg = validate_settle(settle_deg, self.iterations)
@@ -383,24 +404,26 @@ class RefinerTracker:
             # a cascade runs its coarse refiner, then its fine one, on every update: with the fine refiner alone from
             # frame to frame its small errors added up (benchmarks/studies/cascade, "Tracking on the cascade")
             coarse = [True] * (len(ids) + len(fused))
-            both = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
-                                np.array(q_in + [q for _, q in fused]), coarse).tolist()
+            res = self._refine(sess, image, rows + [rows[i] for i, _ in fused],
+                               np.array(q_in + [q for _, q in fused]), coarse)
+            both = res.q_refined.tolist()
+            score = res.score[: len(ids)].tolist()
             raw = both[: len(ids)]  # the refiner's own results: what it saw move (the scene's turn's source)
             tracked = list(raw)  # the refined tracks (the object velocity's source)
             predicted = [self._predicted(self._tracks[i], turn) for i in ids]
             if self.prediction_weight:  # keep a share of the prediction (not of a coarse start or the last rotation)
                 tracked = [_blend(q, p, self.prediction_weight) if made else q
                            for q, p, made in zip(tracked, q_in, predicted)]
-            if turn is not None and self.max_correction_deg is not None:  # within reach of the scene's prediction
+            if self.max_correction_deg is not None:  # within reach of the prediction
                 tracked = [_within(q, p, self.max_correction_deg) if made else q
                            for q, p, made in zip(tracked, q_in, predicted)]
             refined = list(tracked)
             for (i, _), q_det in zip(fused, both[len(ids):]):
                 refined[i] = _blend(tracked[i], q_det, self.detector_weight)
-            results.append((sess, ids, rows, refined, tracked, raw,
+            results.append((sess, ids, rows, refined, tracked, raw, score,
                             self._flag_lost(sess, image, ids, rows, refined)))
         redetected, lost = {}, []
-        for sess, ids, rows, refined, tracked, raw, flagged in results:
+        for sess, ids, rows, refined, tracked, raw, score, flagged in results:
             found, poses = [], []
             for i in flagged:
                 q = self._ask(detector, ids[i])
@@ -410,15 +433,17 @@ class RefinerTracker:
                     found.append(i)
                     poses.append(q)
             if found:
-                again = self._refine(sess, image, [rows[i] for i in found], np.array(poses),
-                                     [True] * len(found)).tolist()
-                redetected.update({ids[i]: q for i, q in zip(found, again)})
-        out = {}
-        for sess, ids, rows, refined, tracked, raw, flagged in results:
-            for object_id, q, q_tracked, q_raw in zip(ids, refined, tracked, raw):
+                again = self._refine(sess, image, [rows[i] for i in found], np.array(poses), [True] * len(found))
+                redetected.update({ids[i]: (q, sc) for i, q, sc in zip(found, again.q_refined.tolist(),
+                                                                       again.score.tolist())})
+        out, scores = {}, {}
+        for sess, ids, rows, refined, tracked, raw, score, flagged in results:
+            for object_id, q, q_tracked, q_raw, sc in zip(ids, refined, tracked, raw, score):
                 track = self._tracks[object_id]
+                scores[object_id] = sc
                 if object_id in redetected:  # a detector's pose, refined: a new start, not motion
-                    track.q, track.refined, track.velocity, track.missed = redetected[object_id], True, None, 0
+                    (track.q, scores[object_id]), track.refined, track.velocity, track.missed = (
+                        redetected[object_id], True, None, 0)
                     track.history = []
                     out[object_id] = np.array(track.q)
                     continue
@@ -440,6 +465,7 @@ class RefinerTracker:
                     track.q = normalize_rows(multiply_rows([turn], [track.q]))[0]
         self._updates += 1
         self.lost = lost
+        self.scores = scores
         self.redetections += len(redetected)
         return out
 
@@ -483,11 +509,11 @@ class RefinerTracker:
                 self.reset(object_id, q)
         return self.update(image, boxes, detector=fused or None)
 
-    def _refine(self, sess: Refiner, image, rows: list, q_in, coarse: list) -> np.ndarray:
+    def _refine(self, sess: Refiner, image, rows: list, q_in, coarse: list) -> RefineResult:
         passes = ({"iterations": self.iterations, "views": self.views, "settle_deg": self.settle_deg}
                   if sess.per_call_passes else {})  # a cascade runs the passes it was built with
         return sess.refine(image, np.array(rows), q_in, K=self.K, D=self.D, coarse=np.array(coarse, dtype=bool),
-                           **passes).q_refined
+                           **passes)
 
     def _flag_lost(self, sess: Refiner, image, ids: list, rows: list, refined: list) -> list[int]:
         """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a
@@ -537,8 +563,10 @@ class RefinerTracker:
 
     def _predicted(self, track: _Track, turn: list | None) -> bool:
         """Whether this update's coarse rotation for ``track`` is a prediction (motion measured, a refined track)."""
-        if not track.refined or self.predict is None:
+        if not track.refined:
             return False
+        if self.predict is None:  # the object is taken to hold still: its last rotation is the prediction
+            return True
         return turn is not None if self.predict == "scene" else track.velocity is not None
 
     def _prediction(self, track: _Track, turn: list | None = None) -> list:

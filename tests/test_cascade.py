@@ -146,7 +146,7 @@ def test_the_tracker_runs_both_refiners_on_every_update():
     cascade = RefinerCascade(_session(COARSE), _session(SMALL))
     q0 = _wxyz(Q_IN[0])
     K = np.array([[500.0, 0, 32], [0, 500, 24], [0, 0, 1]])
-    tracker = RefinerTracker(cascade, K, {"003_cracker_box": q0})
+    tracker = RefinerTracker(cascade, K, {"003_cracker_box": q0}, prediction_weight=0.0, max_correction_deg=180.0)
     first = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]
     assert _angle(first[None], Rotation.concatenate([Q_IN[0] * COARSE * SMALL]))[0] < 1e-6
     second = tracker.update(IMAGE, {"003_cracker_box": BOXES[0]})["003_cracker_box"]

@@ -131,6 +131,31 @@ def test_a_bag_goes_through_track_bag_and_reads_back_with_the_refined_poses(tmp_
     assert len(dets) == 3 and len(dets[0][1].detections) == len(frames[0][2])
 
 
+def test_detections3d_carry_each_refinement_and_its_score(tmp_path):
+    """/refiner_rt/detections3d: per refined instance a Detection3D whose hypothesis is the class id, the refined
+    pose and RefineResult.score of that refinement (as the runtime called directly gives it)."""
+    bag, out = tmp_path / "in", tmp_path / "out"
+    frames = write_bag(bag)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--mode", "refine"])
+    assert res.exit_code == 0, res.output
+    got = read_bag(out)["/refiner_rt/detections3d"]
+    assert len(got) == len(frames)
+    for (image, K, objects), (_, msg) in zip(frames, got):
+        assert msg.header.frame_id == "camera_color_optical_frame"
+        by_class = {d.results[0].hypothesis.class_id: d for d in msg.detections}
+        assert sorted(by_class) == sorted(o["object_id"] for o in objects)
+        for o in objects:
+            i = msg.header.stamp.sec - 100
+            want = RefinerSession.pretrained(o["object_id"]).refine(image, [o["box_xyxy"]], _q_in(o, i)[None], K=K)
+            d = by_class[o["object_id"]]
+            assert d.results[0].hypothesis.score == pytest.approx(want.score[0], abs=1e-6)
+            assert 0.0 < d.results[0].hypothesis.score <= 1.0
+            q = d.results[0].pose.pose.orientation
+            assert rq.geodesic_angle(rq.from_xyzw([q.x, q.y, q.z, q.w]), want.q_refined[0]) < 0.05
+            p = d.bbox.center.position
+            np.testing.assert_allclose([p.x, p.y, p.z], o["t_m"])
+
+
 def test_cascade_in_a_bag_refines_as_the_cascade_does(tmp_path):
     from refiner_rt import RefinerCascade, pretrained_models
 
@@ -594,3 +619,25 @@ def test_two_instances_without_ids_are_tracked_apart():
         q = poses[f"{cls}#{n}"].q_wxyz
         np.testing.assert_array_equal(poses[f"{cls}#{n}"].box, o["box_xyxy"])
         assert rq.geodesic_angle(q, _q_in(o, 0)) < rq.geodesic_angle(q, _q_in(other, 0))
+
+
+def test_the_lost_topic_names_each_lost_instance_of_one_class(tmp_path):
+    """Two instances of one class without Detection2D.id, tracked with --lost-deg: /refiner_rt/lost carries each
+    flagged instance as its own detection, with its number as id, and the overlay is written."""
+    image, K, objects = _frames()[0]
+    o = objects[0]
+    x1, y1, x2, y2 = o["box_xyxy"]
+    boxes = [o["box_xyxy"], [x1 + 40.0, y1, x2 + 40.0, y2]]
+    arrays = [_array(i, [_detection(o["object_id"], b, _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW)
+                         for b in boxes]) for i in range(3)]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, arrays)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--lost-deg", "0.001"])
+    assert res.exit_code == 0, res.output
+    got = read_bag(out)
+    lost = got["/refiner_rt/lost"]
+    assert [sorted(d.id for d in m.detections) for _, m in lost] == [[], ["1", "2"], ["1", "2"]]
+    assert all(d.results[0].hypothesis.class_id == o["object_id"] for _, m in lost for d in m.detections)
+    scores = [[d.results[0].hypothesis.score for d in m.detections] for _, m in got["/refiner_rt/detections3d"]]
+    assert [len(s) for s in scores] == [2, 2, 2] and all(0 < v <= 1 for s in scores for v in s)
+    assert len(got["/refiner_rt/overlay/compressed"]) == 3

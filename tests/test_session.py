@@ -1025,3 +1025,31 @@ def test_score_orders_true_poses_above_poses_60_degrees_off_on_the_samples():
     assert len(good) >= 25
     assert np.mean(good > bad) >= 0.9, (good, bad)
     assert good.mean() > bad.mean() and np.mean(err_good) < np.mean(err_bad)
+
+
+def test_score_is_calibrated_on_rendered_frames():
+    """Shipped INT8 refiners, two passes, on the sample frames (renders no model or the calibration saw), inputs
+    U(0, 30) and U(30, 90) degrees off: a higher score means a lower error (Spearman), and the score reads as the
+    probability of ending within SCORE_WITHIN_DEG of the truth: its mean is near the share that does, and the
+    results scoring 0.8 or more end within it far more often than those scoring below 0.6."""
+    from scipy.stats import spearmanr
+
+    from refiner_rt.demo import load_samples
+    from refiner_rt.session import SCORE_WITHIN_DEG
+
+    rng = np.random.default_rng(0)
+    score, err = [], []
+    for frame in load_samples():
+        image = frame.image()
+        for obj in frame.objects:
+            sess = RefinerSession.pretrained(obj.object_id)
+            for lo, hi in ((0, 30), (30, 90)):
+                q = rq.multiply(obj.q_gt, rq.sample_rotation_noise(1, "uniform", lo, hi, rng=rng)[0])
+                res = sess.refine(image, obj.box_xyxy[None], q[None], K=frame.K, iterations=2)
+                score.append(float(res.score[0]))
+                err.append(float(rq.geodesic_angle(res.q_refined, obj.q_gt[None])[0]))
+    score, within = np.array(score), np.array(err) < SCORE_WITHIN_DEG
+    assert len(score) >= 50
+    assert spearmanr(score, err)[0] < -0.4
+    assert abs(score.mean() - within.mean()) < 0.1
+    assert within[score >= 0.8].mean() > 0.85 and within[score < 0.6].mean() < 0.6

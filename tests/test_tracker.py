@@ -2,15 +2,15 @@
 refined rotation as the next coarse pose, batching per session, the constant-velocity prediction, objects coming
 and going, and the errors."""
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from refiner_rt import RefinerSession
+from refiner_rt import RefineResult, RefinerSession
 from refiner_rt import RefinerTracker
 from refiner_rt import quaternion as rq
+from refiner_rt.tracker import DEFAULT_HOLD_MAX_CORRECTION_DEG
 from tests import onnx_fixtures as fx
 from tests.test_pretrained import weights  # noqa: F401  (the made-up shipped models)
 
@@ -22,6 +22,26 @@ BOX_B = [30.5, 10.0, 60.0, 40.0]
 Q_OUT = rq.from_axis_angle([0.2, -0.4, 0.9], 7.0)  # every update multiplies by this
 Q0 = rq.normalize(rq.from_xyzw(Rotation.random(2, random_state=3).as_quat()))  # w >= 0
 
+
+
+def _result(q_refined) -> RefineResult:
+    """A RefineResult of fake refinements: ``q_refined`` as given, no correction measured (score 1)."""
+    q = np.asarray(q_refined, dtype=np.float64)
+    identity = np.tile([1.0, 0.0, 0.0, 0.0], (len(q), 1))
+    return RefineResult(q_refined=q, q_out=identity, q_in=q)
+
+
+# the share of the constant model's 7-degree correction the default filter keeps after the first update (3 degrees)
+HELD = DEFAULT_HOLD_MAX_CORRECTION_DEG / 7.0
+# the exact algebra of the updates, without the default temporal filter (which holds each correction to 3 degrees)
+NO_FILTER = dict(prediction_weight=0.0, max_correction_deg=180.0)
+
+
+def _unfiltered(*args, **kwargs) -> RefinerTracker:
+    """A RefinerTracker without the temporal filter, unless the test gives its own prediction settings."""
+    if kwargs.get("predict") in (None, False):
+        kwargs = {**NO_FILTER, **kwargs}
+    return RefinerTracker(*args, **kwargs)
 
 def scipy_q(q_wxyz):
     return Rotation.from_quat(rq.to_xyzw(q_wxyz))
@@ -39,13 +59,27 @@ def assert_same_rotation(q, rotation: Rotation, atol=1e-6):
 @pytest.mark.parametrize("frame", ["camera", "ray"])
 def test_each_update_refines_the_previous_result(frame):
     """After n updates with a model whose correction is always c: q = q0 * c^n (either model frame)."""
-    tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]})
+    tracker = _unfiltered(session(frame=frame), K, {"003_cracker_box": Q0[0]})
     for n in range(1, 6):
         q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
         ref = scipy_q(Q0[0]) * scipy_q(Q_OUT) ** n
         assert_same_rotation(q, ref)
         assert q.shape == (4,) and q.dtype == np.float64 and q[0] >= 0
         assert_same_rotation(tracker.rotations["003_cracker_box"], ref)
+
+
+@pytest.mark.parametrize("kwargs, share", [(dict(prediction_weight=0.4, max_correction_deg=180.0), 0.6),
+                                           (dict(max_correction_deg=2.8), 0.4),
+                                           (dict(prediction_weight=0.5, max_correction_deg=2.8), 0.4),
+                                           (dict(), 3.0 / 7.0)])
+def test_the_temporal_filter_without_prediction_holds_back_each_correction(kwargs, share):
+    """With no motion prediction the last rotation is the prediction: from the second update on, a constant 7-degree
+    correction c is kept at (1 - prediction_weight) of its angle, at most max_correction_deg: q = q0 c c^(share (n-1));
+    the first update, from the coarse start, is kept whole."""
+    tracker = RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, **kwargs)
+    for n in range(1, 5):
+        q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
+        assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT) * scipy_q(Q_OUT) ** (share * (n - 1)))
 
 
 def test_objects_sharing_a_session_are_refined_in_one_call(monkeypatch):
@@ -73,7 +107,7 @@ def test_objects_sharing_a_session_are_refined_in_one_call(monkeypatch):
 
 def test_a_missed_object_keeps_its_rotation_and_others_move_on():
     shared = session(objects=("003_cracker_box", "011_banana"))
-    tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0], "011_banana": Q0[1]})
+    tracker = _unfiltered(shared, K, {"003_cracker_box": Q0[0], "011_banana": Q0[1]})
     out = tracker.update(IMG, {"011_banana": BOX_B})
     assert list(out) == ["011_banana"]
     np.testing.assert_array_equal(tracker.rotations["003_cracker_box"], rq.normalize(Q0[0]))
@@ -187,7 +221,7 @@ def test_scene_prediction_carries_a_hidden_object_with_the_camera(monkeypatch):
         a = [np.allclose(b, BOX_A) for b in np.asarray(boxes)]
         for is_a, q in zip(a, q_in):
             inputs[clock["t"], is_a] = np.array(q)
-        return SimpleNamespace(q_refined=np.array([truth(Q0[0] if is_a else Q0[1], clock["t"]) for is_a in a]))
+        return _result(np.array([truth(Q0[0] if is_a else Q0[1], clock["t"]) for is_a in a]))
 
     monkeypatch.setattr(shared, "refine", perfect)
     assert rq.geodesic_angle(turn, rq.identity()) == pytest.approx(3.0)
@@ -221,7 +255,7 @@ def test_scene_prediction_follows_a_camera_that_starts_to_turn(monkeypatch):
     clock = {"t": 0}
 
     def perfect(image, boxes, q_in, **kw):
-        return SimpleNamespace(q_refined=np.array([truth(Q0[0] if np.allclose(b, BOX_A) else Q0[1], clock["t"])
+        return _result(np.array([truth(Q0[0] if np.allclose(b, BOX_A) else Q0[1], clock["t"])
                                                    for b in np.asarray(boxes)]))
 
     monkeypatch.setattr(shared, "refine", perfect)
@@ -250,7 +284,7 @@ def test_scene_prediction_starts_reset_and_added_tracks_from_the_pose_given(monk
     def perfect(image, boxes, q_in, **kw):
         ids = ["003_cracker_box" if np.allclose(b, BOX_A) else "011_banana" for b in np.asarray(boxes)]
         inputs.update({(clock["t"], i): np.array(q) for i, q in zip(ids, q_in)})
-        return SimpleNamespace(q_refined=np.array([truth(start[i], clock["t"]) for i in ids]))
+        return _result(np.array([truth(start[i], clock["t"]) for i in ids]))
 
     monkeypatch.setattr(shared, "refine", perfect)
     tracker = RefinerTracker(shared, K, {"003_cracker_box": Q0[0]}, predict="scene", prediction_weight=0.0)
@@ -331,8 +365,6 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(predict="scene", prediction_weight="0.3"), TypeError, "prediction_weight must be a number in"),
     (dict(predict="scene", motion_window=1), ValueError, "motion_window must be an int >= 2"),
     (dict(predict="scene", prediction_weight=1.0), ValueError, "prediction_weight must be a number in \\[0, 1\\)"),
-    (dict(prediction_weight=0.3), ValueError, "keeps a share of a prediction, and predict is False"),
-    (dict(max_correction_deg=2.0, predict=True), ValueError, "max_correction_deg=2.0 limits .* needs predict='scene'"),
     (dict(predict="scene", max_correction_deg=0), ValueError, r"max_correction_deg must be in \(0, 180\] degrees"),
     (dict(iterations=0), ValueError, "iterations must be an integer from 1 to"),
     (dict(views=99), ValueError, "views must be an integer from 1 to"),
@@ -393,7 +425,7 @@ def test_the_lost_check_flags_an_object_that_a_second_refinement_moves_too_far(f
     object (not the first, refined from a coarse pose); with lost_deg=10 none does; either way the returned
     rotation is still q0 * c^n (no detector given)."""
     for lost_deg, flagged in ((5.0, True), (10.0, False)):
-        tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]}, lost_deg=lost_deg)
+        tracker = _unfiltered(session(frame=frame), K, {"003_cracker_box": Q0[0]}, lost_deg=lost_deg)
         for n in range(1, 4):
             q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
             assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT) ** n)
@@ -442,7 +474,7 @@ def test_a_fused_detection_moves_the_track_w_of_the_way(frame, w):
     from scipy.spatial.transform import Slerp
 
     q_det = rq.from_axis_angle([1.0, 0.2, 0.0], 25.0)
-    tracker = RefinerTracker(session(frame=frame), K, {"003_cracker_box": Q0[0]}, detector_weight=w)
+    tracker = _unfiltered(session(frame=frame), K, {"003_cracker_box": Q0[0]}, detector_weight=w)
     q = tracker.update(IMG, {"003_cracker_box": BOX_A}, detector={"003_cracker_box": q_det})["003_cracker_box"]
     ends = Rotation.concatenate([scipy_q(Q0[0]) * scipy_q(Q_OUT), scipy_q(q_det) * scipy_q(Q_OUT)])
     want = Slerp([0.0, 1.0], ends)([w])[0]
@@ -461,7 +493,7 @@ def test_update_from_detector_starts_fuses_or_restarts_from_each_pose():
     q_det = rq.from_axis_angle([1.0, 0.2, 0.0], 25.0)
     c = scipy_q(Q_OUT)
     for w in (None, 0.5):
-        tracker = RefinerTracker({}, K, {}, detector_weight=w)
+        tracker = _unfiltered({}, K, {}, detector_weight=w)
         first = tracker.update_from_detector(IMG, {"003_cracker_box": BOX_A}, {"003_cracker_box": Q0[0]},
                                              sessions={"003_cracker_box": session()})
         assert_same_rotation(first["003_cracker_box"], scipy_q(Q0[0]) * c)
@@ -557,6 +589,32 @@ def write_sequence(folder, n=3, q0=Q0[0], extra=None):
     return frames, folder / "detections.json", model
 
 
+def test_track_command_writes_each_frames_score_and_the_lost_flag(tmp_path):
+    """The frames path's JSON: per frame each object's RefineResult.score (a constant 7-degree correction scores
+    exp(-7 / SCORE_SCALE_DEG)) and, with --lost-deg, the objects flagged lost: the second pass moves the track by 7
+    degrees, so from the second frame on (the first is refined from the coarse pose, not checked) it is lost."""
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+    from refiner_rt.session import SCORE_SCALE_DEG
+
+    frames, dets, model = write_sequence(tmp_path, n=4)
+    out = tmp_path / "rot.json"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", "5"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert list(doc["scores"]) == [f"{i:06d}.png" for i in range(4)]
+    for name, scores in doc["scores"].items():
+        assert scores["003_cracker_box"] == pytest.approx(np.exp(-7.0 / SCORE_SCALE_DEG), abs=1e-4)
+    assert doc["lost"] == {f"{i:06d}.png": ["003_cracker_box"] for i in range(1, 4)}
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", "8"])
+    assert json.loads(out.read_text())["lost"] == {}
+
+
 def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
     import json
 
@@ -574,7 +632,8 @@ def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
     doc = json.loads(out.read_text())
     assert doc["format"] == "refiner-rt/track/1" and list(doc["frames"]) == [f"{i:06d}.png" for i in range(4)]
     for i, name in enumerate(doc["frames"]):
-        assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]), scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (i + 1))
+        assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]),
+                             scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (1 + HELD * i))  # the default filter: 3 of 7 degrees
     image = cv2.imread(str(strip))
     assert image.shape == (240, 3 * 320, 3)
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
@@ -655,7 +714,7 @@ def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path)
     doc = json.loads(dets.read_text())
     doc["frames"]["000002.png"]["003_cracker_box"] = {"box": BOX_A, "q": list(q_det)}
     dets.write_text(json.dumps(doc))
-    track = scipy_q(Q0[0]) * scipy_q(Q_OUT) ** 3
+    track = scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (1 + 2 * HELD)  # the track's own update held to 3 degrees
     det = scipy_q(q_det) * scipy_q(Q_OUT)
     for extra, want in (([], det), (["--detector-weight", "0.5"], Slerp([0, 1], Rotation.concatenate([track, det]))([0.5])[0])):
         out = tmp_path / "rot.json"
@@ -931,12 +990,12 @@ def test_settle_deg_keeps_the_second_pass_where_it_turns_by_more(tmp_path):
         assert doc["settle_deg"] == float(settle) and doc["iterations"] == 2
         for i, name in enumerate(doc["frames"]):
             assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]),
-                                 scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (per_update * (i + 1)))
+                                 scipy_q(Q0[0]) * scipy_q(Q_OUT) ** (per_update + HELD * i))
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
                                     "--settle-deg", "180"])
     assert res.exit_code == 2 and "--settle-deg" in res.output and "Traceback" not in res.output
     with pytest.raises(ValueError, match="give iterations=2 or more with it; got iterations=1"):
-        RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, settle_deg=2.0)
-    tracker = RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, iterations=3, settle_deg=10.0)
+        _unfiltered(session(), K, {"003_cracker_box": Q0[0]}, settle_deg=2.0)
+    tracker = _unfiltered(session(), K, {"003_cracker_box": Q0[0]}, iterations=3, settle_deg=10.0)
     q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
     assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT))

@@ -22,6 +22,7 @@ y2)`` in pixels, continuous coordinates; ``K`` in pixels (OpenCV convention).
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import time
@@ -31,7 +32,7 @@ import click
 import cv2
 import numpy as np
 
-from refiner_rt.draw import annotate
+from refiner_rt import draw
 from refiner_rt.checks import MAX_ITERATIONS, MAX_VIEWS
 
 __all__ = ["track_cmd", "read_detections", "frame_files", "annotate", "OUTPUT_FORMAT"]
@@ -94,6 +95,20 @@ def _numbers(value, shape, what: str) -> np.ndarray:
     if arr.shape != shape:
         raise ValueError(f"{what} must have shape {shape}; got {value!r}")
     return arr
+
+
+def annotate(image: np.ndarray, K: np.ndarray, objects: list) -> np.ndarray:
+    """A copy of ``image`` (BGR) with each object's outline at its refined rotation (and at the detector's input,
+    where the frame gives one), its box and its label, and a legend: :func:`refiner_rt.draw.annotate_poses` with the
+    package's outline points (``objects``: :class:`refiner_rt.draw.PoseOverlay`)."""
+    return draw.annotate_poses(image, K, objects, _outlines())
+
+
+@functools.lru_cache(maxsize=1)
+def _outlines() -> dict:
+    from refiner_rt.demo import load_outlines
+
+    return load_outlines()
 
 
 class _VideoOutput:
@@ -233,7 +248,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Loss-of-track check: flag an object lost when a second refinement moves its rotation by more "
                    "than this many degrees (one more pass per object and frame, N with --views N); the output's "
                    "\"lost\" lists those frames, for a detector's new \"q\" (with --bag: the /refiner_rt/lost "
-                   "topic). Default: no check.")
+                   "topic). 2.5 is the value chosen on rendered video (refiner_rt.tracker.LOST_DEG). Default: no "
+                   "check.")
 @click.option("--detector-weight", type=click.FloatRange(0.0, 1.0, min_open=True), default=None,
               help="Fuse a tracked object's later detector poses (\"q\") instead of restarting from them: refine each "
                    "beside the track and keep the rotation this share of the way to it (0.5: the weight measured "
@@ -337,7 +353,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.ClickException(str(exc)) from None
 
     video = _VideoOutput(video_path, len(files), strip_frames, fps) if video_path else None
-    results, lost, refined, seconds = {}, {}, 0, 0.0
+    results, scores, lost, refined, seconds = {}, {}, {}, 0, 0.0
     for index, path in enumerate(files):
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
@@ -357,10 +373,13 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         seconds += time.perf_counter() - t0
         refined += len(out)
         results[path.name] = {o: [round(v, 9) for v in q.tolist()] for o, q in out.items()}
+        scores[path.name] = {o: round(float(tracker.scores[o]), 4) for o in out if o in tracker.scores}
         if tracker.lost:
             lost[path.name] = list(tracker.lost)
         if video is not None:
-            video.add(index, annotate(image, boxes, out))
+            video.add(index, annotate(image, K, [
+                draw.PoseOverlay(o, np.asarray(boxes[o], dtype=np.float64), q, q_input=frame_dets[o]["q"],
+                                 lost=o in tracker.lost, score=tracker.scores.get(o)) for o, q in out.items()]))
     if video is not None:
         video.close()
     out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -372,7 +391,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
         "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},
         "frames": results,
-        "lost": lost,  # frame -> objects the loss-of-track check flagged there (empty without --lost-deg)
+        "scores": scores,  # frame -> object -> RefineResult.score of its refinement there (docs/tracking.md)
+        "lost": lost,  # frame -> objects the loss-of-track check flagged there (docs/tracking.md; empty without --lost-deg)
     }, indent=1))
     per_frame = 1e3 * seconds / len(files)
     click.echo(f"{len(files)} frames, {len(object_ids)} objects, {refined} refinements: {per_frame:.2f} ms per frame "
