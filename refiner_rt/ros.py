@@ -139,7 +139,8 @@ class Detection:
     ``(x1, y1, x2, y2)`` pixels, the coarse rotation ``q_wxyz`` (``None``: no pose, :func:`coarse_rotation`),
     ``position`` (metres, or ``None`` when all zeros or non-finite), ``score``, the tracking ``id``
     (``Detection2D.id``, may be empty) and ``instance``, the id it is refined and published under (module
-    docstring, "Instances")."""
+    docstring, "Instances"); ``estimate_score``: where ``q_wxyz`` came from :class:`refiner_rt.PoseEstimator`
+    (``RosRefiner(estimate_missing=True)``), that estimate's score, else None."""
 
     object_id: str
     box: np.ndarray
@@ -148,6 +149,7 @@ class Detection:
     score: float
     id: str
     instance: str = ""
+    estimate_score: float | None = None
 
 
 def coarse_rotation(xyzw, identity_is_pose: bool = False, what: str = "orientation") -> np.ndarray | None:
@@ -274,6 +276,12 @@ class RosRefiner:
             (:meth:`refiner_rt.RefinerSession.refine`; ``1`` to ``MAX_VIEWS``, default 1): four took the shipped
             refiners from 5.67 to 4.93 degrees on the real dev frames, for four network passes. A cascade averages
             its own views: not with ``cascade=True``.
+        estimate_missing: a box-only detection (no usable pose, :func:`coarse_rotation`) gets a 6D pose from
+            :class:`refiner_rt.PoseEstimator` (the object's shipped refiners, rotation from the crop alone and
+            translation from the box): in ``"refine"`` mode that pose is the output (its ``refine_score`` the
+            estimator's, its ``position`` the estimate where the detection has none); in ``"track"`` mode it starts
+            the object's track. Needs a pinhole camera (an empty distortion model, or ``rectified=True``). Default
+            False: box-only detections are skipped (refine) or wait for a pose (track), and counted in :attr:`skipped`.
         tracker_kwargs: passed to :class:`refiner_rt.RefinerTracker` (``predict``, ``lost_deg``,
             ``detector_weight``...), checked here. With ``lost_deg`` each :class:`RefinedPose` says whether the
             check flagged it (``lost``).
@@ -284,7 +292,7 @@ class RosRefiner:
     def __init__(self, mode: str = "track", models: Mapping | None = None, *, cascade: bool = False,
                  rectified: bool = False, class_map: Mapping | None = None, identity_is_pose: bool = False,
                  int8: bool = True, threads: int = 1, settle_deg: float | None = None, views: int = 1,
-                 **tracker_kwargs):
+                 estimate_missing: bool = False, **tracker_kwargs):
         if mode not in ("refine", "track"):
             raise ValueError(f"mode must be 'refine' or 'track'; got {mode!r}")
         from refiner_rt.checks import validate_settle, validate_views
@@ -309,6 +317,8 @@ class RosRefiner:
             from refiner_rt.tracker import RefinerTracker
 
             RefinerTracker({}, np.eye(3), {}, **self.tracker_kwargs)
+        self.estimate_missing = bool(estimate_missing)
+        self._estimators: dict = {}  # object id -> PoseEstimator or None (no shipped model), built on first need
         self._models = dict(models or {})
         self._given = models is not None
         self._tracker = None
@@ -334,6 +344,39 @@ class RosRefiner:
                          settle_deg=self.settle_deg if self.cascade else None)
         self._models[object_id] = model
         return model
+
+    def _estimator(self, object_id: str):
+        if object_id not in self._estimators:
+            from refiner_rt.estimate import PoseEstimator
+            from refiner_rt.pretrained import pretrained_models
+
+            shipped = object_id in {m.object_id for m in pretrained_models()}
+            self._estimators[object_id] = (PoseEstimator.pretrained(object_id, int8=self.int8, threads=self.threads)
+                                           if shipped else None)
+        return self._estimators[object_id]
+
+    def _estimate(self, image, K, D, dets: list[Detection], needed) -> tuple[list[Detection], set]:
+        """``dets`` with a pose estimated for each box-only detection that ``needed(d)`` says needs one
+        (``estimate_missing``), and the instance ids whose pose was estimated."""
+        todo: dict[str, list[int]] = {}
+        for i, d in enumerate(dets):
+            if d.q_wxyz is None and needed(d) and self._estimator(d.object_id) is not None:
+                todo.setdefault(d.object_id, []).append(i)
+        if not todo:
+            return dets, set()
+        if D is not None and np.any(D):
+            raise ValueError("estimate_missing needs a pinhole camera: this CameraInfo has lens distortion (use a "
+                             "rectified image topic with rectified=True, --rectified)")
+        dets = list(dets)
+        estimated = set()
+        for object_id, idx in todo.items():
+            est = self._estimator(object_id).estimate(image, np.array([dets[i].box for i in idx]), K=K)
+            for i, q, t, score in zip(idx, est.q, est.t, est.score):
+                d = dets[i]
+                dets[i] = replace(d, q_wxyz=q, position=d.position if d.position is not None else t,
+                                  estimate_score=float(score))
+                estimated.add(d.instance)
+        return dets, estimated
 
     def _skip(self, object_id: str) -> None:
         self.skipped[object_id] = self.skipped.get(object_id, 0) + 1
@@ -363,7 +406,13 @@ class RosRefiner:
     def _refine(self, image, K, D, dets: list[Detection]) -> list[RefinedPose]:
         out = []
         by_object: dict[str, list[Detection]] = {}
+        estimated: set = set()
+        if self.estimate_missing:
+            dets, estimated = self._estimate(image, K, D, dets, lambda d: True)
         for d in dets:
+            if d.instance in estimated:  # the estimator's pose is already refined: the output as it is
+                out.append(RefinedPose(d.instance, d.q_wxyz, d.position, d.box, d.score, refine_score=d.estimate_score))
+                continue
             if d.q_wxyz is None:
                 self._skip(d.object_id)
                 continue
@@ -384,6 +433,8 @@ class RosRefiner:
         if self._tracker is None:
             self._tracker = RefinerTracker({}, K, {}, D=D, **self.tracker_kwargs)
         tracker = self._tracker
+        if self.estimate_missing:  # a box-only detection of an object not tracked yet: a pose to start from
+            dets, _ = self._estimate(image, K, D, dets, lambda d: d.instance not in tracker)
         boxes, poses, seen = {}, {}, {}
         for d in dets:
             if d.q_wxyz is None and d.instance not in tracker:

@@ -641,3 +641,40 @@ def test_the_lost_topic_names_each_lost_instance_of_one_class(tmp_path):
     scores = [[d.results[0].hypothesis.score for d in m.detections] for _, m in got["/refiner_rt/detections3d"]]
     assert [len(s) for s in scores] == [2, 2, 2] and all(0 < v <= 1 for s in scores for v in s)
     assert len(got["/refiner_rt/overlay/compressed"]) == 3
+
+
+def test_box_only_detections_get_a_pose_from_the_estimator_when_asked(tmp_path):
+    """estimate_missing: a box-only detection's pose is PoseEstimator's (refine mode: the output, with its position;
+    track mode: the track's start), the same as the estimator called directly; without it the detection is skipped.
+    The bag path takes it as --estimate-missing and writes the estimated poses and their /tf."""
+    from refiner_rt.estimate import PoseEstimator
+
+    image, K, objects = _frames()[0]
+    o = objects[0]
+    box_only = _array(0, [_detection(o["object_id"], o["box_xyxy"], IDENTITY_XYZW, t_m=(0.0, 0.0, 0.0))])
+    want = PoseEstimator.pretrained(o["object_id"]).estimate(image, np.array([o["box_xyxy"]]), K=K)
+    (p,) = RosRefiner("refine", estimate_missing=True).process(_image(image, 0), _info(K, 0), box_only)
+    assert rq.geodesic_angle(p.q_wxyz, want.q[0]) < 1e-9
+    np.testing.assert_allclose(p.position, want.t[0])
+    assert p.refine_score == pytest.approx(want.score[0]) and p.q_input_wxyz is None
+    # the estimate is a 6D pose near the truth (a rendered sample frame with ground truth)
+    assert rq.geodesic_angle(p.q_wxyz, np.array(o["q_gt_wxyz"])) < 15.0
+    assert np.linalg.norm(p.position - np.array(o["t_m"])) < 0.1
+    tracker = RosRefiner("track", estimate_missing=True)
+    (t0,) = tracker.process(_image(image, 0), _info(K, 0), box_only)
+    assert rq.geodesic_angle(t0.q_wxyz, np.array(o["q_gt_wxyz"])) < 15.0
+    (t1,) = tracker.process(_image(image, 1), _info(K, 1), _array(1, box_only.detections))  # tracked, not re-estimated
+    assert rq.geodesic_angle(t1.q_wxyz, t0.q_wxyz) < 5.0
+    assert RosRefiner("track").process(_image(image, 0), _info(K, 0), box_only) == []
+    distorted = RosRefiner("refine", estimate_missing=True)
+    with pytest.raises(ValueError, match="pinhole"):
+        distorted.process(_image(image, 0), _info(K, 0, D=[0.1, 0, 0, 0, 0]), box_only)
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, [box_only, _array(1, box_only.detections)])
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--mode", "refine",
+                                    "--estimate-missing"])
+    assert res.exit_code == 0, res.output
+    msgs = read_bag(out)
+    poses = msgs[pose_topic(o["object_id"])]
+    assert len(poses) == 2 and rq.geodesic_angle(_q(poses[0][1].pose.orientation), want.q[0]) < 1e-6
+    assert len(msgs["/tf"]) == 2

@@ -231,6 +231,10 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
 @click.option("--identity-is-pose", is_flag=True,
               help="With --bag: a detection orientation of (0, 0, 0, 1) is the identity rotation. Default: it is "
                    "the message's default, a box-only detection (no pose), like all zeros.")
+@click.option("--estimate-missing", is_flag=True,
+              help="With --bag: a box-only detection gets a 6D pose from the object's PoseEstimator (rotation from "
+                   "the crop alone, translation from the box): the output in --mode refine, a track's start in "
+                   "--mode track. Default: box-only detections are skipped (refine) or wait for a pose (track).")
 @click.option("--class-map", "class_map", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="With --bag: a JSON object mapping the detector's class ids to YCB ids (default: the class id "
                    "is the YCB id).")
@@ -275,7 +279,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Frames in a --video image strip, evenly spaced.")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
 def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
-              sync_tolerance_ms, identity_is_pose, class_map, models, fp32, K_text, predict, scene_motion, lost_deg,
+              sync_tolerance_ms, identity_is_pose, estimate_missing, class_map, models, fp32, K_text, predict,
+              scene_motion, lost_deg,
               detector_weight, iterations, views, settle_deg, threads, video_path, strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
@@ -300,7 +305,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     bag_only = {"--mode": mode != "track", "--rectified": rectified,
                 "--image-topic": image_topic, "--info-topic": info_topic, "--detections-topic": detections_topic,
                 "--sync-tolerance-ms": sync_tolerance_ms is not None, "--identity-is-pose": identity_is_pose,
-                "--class-map": class_map}
+                "--estimate-missing": estimate_missing, "--class-map": class_map}
     if bag is not None:
         if frames is not None or detections is not None:
             raise click.UsageError("give either --bag BAG or FRAMES DETECTIONS, not both")
@@ -314,7 +319,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
             raise click.UsageError(f"not with --bag, only with FRAMES DETECTIONS: {'; '.join(unused)}")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
                           class_map, fp32, prediction, lost_deg, threads, settle_deg, views, detector_weight,
-                          sync_tolerance_ms, identity_is_pose)
+                          sync_tolerance_ms, identity_is_pose, estimate_missing)
     if frames is None or detections is None:
         raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
     used = [flag for flag, value in bag_only.items() if value]
@@ -401,7 +406,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
 
 def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic, class_map, fp32,
                predict, lost_deg, threads, settle_deg, views, detector_weight=None, sync_tolerance_ms=None,
-               identity_is_pose=False):
+               identity_is_pose=False, estimate_missing=False):
     """``track --bag``: :func:`refiner_rt.rosbag.refine_bag` with a progress bar and one-line errors; approximate
     stamp matches and lost tracks are reported on stderr."""
     from refiner_rt.ros import RosRefiner
@@ -423,7 +428,8 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
                      for k, v in extra.items()]
             raise click.UsageError(f"{', '.join(flags)} apply to --mode track")
         refiner = RosRefiner(mode, cascade=cascade, rectified=rectified, class_map=mapping, int8=not fp32,
-                             identity_is_pose=identity_is_pose, settle_deg=settle_deg, views=views, threads=threads,
+                             identity_is_pose=identity_is_pose, estimate_missing=estimate_missing,
+                             settle_deg=settle_deg, views=views, threads=threads,
                              **extra)
         tolerance = SYNC_TOLERANCE_MS if sync_tolerance_ms is None else sync_tolerance_ms
         t0 = time.perf_counter()
