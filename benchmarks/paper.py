@@ -2,7 +2,7 @@
 
 Every experiment trains (or reuses) two models under the same protocol: ``paper`` (the paper's shallow refiner and
 recipe) and ``improved`` (this project's ``fusion`` refiner); their recipes are the ``RECIPES`` dict below.
-Training is ``refiner-rt train`` (a :class:`models.train.recipe.TrainRecipe` run by :func:`models.train.run.train`), evaluation ``refiner-rt eval``
+Training is ``refiner-rt train`` (a :class:`models.train.recipe.TrainRecipe` run by :func:`models.train.run.run_training`), evaluation ``refiner-rt eval``
 (:func:`models.evaluate.cli.run_eval`), so every number here can be re-made with those commands.
 
 Usage (from the repository root)::

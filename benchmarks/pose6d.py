@@ -4,7 +4,7 @@ Every instance of the shipped objects with ``visib_fract >= --min-visib`` gets i
 what a 2D detector gives) and nothing else; ``PoseEstimator.estimate`` returns its rotation and translation, RGB
 only and, where the folder has depth images, with depth. Scored per object and overall:
 
-* rotation error (degrees; the master chef can up to turns about its axis, ``models.symmetry``): mean, median,
+* rotation error (degrees; the master chef can up to turns about its axis, ``models.data.symmetry``): mean, median,
   share under 5 / 10 / 15 degrees;
 * centre error (mm): the distance between the object's model centroid under the estimated and the true pose
   (independent of where the object frame's origin lies);

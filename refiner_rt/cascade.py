@@ -153,7 +153,7 @@ class RefinerCascade:
 
     @property
     def contract(self):
-        """The crop contract both refiners share (the coarse model's :class:`refiner_rt.metadata.Contract`)."""
+        """The crop contract both refiners share (the coarse model's :class:`refiner_rt.metadata.ModelContract`)."""
         return self.coarse.contract
 
     def refine(self, image_bgr, boxes_xyxy, q_in_wxyz, *, K=None, D=None, q_order: str = "wxyz",

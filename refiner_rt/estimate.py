@@ -326,7 +326,8 @@ class PoseEstimator:
         fine: the object's fine refiner, run once on the winning hypothesis, or None.
         hypotheses: rotations tried per box (``1`` to ``1024``).
         passes: coarse passes over every hypothesis before the check pass (``1`` to ``32``).
-        ranking: ``"return"`` or ``"residual"`` (module docstring): how the check pass ranks the hypotheses.
+        ranking: ``"return+shape"`` (default), ``"return"`` or ``"residual"`` (module docstring): how the check pass
+            ranks the hypotheses.
 
     Cost per box: ``hypotheses * (passes + 1)`` coarse network passes (one batched call per pass) and one fine pass.
     """
@@ -422,7 +423,7 @@ class PoseEstimator:
         Args:
             image_bgr: ``H x W x 3`` ``uint8`` image, **BGR**.
             boxes_xyxy: ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels (continuous coordinates), one per instance
-                of this object (:func:`refiner_rt.preprocess.validate_boxes`'s rules); ``N * hypotheses`` at most
+                of this object (:func:`refiner_rt.checks.validate_boxes`'s rules); ``N * hypotheses`` at most
                 1024.
             K: ``(3, 3)`` pinhole intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels (required).
             depth: optional ``H x W`` float depth image in **metres** registered to ``image_bgr`` (0 or non-finite

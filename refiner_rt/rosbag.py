@@ -24,7 +24,8 @@ image's time:
 * ``/refiner_rt/detections`` (``vision_msgs/Detection2DArray``): the input detections with the refined poses in
   their hypotheses (an empty ``Detection2D.id`` of one of several instances gets its number, ``1``, ``2``...);
 * ``/refiner_rt/detections3d`` (``vision_msgs/Detection3DArray``): per refined instance its class id, the refined
-  pose and the refinement's confidence (``RefineResult.score``, in ``(0, 1]``: docs/ros2.md) as the hypothesis score;
+  pose and the refinement's confidence (``RefineResult.score``, in ``(0, 1]``; calibrated for two passes, see
+  docs/ros2.md) as the hypothesis score;
 * ``/refiner_rt/lost`` (``vision_msgs/Detection2DArray``, in ``"track"`` mode with ``lost_deg``, at every matched
   image, empty when none): the detections whose track the loss-of-track check flagged in that frame;
 * ``/refiner_rt/overlay/compressed`` (``sensor_msgs/CompressedImage``, JPEG): the image with each object's box, its

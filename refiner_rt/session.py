@@ -382,7 +382,7 @@ class RefinerSession:
             boxes_xyxy: ``(N, 4)`` boxes ``(x1, y1, x2, y2)`` in pixels (float, continuous
                 coordinates), not normalised to 0..1; each at least ``MIN_BOX_SIDE`` (2) pixels wide and high,
                 with at least ``MIN_INSIDE_FRACTION`` (25%) of its area inside the image and coordinates within
-                ``+-MAX_BOX_COORDINATE`` (1e6) pixels (:func:`refiner_rt.preprocess.validate_boxes`: the errors
+                ``+-MAX_BOX_COORDINATE`` (1e6) pixels (:func:`refiner_rt.checks.validate_boxes`: the errors
                 name the box). ``N * views`` at most :data:`MAX_BATCH` (1024).
             q_in_wxyz: ``(N, 4)`` coarse object-to-camera rotations, ``wxyz`` (or in ``q_order``). Finite and
                 non-zero; non-unit quaternions are normalised (their norm carries no rotation; huge

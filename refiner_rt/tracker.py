@@ -684,7 +684,7 @@ def _fraction(q: list, power: float) -> list:
 
 def _check_box(box, image_shape, name: str) -> list:
     """One box ``(x1, y1, x2, y2)`` in pixels as a list of floats, checked by the session's rules (its fast path for a
-    well-formed box, else :func:`refiner_rt.preprocess.validate_boxes`, which raises the detailed error)."""
+    well-formed box, else :func:`refiner_rt.checks.validate_boxes`, which raises the detailed error)."""
     try:
         arr = np.asarray(box, dtype=np.float64)
     except (TypeError, ValueError):

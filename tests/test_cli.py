@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 from click.testing import CliRunner
 import pytest
@@ -246,3 +247,21 @@ def test_the_training_commands_are_plugged_in_by_entry_points_not_named_by_the_r
     for value in declared.values():  # each names a torch-free LazyCommand in the training package
         module = value.split(":")[0]
         assert importlib.util.find_spec(module) is not None, module
+
+
+@pytest.mark.parametrize("args", [
+    ["demo", "--out", "{tmp}/demo.txt"],
+    ["estimate", "{frame}", "--K", "1066.8,1067.5,313,241.3", "--object", "035_power_drill",
+     "--box", "438,202,636,368", "--overlay", "{tmp}/overlay.txt"],
+    ["track", "--bag", "{tmp}", "-o", "{tmp}/out_bag"],
+], ids=["demo --out", "estimate --overlay", "track --bag"])
+def test_a_picture_or_bag_path_the_command_cannot_use_is_one_error_line(tmp_path, args):
+    """A picture suffix OpenCV does not write, and a folder that is no bag: named in one line, no traceback."""
+    pytest.importorskip("rosbags")
+    frame = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples" / "000002_000001.jpg"
+    argv = [a.replace("{tmp}", str(tmp_path)).replace("{frame}", str(frame)) for a in args]
+    res = CliRunner().invoke(main, argv)
+    assert res.exit_code == 1, res.output
+    assert "Traceback" not in res.output and res.output.startswith("Error: ") and str(tmp_path) in res.output
+    if args[0] != "track":
+        assert ".png" in res.output  # what is expected

@@ -601,7 +601,7 @@ def test_options_of_the_frames_path_are_refused_with_a_bag_with_what_the_bag_giv
     (tmp_path / "d.json").write_text("{}")
     for flag in (["--sync-tolerance-ms", "5"], ["--identity-is-pose"]):
         res = CliRunner().invoke(main, ["track", str(frames), str(tmp_path / "d.json"), "-o", "x.json", *flag])
-        assert res.exit_code == 2 and f"{flag[0]} apply to --bag only" in res.output
+        assert res.exit_code == 2 and f"{flag[0]} applies to --bag only" in res.output
 
 
 def test_two_instances_without_ids_are_tracked_apart():

@@ -1,7 +1,7 @@
 """The ``refiner-rt`` command line: a thin click group whose subcommands import lazily, one module per command.
 
 The runtime's subcommands live in this package (:data:`RUNTIME_COMMANDS`: ``info``, ``models``, ``demo``,
-``track``, ``bench``) and need only numpy, OpenCV and onnxruntime. Other packages plug commands in through the entry
+``estimate``, ``track``, ``bench``) and need only numpy, OpenCV and onnxruntime. Other packages plug commands in through the entry
 point group :data:`ENTRY_POINT_GROUP` (``pyproject.toml`` declares the training package's ``export``, ``train``,
 ``render`` and ``eval`` there): the runtime never names a training module. Each entry point names a
 :class:`LazyCommand` (its target and one-line help) or a click command; nothing is imported until a command runs
@@ -21,6 +21,7 @@ from refiner_rt import __version__
 from refiner_rt.errors import TRAINING_INSTALL, ModelError
 
 __all__ = ["main", "LazyGroup", "LazyCommand", "RUNTIME_COMMANDS", "ENTRY_POINT_GROUP", "plugged_commands",
+           "check_picture_path", "write_picture", "PICTURE_SUFFIXES",
            "missing_message"]
 
 # Where other packages declare their subcommands (pyproject.toml, [project.entry-points."refiner_rt.commands"]).
@@ -53,6 +54,36 @@ RUNTIME_COMMANDS = {
     "bench": LazyCommand("refiner_rt.cli.bench:bench_cmd",
                          "CPU speed of the full refine() path: shallow, fusion and VGG-M, fp32 and INT8."),
 }
+
+
+PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")  # what the commands' pictures may be
+
+
+def check_picture_path(path):
+    """``path`` as a ``Path`` when its suffix is one of :data:`PICTURE_SUFFIXES`, else a one-line click error (a
+    command checks its picture path before its work, then writes with :func:`write_picture`)."""
+    from pathlib import Path
+
+    path = Path(path)
+    if path.suffix.lower() not in PICTURE_SUFFIXES:
+        raise click.ClickException(f"cannot write a picture to {path}: expected a file ending in "
+                                   f"{', '.join(PICTURE_SUFFIXES)}; got {path.suffix or 'no suffix'!r}")
+    return path
+
+
+def write_picture(path, picture) -> None:
+    """Write ``picture`` (``H x W x 3`` uint8 BGR) to ``path``, or a one-line click error naming what was wrong: a
+    suffix OpenCV does not write as an image (one of :data:`PICTURE_SUFFIXES` expected), or a folder not writable."""
+    import cv2
+    from pathlib import Path
+
+    path = check_picture_path(path)
+    try:
+        ok = cv2.imwrite(str(path), picture)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise click.ClickException(f"could not write {path} (is its folder there and writable?)")
 
 
 def plugged_commands() -> dict:

@@ -9,6 +9,8 @@ import click
 import cv2
 import numpy as np
 
+from refiner_rt.cli import check_picture_path, write_picture
+
 __all__ = ["demo_cmd", "numbers_callback"]
 
 
@@ -75,17 +77,13 @@ def demo_cmd(out, seed, threads, image_path, box, q, K, object_id, cascade):
             raise click.UsageError(f"--image needs {', '.join(missing)} as well")
     if out.parent != Path("") and not out.parent.is_dir():
         raise click.BadParameter(f"directory {out.parent} does not exist", param_hint="'--out'")
+    check_picture_path(out)
     t0 = time.perf_counter()
     if image_path is None:
         _samples(out, seed, threads, cascade)
     else:
         _own_image(out, threads, image_path, box, q, K, object_id, cascade)
     click.echo(f"Wall time {time.perf_counter() - t0:.1f} s.")
-
-
-def _write(out: Path, picture: np.ndarray) -> None:
-    if not cv2.imwrite(str(out), picture):
-        raise click.ClickException(f"could not write {out} (a .png path in a writable folder?)")
 
 
 def _refiner(object_id: str, threads: int, cascade: bool):
@@ -135,7 +133,7 @@ def _samples(out: Path, seed: int, threads: int, cascade: bool = False) -> None:
     click.echo("\nErrors: mean geodesic angle to the ground truth. Time: median of one refine() call (crop, network,\n"
                "composition) at batch 1" + ("; a cascade's call runs eight to twelve network passes." if cascade
                                             else "."))
-    _write(out, demo.demo_picture(frames, refinements, demo.load_outlines()))
+    write_picture(out, demo.demo_picture(frames, refinements, demo.load_outlines()))
     click.echo(f"Wrote {out}: per object, ground truth (white), coarse input (cyan), refined (green).")
 
 
@@ -181,6 +179,6 @@ def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: 
     click.echo(f"{object_id}: refined q (wxyz) {np.array2string(q_ref, precision=4, separator=', ')}, "
                f"{float(rq.geodesic_angle(q_in, q_ref)):.1f} deg from the coarse one, {ms:.2f} ms ({ran})")
     outline = demo.load_outlines().get(object_id)
-    _write(out, demo.image_picture(image, K3, box, q_in, q_ref, outline))
+    write_picture(out, demo.image_picture(image, K3, box, q_in, q_ref, outline))
     click.echo(f"Wrote {out}: coarse (cyan) and refined (green) outlines, placed from the box (the refiner estimates "
                "rotation only).")

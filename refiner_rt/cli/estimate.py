@@ -16,6 +16,7 @@ import click
 import cv2
 import numpy as np
 
+from refiner_rt.cli import check_picture_path, write_picture
 from refiner_rt.cli.demo import numbers_callback
 
 __all__ = ["estimate_cmd", "read_depth"]
@@ -137,10 +138,12 @@ def estimate_cmd(images, K, object_id, boxes, detections_path, depths, depth_uni
     from refiner_rt.pretrained import pretrained_models
 
     if depths and len(depths) != len(images):
-        raise click.UsageError(f"--depth given {len(depths)} times for {len(images)} images: one per image, in order")
+        raise click.UsageError(f"--depth given {len(depths)} time{'s' if len(depths) != 1 else ''} for {len(images)} images: one per image, in order")
     for path in (out, overlay):
         if path is not None and path.parent != Path("") and not path.parent.is_dir():
             raise click.BadParameter(f"directory {path.parent} does not exist", param_hint=f"'{path}'")
+    if overlay is not None:
+        check_picture_path(overlay)
     K3 = np.array([[K[0], 0.0, K[2]], [0.0, K[1], K[3]], [0.0, 0.0, 1.0]])
     wanted = _detections(detections_path, images, object_id, boxes)
     shipped = sorted(m.object_id for m in pretrained_models())
@@ -175,8 +178,7 @@ def estimate_cmd(images, K, object_id, boxes, detections_path, depths, depth_uni
         result["images"].append({"image": str(path), "depth": str(depths[i]) if depths else None, "poses": poses})
         if overlay is not None:
             target = overlay if len(images) == 1 else overlay.with_name(f"{overlay.stem}_{path.stem}.png")
-            if not cv2.imwrite(str(target), _picture(image, K3, poses)):
-                raise click.ClickException(f"could not write {target} (a .png path in a writable folder?)")
+            write_picture(target, _picture(image, K3, poses))
     result["wall_s"] = round(time.perf_counter() - t0, 3)
     text = json.dumps(result, indent=1)
     if out is None:

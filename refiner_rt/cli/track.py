@@ -273,7 +273,8 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
 @click.option("--threads", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Threads each network runs on.")
 @click.option("--video", "video_path", type=click.Path(dir_okay=False, path_type=Path),
-              help="Also write the frames annotated with boxes and rotation axes: a .mp4/.avi video or a .png/.jpg "
+              help="Also write the frames annotated with each object's outline at its refined rotation (and the detector's "
+                   "input), its label and score, and a legend: a .mp4/.avi video or a .png/.jpg "
                    "strip of --strip frames.")
 @click.option("--strip", "strip_frames", type=click.IntRange(1, 64), default=8, show_default=True,
               help="Frames in a --video image strip, evenly spaced.")
@@ -324,7 +325,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
     used = [flag for flag, value in bag_only.items() if value]
     if used:
-        raise click.UsageError(f"{', '.join(used)} apply to --bag only")
+        raise click.UsageError(f"{', '.join(used)} {'applies' if len(used) == 1 else 'apply'} to --bag only")
     if out_path.suffix.lower() != ".json":
         raise click.BadParameter(f"expected a .json file for the rotations (a video or image strip goes to --video); "
                                  f"got {out_path.name!r}", param_hint="'-o' / '--out'")
@@ -439,7 +440,7 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
                                  progress=bar.update)
     except ModuleNotFoundError as exc:
         raise click.ClickException(str(exc) if exc.name == "rosbags" else f"needs {exc.name!r}") from None
-    except (ValueError, TypeError, FileExistsError) as exc:
+    except (ValueError, TypeError, FileExistsError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     except Exception as exc:  # rosbags' own errors (a damaged bag, an unknown message type): named, one line
         if type(exc).__module__.startswith("rosbags"):

@@ -31,7 +31,7 @@ STAGES = ("coarse", "fine", "cascade")
 
 
 def measure(objects: list[str], folder: Path, draws: int, symmetric: bool, gates: dict | None = None) -> dict:
-    """Per object and pooled over objects (instances weighted alike): :func:`benchmarks.fine.summarise`. ``gates``:
+    """Per object and pooled over objects (instances weighted alike): :func:`models.evaluate.cascade.summarise`. ``gates``:
     ``{object: (gate_deg, coarse_gate_deg)}`` in place of the shipped ones."""
     from refiner_rt.pretrained import pretrained_model
 

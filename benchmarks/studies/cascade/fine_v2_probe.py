@@ -1,7 +1,7 @@
 """A fine refiner trained from the shipped version-6 coarse model on the robot layout, against the shipped fine
 refiner (version 1: from version 5, tabletop layout), each in the cascade with the shipped version-6 coarse INT8 model.
 
-Both fine refiners in fp32; each one's gates chosen on ``--calibration`` (``benchmarks.fine.measure_cascade``: rendered
+Both fine refiners in fp32; each one's gates chosen on ``--calibration`` (``models.evaluate.cascade.measure_cascade``: rendered
 scenes the card does not score), then the card's renders (``--heldout``) and the real frames (``--real``, ten U(0, 30)
 inputs per instance; measuring only). The trial's fine refiner is trained first with
 

@@ -4,7 +4,7 @@ weighs, then scored on the card's renders.
 
 ``export/release/fine.py`` chooses each object's ``(gate_deg, coarse_gate_deg)`` on ``--calibration`` (rendered scenes the
 card does not score) as the smallest ``mean + drift`` (``W = 1``). Both paths of the cascade are run for every
-instance once (``benchmarks.fine.runtime_errors``, cached as ``.npz`` under ``--cache``), so every gate and weight is
+instance once (``models.evaluate.cascade.runtime_errors``, cached as ``.npz`` under ``--cache``), so every gate and weight is
 read off the same arrays. ``--real`` adds the real frames (ten U(0, 30) inputs per instance; measuring only, nothing
 is chosen there).
 

@@ -1,9 +1,9 @@
 """Does averaging more box-jittered views take the cascade to its render goals? For each ``COARSExFINE`` pair of
 view counts, every object's gates are chosen on the calibration renders as ``export/release/fine.py gate`` chooses them
-(the smallest U(0, 30) mean plus drift over ``benchmarks.fine.GATES``), then the cascade is scored on the card's
+(the smallest U(0, 30) mean plus drift over ``models.evaluate.cascade.GATES``), then the cascade is scored on the card's
 renders and, measuring only, on the real frames (ten U(0, 30) inputs per instance, the can up to its turns).
 
-Both paths of the cascade are run for every instance once per pair (``benchmarks.fine.runtime_errors``, cached as
+Both paths of the cascade are run for every instance once per pair (``models.evaluate.cascade.runtime_errors``, cached as
 ``.npz`` under ``--cache``), so objects can be run in separate processes and the table written by a last run that
 finds every array cached.
 
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
             f"drift {row[n]['drift_mean_deg']:.2f} 0-3 {row[n]['input_0_3_mean_deg']:.2f}" for n in sets), flush=True)
     if args.json:
         write_json(args.json, {"objects": objects, "sets": {n: data_name(f) for n, (f, _) in sets.items()},
-                               "gate_rule": "benchmarks.fine.choose_gate on the calibration set", "rows": rows})
+                               "gate_rule": "models.evaluate.cascade.choose_gate on the calibration set", "rows": rows})
     return 0
 
 

@@ -50,7 +50,7 @@ NEW_SCHEME = "static-qdq-int8-conv-float-pose"
 
 def float_pose_model(obj: str, calibration: Path, out: Path, cache: Path) -> Path:
     """The object's shipped fp32 file quantised with :data:`NEW_SCHEME`, calibrated as the shipped INT8 file was
-    (every instance of ``obj`` in ``calibration``, ``export/release/coarse.py``'s ``_fresh_quantization``)."""
+    (every instance of ``obj`` in ``calibration``, ``export/release/coarse.py``'s ``fresh_quantization``)."""
     from export.quantize import dataset_calibration, quantize_model
     from export.release.card import metadata_props
     from models.data.pipeline import whole_folder_spec
