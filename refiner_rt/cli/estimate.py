@@ -75,6 +75,10 @@ def _detections(detections_path: Path | None, images: tuple[Path, ...], object_i
                                          f"[x1, y1, x2, y2]}}; got {e!r}", param_hint="'--detections'")
             rows.append((e["object"], box))
         out[i] = rows
+    stray = sorted(set(doc) - {image.name for image in images})
+    if stray:  # a key that names no given image: a typo or another folder's file, said rather than ignored
+        click.echo(f"Warning: {detections_path}: no image given for {', '.join(map(repr, stray[:5]))}"
+                   f"{' ...' if len(stray) > 5 else ''} (its keys are image file names)", err=True)
     return out
 
 
@@ -95,7 +99,7 @@ def _picture(image: np.ndarray, K: np.ndarray, poses: list[dict]) -> np.ndarray:
             continue
         uv, z = draw.project(outline.points_m, R, t, K)
         radius = 0.6 * outline.spacing_m * K[0, 0] / float((R @ outline.centroid_m + t)[2])
-        draw.draw_outline(canvas, uv, z, radius, (60, 225, 60), 2)
+        draw.draw_outline(canvas, uv, z, radius, draw.POSE_COLOURS["refined"], 2)
         c = outline.centroid_m
         length = 0.4 * float(np.max(outline.points_m.max(axis=0) - outline.points_m.min(axis=0)))
         uv, _ = draw.project(np.vstack([c, c + length * np.eye(3)]), R, t, K)
