@@ -333,8 +333,10 @@ def test_a_network_goes_on_with_per_crop_input_norm_and_the_roll_at_once_with_th
 
     torch.manual_seed(0)
     plain = models.build_refiner("fusion", input_size=32, **SMALL)
-    changed = with_roll(plain, {**plain.config, "roll": "canonical", "input_norm": "per_crop"})
+    changed = with_roll(plain, {**plain.config, "roll": "canonical", "input_norm": "per_crop",
+                                "crop_filter": "antialias"})
     assert changed.config["roll"] == "canonical" and changed.config["input_norm"] == "per_crop"
+    assert changed.config["crop_filter"] == "antialias"
     assert changed.normalize.per_crop
     for name, value in plain.state_dict().items():
         assert torch.equal(changed.state_dict()[name], value), name

@@ -179,14 +179,14 @@ ROLLS = {"canonical": canonical_roll, "quarter": quarter_roll}
 
 
 # Config keys of the fusion network that change no weight: a network may go on with another value of them.
-WEIGHTLESS_KEYS = ("roll", "input_norm")
+WEIGHTLESS_KEYS = ("roll", "input_norm", "crop_filter")
 
 
 def with_roll(model, config: dict):
     """``model`` rebuilt with ``config`` when the two differ only in the fusion network's weightless keys
-    (:data:`WEIGHTLESS_KEYS`: the input turn ``roll`` and the input normalisation ``input_norm``, which change no
-    weight, so a network trained without them may go on with them, and back), its weights kept; else ``model`` as it
-    is (the caller's own checks then refuse another network)."""
+    (:data:`WEIGHTLESS_KEYS`: the input turn ``roll``, the input normalisation ``input_norm`` and the crop rule's
+    ``crop_filter``, which change no weight, so a network trained without them may go on with them, and back), its
+    weights kept; else ``model`` as it is (the caller's own checks then refuse another network)."""
     mine = getattr(model, "config", None)
     if getattr(model, "arch", None) != "fusion" or not mine:
         return model
