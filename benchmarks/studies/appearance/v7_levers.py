@@ -16,6 +16,7 @@ lever        training
              docs/design.md §3) in training as at run time; version 6 had it at run time only
 ``norm``     the network's input normalisation ``per_crop`` (each crop by its own per-channel mean and spread,
              inside the graph: a gain and an offset per channel, such as exposure and white balance, cancel)
+``photo_norm`` ``photo`` and ``norm`` together
 ===========  ===================================================================================================
 
 Each row is trained with ``--seeds`` (three by default: a seed alone moves a row by up to 3 degrees at this size),
@@ -52,8 +53,9 @@ from models.evaluate.record import write_json
 # working camera's (narrower than theirs); the probabilities are theirs.
 PHOTO = {"downscale": 0.2, "motion_blur": 0.2, "blur": 0.4, "sensor_noise": 0.3, "white_balance": 0.3,
          "brightness": 0.5, "gamma": 0.3, "contrast": 0.3, "colour": 0.3, "sharpness": 0.3, "jpeg": 0.3}
-LEVERS = {"control": {}, "photo": PHOTO, "aa": {}, "norm": {}}
-CONFIG = {"aa": {"crop_filter": "antialias"}, "norm": {"input_norm": "per_crop"}}  # network config keys a lever sets
+LEVERS = {"control": {}, "photo": PHOTO, "aa": {}, "norm": {}, "photo_norm": PHOTO}
+CONFIG = {"aa": {"crop_filter": "antialias"}, "norm": {"input_norm": "per_crop"},
+          "photo_norm": {"input_norm": "per_crop"}}  # network config keys a lever sets
 
 
 def row_folder(run: Path, lever: str, seed: int) -> Path:
