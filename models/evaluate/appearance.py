@@ -1,25 +1,7 @@
 """The appearance benchmark: how much real pixels cost the refiners, measured without the real frames kept aside.
 
-Three parts, each optional, one JSON (and a plot):
-
-* ``gap``: the real frames (``--real``, a BOP folder such as ``real_ycbv_dev/test``) against the same frames with
-  every annotated object re-drawn at its true pose by the training renderer (``benchmarks/real_rendered.py``). The
-  views are the same, so the difference per object is what the real appearance costs.
-* ``stress``: the real frames under one camera effect at a time (:data:`STRESS_CASES`: exposure, tone curve, white
-  balance and colour cast, saturation, contrast, sharpening, sensor noise, motion and defocus blur, JPEG, a lower
-  resolution), each at a strength a real camera gives, applied to the whole frame before the crop
-  (:func:`models.data.augment.apply_op`, the training augmentation's own operations). A robust model moves little: the
-  table is each case's error minus the clean frames' error.
-* ``rendered``: any number of rendered BOP folders (``--rendered NAME=DIR``: e.g. a Blender Cycles validation set and
-  TinyRenderer fresh renders of the same layout), scored the same way; the ratio of the first to the second is
-  reported.
-
-Every part scores every instance with ``visib_fract >= 0.3`` through the runtime as ``benchmarks/real.py`` does:
-``--draws`` coarse inputs U(0, 30) degrees around the truth per instance, one pass, and the drift (the true pose
-as the input). Real frames are for measuring only: choose checkpoints on the stress test and the rendered sets, never
-on the real frames' own numbers.
-
-The command is ``python -m benchmarks.appearance`` (its docstring has the usage); this module is what it runs.
+The command is ``python -m benchmarks.appearance`` (its docstring describes what is measured and has the usage);
+this module is what it runs.
 """
 
 from __future__ import annotations

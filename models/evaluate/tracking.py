@@ -1,44 +1,9 @@
-"""The tracking harness, on rendered video: each frame refined from the previous frame's result, against the
-paper's per-frame use.
+"""The tracking harness, on rendered video: each frame refined from the previous frame's result, against the paper's
+per-frame use.
 
-A *sequence* is one object along one rendered camera path (``refiner-rt render --frames-per-scene 100``: a still
-tabletop seen by a camera sweeping 60-180 degrees of azimuth). On every sequence and at frame steps 1, 2 and 4 (every
-frame, every 2nd, every 4th: larger motion between updates), four estimates are scored against the ground truth:
-
-* ``hold``: the initial coarse pose, drawn U(0, 30) degrees around the truth of the first frame, never updated;
-* ``per_frame``: the paper's setting, every frame refined once from a fresh coarse pose drawn U(0, 30) around its truth;
-* ``track``: :class:`refiner_rt.tracker.RefinerTracker` started from the ``hold`` pose, one refinement per frame,
-  each from the previous frame's result;
-* ``track_predict``: the same with the constant-angular-velocity prediction;
-* ``track_redetect``: ``track`` with a detector's pose every ``--redetect`` frames (a slow detector and a fast
-  tracker): :meth:`~refiner_rt.tracker.RefinerTracker.reset` to the same fresh draw ``per_frame`` refines there;
-* ``track_lost``: ``track`` with the tracker's loss-of-track check (``lost_deg=--lost-deg``: a second refinement
-  of each refined rotation; an object it moves by more than that is lost) and the detector asked only then, for the
-  same fresh draw ``per_frame`` refines on that frame. Its re-detection rate is reported (detector poses per
-  refined object and frame).
-* ``track_fuse``: ``track`` with a detector's pose every ``--fuse-every`` frames (default every frame: the same
-  fresh draw ``per_frame`` refines), refined beside the track and fused with it
-  (``RefinerTracker(detector_weight=--detector-weight)``): the same detector input as ``per_frame`` at twice its
-  network passes.
-
-* ``per_frame_cascade`` and ``track_cascade`` (``--methods``; they need every object's fine refiner): ``per_frame``
-  and ``track`` with :class:`refiner_rt.RefinerCascade` in place of the coarse refiner (the tracker runs the coarse
-  refiner, then the fine one, on every update); ``--settle-deg`` gives their cascades ``settle_deg`` (a second coarse
-  pass on the rows that go the long way, kept where it turns the result by more than that).
-* ``track_scene`` and ``track_cascade_scene``: ``track`` and ``track_cascade`` with the scene's motion
-  (``RefinerTracker(predict="scene")``, its defaults or ``--motion-window``, ``--prediction-weight`` and
-  ``--max-correction-deg``): the camera's turn, estimated from every tracked object of the scene (they stand still),
-  turns each track before its update and carries hidden objects through their occlusions.
-
-Coarse poses follow docs/design.md §1 (``q_in = q_gt * q_noise``, uniform axis). A frame where the object's BOP
-``visib_fract`` is below ``--min-visib`` gives the tracker no box (a missed detection) and is not scored. All objects
-of a scene are tracked by one tracker, each with its own shipped model, one ``update()`` per frame. Reported per method
-and step: mean error over all scored frames, the mean error at each sequence's last scored frame, the share of
-sequences that diverge (error above 30 degrees at any scored frame), and the cost of an update; the plot shows the mean
-error against the frame index since the track began.
-
-The command is ``python -m benchmarks.tracking`` (its docstring has the usage); this module is its harness: the
-sequences of a rendered folder, one scene's run of every method, the summaries and the report's table.
+The command is ``python -m benchmarks.tracking`` (its docstring describes what is measured and has the usage); this
+module is its harness: the sequences of a rendered folder, one scene's run of every method, the summaries and the
+report's table.
 """
 
 from __future__ import annotations

@@ -1,16 +1,7 @@
 """Real frames with their objects re-drawn: what the view costs on real frames, apart from the appearance.
 
-Writes a copy of a BOP folder of real frames in which every annotated object is replaced by a render of its mesh
-at its true pose (pybullet's TinyRenderer, the training renderer, one fixed light), over the real image
-(``--background real``) or over flat grey (``--background grey``). Score the copy as the real frames are scored
-(``benchmarks/real.py --data OUT``): an object whose error stays high on its renders at the true pose fails on its
-view (a pose its training scenes lack, ``benchmarks/pose_coverage.py --query``), not on how real pixels look; the
-difference to the real frames' score is what the appearance costs. Annotated objects occlude each other as in the
-frame; objects that are not annotated are not drawn, so where one hid an annotated object the render shows it.
-
-Real frames are for measuring only: never train, calibrate or choose a checkpoint on them or on this copy.
-
-The command is ``python -m benchmarks.real_rendered`` (its docstring has the usage); this module is what it runs.
+The command is ``python -m benchmarks.real_rendered`` (its docstring describes what is measured and has the usage);
+this module is what it runs.
 """
 
 from __future__ import annotations
