@@ -40,7 +40,7 @@ import numpy as np
 
 from models.data.bop import load_bop, read_json
 from models.data.objects import SCAN_FRAME_SYMMETRIES
-from models.evaluate.record import git_commit, machine
+from models.evaluate.record import data_name, git_commit, machine
 from models.evaluate.pose6d import add_or_add_s, add_s, auc, mesh_points
 from models.data.symmetry import symmetric_error
 from refiner_rt import quaternion as rq
@@ -295,7 +295,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         res = evaluate(samples, ests, points, depth=True)
         times = timing(samples, ests, args.timing_calls)
-        entry = {"data": str(data), "eval_s": round(time.perf_counter() - t0, 1), "timing_ms": times,
+        entry = {"data": data_name(data), "eval_s": round(time.perf_counter() - t0, 1), "timing_ms": times,
                  "timing_median_total_ms": float(np.median([t["total_ms"] for t in times.values()])),
                  "timing_median_total_cpu_ms": float(np.median([t["total_cpu_ms"] for t in times.values()]))}
         for mode, rows in res.items():
