@@ -99,3 +99,16 @@ def test_a_tiny_build_trains_through_the_recipe_path(tmp_path):
     portable = coarse.portable_recipe(recipe)
     assert portable["data"] == "cubes" and portable["cache_root"] is None
     assert str(tmp_path) not in json.dumps(portable)
+
+
+def test_build_refuses_a_from_weights_path_that_is_not_a_folder(tmp_path, capsys):
+    """``build --from-weights`` (start from an earlier version's fp32 files, to build a shipped version again) names
+    the option and what it expected, before any training."""
+    (tmp_path / "data").mkdir()
+    with pytest.raises(SystemExit) as exc:
+        coarse.main(["build", "--data", str(tmp_path / "data"), "--run", str(tmp_path / "run"), "--objects",
+                     "011_banana", "--from-weights", str(tmp_path / "missing")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--from-weights" in err and "not a folder" in err
+    assert not (tmp_path / "run").exists()

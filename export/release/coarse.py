@@ -378,10 +378,13 @@ def card_command(cmd: list[str]) -> str:
 
 
 def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, sizes: int,
-                val: int | None = None, test: int | None = None, extra_train: list[Path] = ()) -> dict:
+                val: int | None = None, test: int | None = None, extra_train: list[Path] = (),
+                from_weights: Path | None = None) -> dict:
     """Train ``obj``'s model (:func:`shipped_recipe`, :func:`train_shipped`), export it to fp32 and INT8 ONNX
     (:func:`quantize_for_shipping`), evaluate it on its held-out scenes, stamp its card keys, copy both files into
-    the package and regenerate the card (:func:`export.release.card.publish`): the build record."""
+    the package and regenerate the card (:func:`export.release.card.publish`): the build record. ``from_weights``:
+    a folder holding the fp32 file of the version before, to start from instead of the package's (to build again a
+    version that ships already, :func:`recover_shipped`)."""
     import logging
 
     logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)  # torchvision ops: n/a
@@ -396,7 +399,8 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
                                       noise=first["noise"], lr=first["lr"])
         init, init_record = train_shipped(first_recipe, run / f"{obj}.stage1", obj)[0], None
     else:
-        init, init_record = recover_shipped(obj, data, run, cache) if RECIPE["init_from_shipped"] else (None, None)
+        init, init_record = (recover_shipped(obj, data, run, cache, weights=from_weights)
+                             if RECIPE["init_from_shipped"] else (None, None))
     recipe = shipped_recipe(data, obj, samples, sizes, cache, val, test, init, extra_train)
     ckpt, row = train_shipped(recipe, run / obj, obj)
     fp32, int8 = run / model_file_name(obj, int8=False), run / model_file_name(obj, int8=True)
@@ -681,6 +685,10 @@ def main(argv=None) -> int:
                    help="training crops per object the split is drawn with (default: the recipe's)")
     b.add_argument("--cache", type=Path, help="crop cache folder (default DATA/.crops)")
     b.add_argument("--force", action="store_true", help="rebuild objects that already ship")
+    b.add_argument("--from-weights", type=Path, metavar="FOLDER",
+                   help="start each object from the fp32 file <id>.onnx in FOLDER (the version before this one, "
+                        "e.g. taken from the git history) instead of the package's; with --force this builds a "
+                        "shipped version again")
     b.add_argument("--val", type=int, help=f"validation crops per object (default {RECIPE['val']}; smaller for smoke tests)")
     b.add_argument("--test", type=int, help=f"test crops per object (default {RECIPE['test']})")
     b.add_argument("--heldout", type=Path, help="then score each new model on this folder of fresh scenes and "
@@ -748,6 +756,8 @@ def main(argv=None) -> int:
             detect_format(args.real)
         except (FileNotFoundError, ValueError) as exc:
             ap.error(f"--real: {exc}")
+    if args.from_weights is not None and not args.from_weights.is_dir():
+        ap.error(f"--from-weights: expected a folder holding <id>.onnx fp32 files; {args.from_weights} is not a folder")
     for folder in args.extra_train:
         if not folder.is_dir():
             ap.error(f"--extra-train: expected a rendered dataset folder; {folder} is not a folder")
@@ -770,7 +780,7 @@ def main(argv=None) -> int:
             if done.is_file() and not args.force and _built(json.loads(done.read_text())):
                 continue  # finished by the other build while this one waited
             ship_object(obj, args.data, args.run, cache, args.samples, args.sizes, args.val, args.test,
-                        args.extra_train)
+                        args.extra_train, args.from_weights)
             if args.heldout is not None:
                 requantize(None, None, None, [obj], INT8_SCHEMES_FASTEST_FIRST, args.heldout, args.calibration)
             if args.real is not None:
