@@ -28,7 +28,9 @@ exported (fp32) and scored where appearance is the problem, which is where the c
   renders (``--fresh``), one coarse input per instance for the renders, 10 per instance for the frames;
 - the real dev frames (``--real``) are reported beside, never chosen on.
 
-Usage (from the repository root; resumable: a finished row is kept in the JSON, a trained checkpoint is reused)::
+Usage (from the repository root; resumable: a finished row is kept in the JSON, a trained checkpoint is reused; a
+rendered set left out, e.g. while it renders, is scored on the next run that names it, from the rows' models in
+``--run``)::
 
     python -m benchmarks.studies.appearance.v7_levers --robot data/ycb9_robot --real REAL \\
         --cycles data/ycb9_robot_cycles_val_s43 --tiny data/ycb9_robot_tiny_val_s43 \\
@@ -102,19 +104,27 @@ def train_row(lever: str, obj: str, data: Path, run: Path, samples: int, sizes: 
 
 def score(onnx: Path, obj: str, real: Path, rendered: dict[str, Path], work: Path) -> dict:
     """The stress test on ``real`` (clean, worst and mean cost), and each rendered set's mean and drift."""
-    from models.evaluate.appearance import run_rendered, run_stress
+    from models.evaluate.appearance import run_stress
 
     stress = run_stress({obj: onnx}, real, work, draws=10, seed=2024, progress=False)
     out = {"real": {"mean_deg": round(stress["clean_deg"], 3), "drift_mean_deg": round(stress["clean_drift_deg"], 3)},
            "stress": {"worst_case": stress["worst_case"], "worst_cost_deg": round(stress["worst_cost_deg"], 3),
                       "mean_cost_deg": round(stress["mean_cost_deg"], 3),
                       "cases": {c["case"]: round(c["cost_deg"], 3) for c in stress["cases"]}}}
+    return {**out, **score_rendered(onnx, obj, rendered)}
+
+
+def score_rendered(onnx: Path, obj: str, rendered: dict[str, Path], row: dict | None = None) -> dict:
+    """Each rendered set's mean and drift (one coarse input per instance), and the Cycles set's ratio to its
+    TinyRenderer twin when both are scored (here or already in ``row``)."""
+    from models.evaluate.appearance import run_rendered
+
     sets = run_rendered({obj: onnx}, rendered, draws=1, seed=2024)["sets"]
-    for name, s in sets.items():
-        out[name] = {"mean_deg": round(s["mean_deg"], 3), "drift_mean_deg": round(s["drift_mean_deg"], 3),
-                     "instances": s["instances"]}
-    if "cycles" in sets and "tiny" in sets:
-        out["cycles_ratio"] = round(sets["cycles"]["mean_deg"] / sets["tiny"]["mean_deg"], 3)
+    out = {name: {"mean_deg": round(s["mean_deg"], 3), "drift_mean_deg": round(s["drift_mean_deg"], 3),
+                  "instances": s["instances"]} for name, s in sets.items()}
+    both = {**(row or {}), **out}
+    if "cycles" in both and "tiny" in both:
+        out["cycles_ratio"] = round(both["cycles"]["mean_deg"] / both["tiny"]["mean_deg"], 3)
     return out
 
 
@@ -188,9 +198,11 @@ def main(argv=None) -> int:
     if args.table:
         print(table(json.loads(args.table.read_text())))
         return 0
-    missing = [f"--{k}" for k in ("robot", "real", "cycles", "tiny", "fresh", "run", "json") if getattr(args, k) is None]
+    missing = [f"--{k}" for k in ("robot", "real", "run", "json") if getattr(args, k) is None]
     if missing:
         ap.error(f"{', '.join(missing)} required (or --table JSON)")
+    if not (args.cycles or args.tiny or args.fresh):
+        ap.error("at least one rendered set to score: --cycles, --tiny or --fresh")
     from models.evaluate.appearance import DEFAULT_WORK
     from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
 
@@ -199,10 +211,20 @@ def main(argv=None) -> int:
     if bad:
         ap.error(f"--levers: unknown {bad}; expected of v6, {', '.join(LEVERS)}")
     seeds = [int(s) for s in args.seeds.split(",")]
-    rendered = {"cycles": args.cycles, "tiny": args.tiny, "fresh": args.fresh}
+    rendered = {k: v for k, v in {"cycles": args.cycles, "tiny": args.tiny, "fresh": args.fresh}.items() if v}
     doc = json.loads(args.json.read_text()) if args.json.is_file() else {"rows": []}
-    doc.update(samples=args.samples, photo=PHOTO, robot=args.robot.name, rendered={k: v.name for k, v in rendered.items()})
+    doc.update(samples=args.samples, photo=PHOTO, robot=args.robot.name,
+               rendered={**doc.get("rendered", {}), **{k: v.name for k, v in rendered.items()}})
     done = {(r["object"], r["lever"], r.get("seed")) for r in doc["rows"]}
+    # a row scored before a set existed (e.g. the Cycles set still rendering) is scored on it now, from its model
+    for row in doc["rows"]:
+        later = {k: v for k, v in rendered.items() if k not in row}
+        onnx = (WEIGHTS_DIR / model_file_name(row["object"], int8=False) if row["lever"] == "v6"
+                else row_folder(args.run, row["lever"], row["seed"]) / f"{row['object']}.onnx")
+        if later and onnx.is_file():
+            row.update(score_rendered(onnx, row["object"], later, row))
+            write_json(args.json, doc)
+            print(f"[{row['object']}] {row['lever']} seed {row.get('seed')}: scored on {', '.join(later)}", flush=True)
     # seeds outermost: the first complete comparison (one seed of every lever) comes first
     plan = [(obj, "v6", None) for obj in args.objects.split(",") if "v6" in levers]
     plan += [(obj, lv, s) for s in seeds for obj in args.objects.split(",") for lv in levers if lv != "v6"]
@@ -219,8 +241,8 @@ def main(argv=None) -> int:
         row["row_s"] = round(time.perf_counter() - t0, 1)
         doc["rows"].append(row)
         write_json(args.json, doc)
-        print(f"[{obj}] {lever} seed {seed}: stress worst {row['stress']['worst_cost_deg']:+.2f}, Cycles "
-              f"{row['cycles']['mean_deg']:.2f} / tiny {row['tiny']['mean_deg']:.2f}, fresh {row['fresh']['mean_deg']:.2f}, "
+        sets = ", ".join(f"{k} {row[k]['mean_deg']:.2f}" for k in rendered)
+        print(f"[{obj}] {lever} seed {seed}: stress worst {row['stress']['worst_cost_deg']:+.2f}, {sets}, "
               f"dev {row['real']['mean_deg']:.2f} ({row['row_s']:.0f} s)", flush=True)
     print(table(doc))
     return 0
