@@ -23,6 +23,8 @@ Usage (from the repository root)::
 
     python -m benchmarks.appearance --real REAL [--rendered cycles=DIR --rendered tiny=DIR] \\
         [--model OBJ=PATH ...] --json benchmarks/results/appearance/v6.json --plot benchmarks/results/appearance/v6.png
+    python -m benchmarks.appearance --real REAL --rendered cycles=data/ycb9_robot_cycles_val_s43 \
+        --rendered tiny=data/ycb9_robot_tiny_val_s43 --card     # the model card's appearance columns
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import sys
 import time
 from pathlib import Path
 
-from models.evaluate.appearance import DEFAULT_WORK, run_gap, run_rendered, run_stress, table
+from models.evaluate.appearance import CARD_JSON, DEFAULT_WORK, run_gap, run_rendered, run_stress, table
 from models.evaluate.record import write_json
 
 
@@ -76,6 +78,7 @@ def _named_folder(item: str) -> tuple[str, Path]:
 def main(argv=None) -> int:
     from models.evaluate.real import chosen_models
     from models.evaluate.record import machine, positive_int
+    from refiner_rt.metadata import file_sha256
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--real", type=Path, help="a BOP folder of real frames (real_ycbv_dev/test): the gap and stress")
@@ -91,9 +94,19 @@ def main(argv=None) -> int:
                     help=f"cache of the re-drawn and stressed copies (default {DEFAULT_WORK})")
     ap.add_argument("--json", type=Path, help="write the record here")
     ap.add_argument("--plot", type=Path, help="write the bar plot here (PNG)")
+    ap.add_argument("--card", action="store_true",
+                    help="the shipped INT8 models' record for the model card's appearance columns: needs --real and "
+                         "--rendered cycles=DIR --rendered tiny=DIR; writes benchmarks/results/appearance/card.json "
+                         "(unless --json), then the card")
     args = ap.parse_args(argv)
     if args.real is None and not args.rendered:
         ap.error("nothing to measure: give --real and/or --rendered NAME=DIR")
+    if args.card:
+        if args.model or args.fp32:
+            ap.error("--card records the shipped INT8 models: it takes neither --model nor --fp32")
+        if args.real is None or {"cycles", "tiny"} - {name for name, _ in args.rendered} or args.skip:
+            ap.error("--card needs --real REAL, --rendered cycles=DIR and --rendered tiny=DIR, and no --skip")
+        args.json = args.json or CARD_JSON
     if args.real is not None and not args.real.is_dir():
         ap.error(f"--real {args.real}: no such folder")
     models = chosen_models(args.model, args.fp32, ap.error)
@@ -102,6 +115,7 @@ def main(argv=None) -> int:
                  "draws": args.draws, "seed": args.seed, "noise": "uniform:0:30"}
     if args.model:
         doc["model_files"] = {o: p.name for o, p in models.items()}
+    doc["model_sha256"] = {o: file_sha256(p) for o, p in models.items()}
     if args.real is not None:
         doc["real"] = args.real.resolve().parent.name + "/" + args.real.name
         if "gap" not in args.skip:
@@ -122,6 +136,13 @@ def main(argv=None) -> int:
     if args.plot:
         plot(doc, args.plot)
         print(f"Wrote {args.plot}")
+    if args.card:
+        from export.release.card import write_card
+        from models.evaluate.report import write_docs
+
+        write_card(appearance_json=args.json)
+        write_docs()
+        print("Wrote refiner_rt/weights/models.json, MODELS.md and the README's tables")
     return 0
 
 if __name__ == "__main__":

@@ -88,3 +88,53 @@ def test_the_command_line_refuses_nothing_to_measure(capsys):
     with pytest.raises(SystemExit):
         script.main([])
     assert "nothing to measure" in capsys.readouterr().err
+
+
+def test_per_object_columns_are_each_objects_worst_case_gap_and_cycles_ratio(appearance, real_folder, tmp_path):
+    """The card's columns from a record: per object the case costing it most over its own clean frames (not the
+    nine-object worst case), its gap, and Cycles over the twin."""
+    reader = {"003_cracker_box": _write(tmp_path, "reader.onnx", channel_mean_model(props=contract()))}
+    cases = (("exposure -0.7 EV", "brightness", 0.6), ("exposure +0.5 EV", "brightness", 1.4))
+    s = appearance.run_stress(reader, real_folder, tmp_path / "work", draws=2, seed=0, cases=cases, progress=False)
+    dark = appearance.stressed_copy(real_folder, tmp_path / "dark", "brightness", 0.5)
+    doc = {"stress": s, "rendered": appearance.run_rendered(reader, {"cycles": dark, "tiny": real_folder}, 2, 0),
+           "gap": {"objects": {"003_cracker_box": {"gap_deg": 0.5}}}}
+    cols = appearance.per_object(doc)["003_cracker_box"]
+    clean = s["clean_objects"]["003_cracker_box"]
+    costs = {c["case"]: c["objects"]["003_cracker_box"] - clean for c in s["cases"]}
+    worst = max(costs, key=costs.get)
+    assert cols["stress_worst"] == {"case": worst, "cost_deg": pytest.approx(costs[worst], abs=1e-3)}
+    assert cols["gap_deg"] == 0.5
+    sets = doc["rendered"]["sets"]
+    assert cols["cycles"]["ratio"] == pytest.approx(sets["cycles"]["objects"]["003_cracker_box"]["mean_deg"]
+                                                    / sets["tiny"]["objects"]["003_cracker_box"]["mean_deg"], abs=1e-3)
+    assert appearance.per_object({"stress": {k: v for k, v in s.items() if k != "clean_objects"}}) == {}
+
+
+def test_the_card_shows_appearance_only_for_the_files_that_ship(tmp_path):
+    """A record of the shipped INT8 file fills the card's appearance section; one of another file is left out."""
+    from export.release import card
+    from refiner_rt.metadata import file_sha256
+    from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
+
+    shipped = file_sha256(WEIGHTS_DIR / model_file_name("011_banana", int8=True))
+    cases = [{"case": "JPEG 30", "objects": {"011_banana": 9.0, "004_sugar_box": 4.0}},
+             {"case": "contrast 1.3", "objects": {"011_banana": 8.0, "004_sugar_box": 5.0}}]
+    doc = {"draws": 10, "real": "real_ycbv_dev/test", "model_sha256": {"011_banana": shipped, "004_sugar_box": "0" * 64},
+           "stress": {"clean_objects": {"011_banana": 7.0, "004_sugar_box": 3.0}, "cases": cases}}
+    path = tmp_path / "card.json"
+    path.write_text(json.dumps(doc))
+    got = card._appearance(path)
+    assert set(got) == {"011_banana"}
+    assert got["011_banana"]["stress_worst"] == {"case": "JPEG 30", "cost_deg": 2.0}
+    text = card.appearance_markdown(got)
+    assert "| 011_banana | JPEG 30 (+2.00) | - | - | - | - |" in text
+    assert card.appearance_markdown({}) == ""
+
+
+def test_the_card_option_needs_the_real_frames_and_both_rendered_sets(tmp_path, capsys):
+    from benchmarks import appearance as script
+
+    with pytest.raises(SystemExit):
+        script.main(["--real", str(tmp_path), "--rendered", f"cycles={tmp_path}", "--card"])
+    assert "--card needs" in capsys.readouterr().err

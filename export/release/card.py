@@ -1,6 +1,7 @@
 """The model card of the shipped refiners: ``refiner_rt/weights/models.json`` (what the runtime lists) and
 ``refiner_rt/weights/MODELS.md``, generated from the build records in ``benchmarks/results/pretrained/`` and
-``benchmarks/results/fine/`` (and the real-frame record of ``python -m benchmarks.real``); the card's keys in each
+``benchmarks/results/fine/`` (and the real-frame record of ``python -m benchmarks.real``, the appearance record of
+``python -m benchmarks.appearance --card``); the card's keys in each
 ONNX file's metadata (:func:`stamp`); and :func:`publish`, which regenerates the card and the documents' tables after
 a build and names the files that changed (committing them is the builder's step, not the code's).
 """
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from models.evaluate.appearance import CARD_JSON as APPEARANCE_JSON
 from models.evaluate.real import DEFAULT_JSON as REAL_JSON
 from models.evaluate.report import fine_table
 from refiner_rt.metadata import file_sha256
@@ -112,10 +114,30 @@ def _fine() -> dict:
     return out
 
 
-def write_card(real_json: Path = REAL_JSON) -> None:
+def _appearance(appearance_json: Path = APPEARANCE_JSON) -> dict:
+    """Per object, the card's appearance columns (:func:`models.evaluate.appearance.per_object`) from the record of
+    ``python -m benchmarks.appearance --card``, for the INT8 file that ships now (a record of another file is left
+    out, as :func:`_real` does)."""
+    from models.evaluate.appearance import per_object
+
+    if not appearance_json.is_file():
+        return {}
+    doc = json.loads(appearance_json.read_text())
+    shas = doc.get("model_sha256", {})
+    out = {}
+    for obj, cols in per_object(doc).items():
+        shipped = WEIGHTS_DIR / model_file_name(obj, int8=True)
+        if shipped.is_file() and shas.get(obj) == file_sha256(shipped):
+            out[obj] = {**cols, "real": doc.get("real"), "draws": doc["draws"]}
+    return out
+
+
+def write_card(real_json: Path = REAL_JSON, appearance_json: Path = APPEARANCE_JSON) -> None:
     """``weights/models.json`` (what the runtime lists) and ``weights/MODELS.md`` from the evaluation JSON (and the
-    real-frame record of ``python -m benchmarks.real``, ``real_json``; the fine refiners of :mod:`export.release.fine`)."""
+    real-frame record of ``python -m benchmarks.real``, ``real_json``; the appearance record of ``python -m
+    benchmarks.appearance --card``, ``appearance_json``; the fine refiners of :mod:`export.release.fine`)."""
     docs, speed, real, fine = load_results(), _speed(), _real(real_json), _fine()
+    appearance = _appearance(appearance_json)
     models = {}
     for d in docs:
         obj = d["object_id"]
@@ -123,6 +145,7 @@ def write_card(real_json: Path = REAL_JSON) -> None:
         models[obj] = {
             "arch": d["recipe"]["arch"], "config": d["recipe"]["config"], "version": d["model_version"],
             "files": d["files"], "heldout": d["heldout"], **({"real": real[obj]} if obj in real else {}),
+            **({"appearance": appearance[obj]} if obj in appearance else {}),
             **({"fine": fine[obj]} if obj in fine else {}),
             "card": {"fp32_heldout_mean_deg": d["eval"]["fp32"]["all"]["mean_deg"],
                      "heldout_data": d["eval"]["split"].get("data"),
@@ -138,7 +161,38 @@ def write_card(real_json: Path = REAL_JSON) -> None:
         }
     WEIGHTS_DIR.mkdir(exist_ok=True)
     (WEIGHTS_DIR / INDEX_FILE).write_text(json.dumps({"format": INDEX_FORMAT, "models": models}, indent=1) + "\n")
-    (WEIGHTS_DIR / "MODELS.md").write_text(card_markdown(docs, speed, real) + fine_markdown(fine))
+    (WEIGHTS_DIR / "MODELS.md").write_text(card_markdown(docs, speed, real) + appearance_markdown(appearance)
+                                           + fine_markdown(fine))
+
+
+def appearance_markdown(appearance: dict) -> str:
+    """The card's appearance section: per object the worst camera effect of the stress test on the real dev frames,
+    the dev appearance gap, and the Cycles validation set against its TinyRenderer twin ("" when not measured)."""
+    if not appearance:
+        return ""
+    a0 = next(iter(appearance.values()))
+    lines = ["", "## Appearance", "",
+             f"How much the pixels of a real camera or a physically based renderer cost each INT8 refiner, written by "
+             f"`python -m benchmarks.appearance --real REAL --rendered cycles=DIR --rendered tiny=DIR --card` "
+             f"(`benchmarks/results/appearance/card.json`; {a0['draws']} coarse inputs U(0, 30) per instance, one "
+             "pass). Stress test: the real dev frames under one camera effect at a time at a working camera's "
+             "strength (exposure, gamma, white balance, saturation, contrast, sharpening, noise, blur, JPEG, half "
+             "resolution); the worst effect's error minus the clean frames'. Gap: the real dev frames minus the same "
+             "frames with the object re-drawn at its true pose by the training renderer. Cycles: "
+             "`ycb9_robot_cycles_val_s43`, robot-layout scenes rendered by Blender Cycles under varied light and "
+             "materials (no model trained on them), against the same arrangements rendered by the training renderer "
+             "(`ycb9_robot_tiny_val_s43`). The real frames are for measuring only.",
+             "",
+             "| object | stress test: worst effect (cost) | dev gap: real - re-drawn | Cycles val mean | renderer twin "
+             "mean | Cycles / twin |",
+             "|---|---|---:|---:|---:|---:|"]
+    for obj, a in sorted(appearance.items()):
+        sw, cy = a.get("stress_worst"), a.get("cycles")
+        lines.append(f"| {obj} | " + (f"{sw['case']} ({sw['cost_deg']:+.2f})" if sw else "-")
+                     + (f" | {a['gap_deg']:+.2f}" if "gap_deg" in a else " | -")
+                     + (f" | {cy['mean_deg']:.2f} | {cy['tiny_mean_deg']:.2f} | {cy['ratio']:.2f}x |" if cy
+                        else " | - | - | - |"))
+    return "\n".join(lines) + "\n"
 
 
 def fine_markdown(fine: dict) -> str:

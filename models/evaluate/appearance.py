@@ -41,6 +41,8 @@ STRESS_CASES: tuple[tuple[str, str, object], ...] = (
     ("half resolution", "downscale", 0.5),
 )
 DEFAULT_WORK = Path(os.environ.get("REFINER_RT_CACHE", Path.home() / ".cache" / "refiner-rt")) / "appearance"
+# The shipped INT8 models' record that the model card's appearance columns read (``benchmarks.appearance --card``).
+CARD_JSON = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "appearance" / "card.json"
 STRESS_SEED = 7
 
 
@@ -127,7 +129,8 @@ def run_stress(models: dict[str, Path], real: Path, work: Path, draws: int, seed
             print(f"  {name:<22} {s['mean_deg']:6.2f} deg ({rows[-1]['cost_deg']:+.2f}), "
                   f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
     costs = [r["cost_deg"] for r in rows]
-    return {"clean_deg": clean["mean_deg"], "clean_drift_deg": clean["drift_mean_deg"], "cases": rows,
+    return {"clean_deg": clean["mean_deg"], "clean_drift_deg": clean["drift_mean_deg"],
+            "clean_objects": {o: v["mean_deg"] for o, v in clean["objects"].items()}, "cases": rows,
             "worst_case": rows[int(np.argmax(costs))]["case"] if rows else None,
             "worst_cost_deg": max(costs) if rows else None, "mean_cost_deg": float(np.mean(costs)) if rows else None}
 
@@ -171,3 +174,30 @@ def table(doc: dict) -> str:
         if "ratio" in r:
             lines.append(f"  {r['ratio']['of']} / {r['ratio']['to']}: {r['ratio']['value']:.2f}x")
     return "\n".join(lines)
+
+
+def per_object(doc: dict) -> dict:
+    """Per object, the card's appearance columns from an appearance record: the worst stress case at realistic
+    strength (its name and its cost over the clean frames, degrees), the dev appearance gap (real minus re-drawn), and
+    the Cycles validation set's mean with its ratio to the TinyRenderer twin (the rendered sets named ``cycles`` and
+    ``tiny``). Parts the record lacks are left out."""
+    out: dict = {}
+    stress = doc.get("stress")
+    if stress and "clean_objects" in stress:
+        for obj, clean in stress["clean_objects"].items():
+            costs = [(c["objects"][obj] - clean, c["case"]) for c in stress["cases"] if obj in c["objects"]]
+            if costs:
+                cost, case = max(costs)
+                out.setdefault(obj, {})["stress_worst"] = {"case": case, "cost_deg": round(cost, 3)}
+    for obj, g in (doc.get("gap") or {}).get("objects", {}).items():
+        out.setdefault(obj, {})["gap_deg"] = round(g["gap_deg"], 3)
+    sets = (doc.get("rendered") or {}).get("sets", {})
+    if "cycles" in sets and "tiny" in sets:
+        for obj, c in sets["cycles"]["objects"].items():
+            t = sets["tiny"]["objects"].get(obj)
+            if t:
+                out.setdefault(obj, {})["cycles"] = {"mean_deg": round(c["mean_deg"], 3),
+                                                     "tiny_mean_deg": round(t["mean_deg"], 3),
+                                                     "ratio": round(c["mean_deg"] / t["mean_deg"], 3),
+                                                     "data": sets["cycles"]["data"]}
+    return out
