@@ -10,7 +10,9 @@ Usage (from the repository root)::
     python -m benchmarks.paper --data data/ycb9 --runs runs/paper_exp            # every experiment
     python -m benchmarks.paper --data D --runs R --only baseline,scenes --models paper       # a subset
     python -m benchmarks.paper --list                                                        # experiments, status
-    python -m benchmarks.paper --report                  # results/*.json -> results/tables.md and PNG plots
+    python -m benchmarks.paper --report                  # RESULTS/*.json -> RESULTS/tables.md and PNG plots
+
+``--results`` (RESULTS) is ``benchmarks/results/paper`` unless given.
 
 Budgets (``--budget``): ``standard`` (default) is the recipes as written, except VGG-M at ``VGGM_REDUCED`` (224x224
 VGG-M from scratch trains about 50x slower per sample than the shallow network on a CPU, measured); ``full`` runs
@@ -710,7 +712,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--runs", type=Path, help="Where trained models go: RUNS/<experiment>/<model>/<arch>.pt.")
     p.add_argument("--only", help=f"Comma-separated experiments (default: all): {', '.join(EXPERIMENTS)}.")
     p.add_argument("--models", default=",".join(RECIPES), help="Comma-separated models of RECIPES (default: all).")
-    p.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results", help="JSON/report folder.")
+    p.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results" / "paper",
+                   help="JSON/report folder (default: benchmarks/results/paper).")
     p.add_argument("--threads", type=int, default=0, help="Torch / onnxruntime threads (0: all cores).")
     p.add_argument("--cache", type=Path, help="Crop cache folder (default: DATA/.crops).")
     p.add_argument("--budget", choices=("standard", "full", "quick"), default="standard",

@@ -15,7 +15,8 @@ from refiner_rt import pretrained as pt
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 DOCS = [README, ROOT / "benchmarks" / "RESULTS.md", ROOT / "benchmarks" / "DATA.md",
-        ROOT / "refiner_rt" / "samples" / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+        ROOT / "refiner_rt" / "samples" / "README.md", ROOT / "benchmarks" / "results" / "README.md",
+        *sorted((ROOT / "docs").glob("*.md")),
         *sorted((ROOT / "benchmarks" / "studies").glob("**/README.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 
@@ -71,6 +72,33 @@ def test_no_machine_paths_or_internal_issue_numbers():
             hits += [f"{name}:{i}: {line.strip()}" for i, line in enumerate(path.read_text().splitlines(), 1)
                      if bad.search(line)]
     assert not hits, "\n".join(hits)
+
+
+def test_results_sit_in_the_folder_of_the_script_that_writes_them():
+    """benchmarks/results/ holds one folder per writing script and its README, which names every folder."""
+    results = ROOT / "benchmarks" / "results"
+    loose = sorted(p.name for p in results.iterdir() if p.is_file() and p.name != "README.md")
+    assert not loose, f"files straight in benchmarks/results/ (put them in their script's folder): {loose}"
+    listed = set(re.findall(r"`(\w+)/`", (results / "README.md").read_text()))
+    folders = {p.name for p in results.iterdir() if p.is_dir()}
+    assert folders <= listed, f"folders benchmarks/results/README.md does not describe: {sorted(folders - listed)}"
+
+
+def test_recorded_commands_name_result_files_where_they_are_now():
+    """A record's command that wrote straight into benchmarks/results/ is printed with its script's folder; one that
+    already names a folder, or writes elsewhere, is kept."""
+    from models.evaluate.record import current_command
+
+    old = ("python benchmarks/tracking.py --data data/t --json benchmarks/results/tracking.json "
+           "--plot=benchmarks/results/tracking.png")
+    new = current_command(old)
+    assert new == ("python benchmarks/tracking.py --data data/t --json benchmarks/results/tracking/tracking.json "
+                   "--plot=benchmarks/results/tracking/tracking.png")
+    assert current_command(new) == new
+    assert (current_command("refiner-rt bench --cpu --json benchmarks/results/bench.json")
+            == "refiner-rt bench --cpu --json benchmarks/results/bench/bench.json")
+    kept = "python -m benchmarks.real --data REAL --json benchmarks/results/real/x.json --plot runs/x.png"
+    assert current_command(kept) == kept
 
 
 DESIGN = ROOT / "docs" / "design.md"

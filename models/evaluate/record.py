@@ -68,6 +68,36 @@ def provenance(module: str, argv: list[str] | None, threads: int | None = None, 
             "machine": record}
 
 
+RESULTS_DIR = "benchmarks/results"
+
+
+def current_command(command: str) -> str:
+    """A recorded ``command`` as the generated documents print it, so that it can be rerun today: a result file
+    written straight into ``benchmarks/results/`` (where every script wrote before the folder was split) is put in the
+    sub-folder of the script that wrote it, named after the script's module (``python -m benchmarks.tracking ... --json
+    benchmarks/results/tracking.json`` -> ``benchmarks/results/tracking/tracking.json``) or the ``refiner-rt``
+    command (``refiner-rt bench`` -> ``benchmarks/results/bench/``), the rule of ``benchmarks/results/README.md``.
+    Everything else is kept as recorded. Idempotent.
+    """
+    args = shlex.split(command)
+    if args[:2] == ["python", "-m"] and len(args) > 2:
+        folder = args[2].rsplit(".", 1)[-1]
+    elif args[:1] == ["python"] and len(args) > 1 and args[1].endswith(".py"):
+        folder = Path(args[1]).stem
+    elif args[:1] == ["refiner-rt"] and len(args) > 1:
+        folder = args[1]
+    else:
+        return command
+    out = []
+    for arg in args:
+        flag, eq, value = arg.partition("=") if arg.startswith("--") else ("", "", arg)
+        head, _, name = value.rpartition("/")
+        if head == RESULTS_DIR and name:
+            arg = f"{flag}{eq}{RESULTS_DIR}/{folder}/{name}"
+        out.append(arg)
+    return shlex.join(out)
+
+
 def machine() -> dict:
     """CPU model, instruction-set flags that matter for speed, and core count."""
     model, flags = platform.processor() or "unknown", []
