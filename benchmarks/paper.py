@@ -58,7 +58,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 
-from models.evaluate.record import write_json  # (schema version and git commit in every result JSON)
+from models.evaluate.record import current_command, write_json  # write_json: schema version, git commit
 from models.train.paths import per_object_path
 
 # The two models of every table (the schedules used for the published results; see benchmarks/studies/paper_protocol/README.md).
@@ -631,7 +631,7 @@ def _plot_input_angle(doc: dict, path: Path) -> None:
 def shown_command(command: str) -> str:
     """``command`` as ``tables.md`` prints it: an absolute folder (also in ``--opt=/folder``) written from its last
     ``data`` or ``runs`` component on (where the runs keep their sets and models), else by its name, so the page
-    names no machine's paths."""
+    names no machine's paths; a script run by its path as its module (:func:`models.evaluate.record.current_command`)."""
     def shown(path: str) -> str:
         parts = Path(path).parts
         anchor = max((i for i, p in enumerate(parts) if p in ("data", "runs")), default=None)
@@ -643,7 +643,7 @@ def shown_command(command: str) -> str:
         if value.startswith("/"):
             arg = flag + eq + shown(value)
         out.append(arg)
-    return shlex.join(out)
+    return current_command(shlex.join(out))
 
 
 def write_report(results: Path) -> Path:

@@ -84,21 +84,34 @@ def test_results_sit_in_the_folder_of_the_script_that_writes_them():
     assert folders <= listed, f"folders benchmarks/results/README.md does not describe: {sorted(folders - listed)}"
 
 
-def test_recorded_commands_name_result_files_where_they_are_now():
-    """A record's command that wrote straight into benchmarks/results/ is printed with its script's folder; one that
-    already names a folder, or writes elsewhere, is kept."""
+def test_recorded_commands_are_printed_as_commands_to_rerun_now():
+    """A record's script run by its path is printed as its module; a result file it wrote straight into
+    benchmarks/results/ in its script's folder there; a command already in that form is kept."""
     from models.evaluate.record import current_command
 
     old = ("python benchmarks/tracking.py --data data/t --json benchmarks/results/tracking.json "
            "--plot=benchmarks/results/tracking.png")
     new = current_command(old)
-    assert new == ("python benchmarks/tracking.py --data data/t --json benchmarks/results/tracking/tracking.json "
+    assert new == ("python -m benchmarks.tracking --data data/t --json benchmarks/results/tracking/tracking.json "
                    "--plot=benchmarks/results/tracking/tracking.png")
     assert current_command(new) == new
+    assert current_command("python benchmarks/studies/cascade/cascade.py --x 1") == (
+        "python -m benchmarks.studies.cascade.cascade --x 1")
     assert (current_command("refiner-rt bench --cpu --json benchmarks/results/bench.json")
             == "refiner-rt bench --cpu --json benchmarks/results/bench/bench.json")
     kept = "python -m benchmarks.real --data REAL --json benchmarks/results/real/x.json --plot runs/x.png"
     assert current_command(kept) == kept
+    assert current_command("python benchmarks/a.py --x 1 && python benchmarks/b.py") == (
+        "python -m benchmarks.a --x 1 && python -m benchmarks.b")
+
+
+def test_generated_documents_print_scripts_as_modules():
+    """The model card and the paper experiments' tables print the commands as they are run now (python -m)."""
+    from models.evaluate import report
+
+    for doc in (ROOT / "refiner_rt" / "weights" / "MODELS.md", ROOT / "benchmarks" / "results" / "paper" / "tables.md",
+                *report.DOCS):
+        assert not re.search(r"python benchmarks/\S+\.py", doc.read_text()), f"{doc}: python benchmarks/X.py"
 
 
 DESIGN = ROOT / "docs" / "design.md"
