@@ -250,7 +250,7 @@ def test_cli_help():
 def test_cli_run_writes_json_and_overlay(tmp_path, sample):
     frame, image, objects = sample
     obj = objects["003_cracker_box"]
-    out, overlay = tmp_path / "poses.json", tmp_path / "poses.png"
+    out, overlay = tmp_path / "json" / "poses.json", tmp_path / "pictures" / "poses.png"  # folders made
     fx, fy, cx, cy = frame.K[0, 0], frame.K[1, 1], frame.K[0, 2], frame.K[1, 2]
     args = ["estimate", str(frame.path), "--K", f"{fx},{fy},{cx},{cy}", "--object", "003_cracker_box",
             "--box", ",".join(f"{v:g}" for v in obj.box_xyxy), "--out", str(out), "--overlay", str(overlay)]

@@ -9,7 +9,7 @@ import click
 import cv2
 import numpy as np
 
-from refiner_rt.cli import check_picture_path, write_picture
+from refiner_rt.cli import check_picture_path, prepare_output, write_picture
 
 __all__ = ["demo_cmd", "numbers_callback"]
 
@@ -75,9 +75,8 @@ def demo_cmd(out, seed, threads, image_path, box, q, K, object_id, cascade):
         missing = [name for name, v in extra.items() if v is None]
         if missing:
             raise click.UsageError(f"--image needs {', '.join(missing)} as well")
-    if out.parent != Path("") and not out.parent.is_dir():
-        raise click.BadParameter(f"directory {out.parent} does not exist", param_hint="'--out'")
     check_picture_path(out)
+    prepare_output(out, "'--out'")
     t0 = time.perf_counter()
     if image_path is None:
         _samples(out, seed, threads, cascade)
