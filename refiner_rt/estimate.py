@@ -47,15 +47,14 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import ray_quaternions
-from refiner_rt.checks import validate_boxes, validate_image, validate_K
+from refiner_rt.checks import validate_boxes, validate_depth, validate_image, validate_K
 from refiner_rt.preprocess import crop_to_square
 from refiner_rt.pretrained import WEIGHTS_DIR
 from refiner_rt.session import RefinerSession
 
 __all__ = ["PoseEstimator", "PoseEstimate", "load_extents", "EXTENTS_FILE", "EXTENTS_FORMAT", "super_fibonacci",
-           "fit_translation", "depth_translation", "shape_disagreement", "validate_depth", "DEFAULT_HYPOTHESES",
-           "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG", "BORDER_PX",
-           "MAX_DEPTH_M"]
+           "fit_translation", "depth_translation", "shape_disagreement", "DEFAULT_HYPOTHESES",
+           "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG", "BORDER_PX"]
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
 DEFAULT_HYPOTHESES = 3
@@ -73,8 +72,6 @@ RETURN_TURN_DEG = 15.0
 BORDER_PX = 2.0
 # The central share of the box (each side) whose valid depths give the object's distance.
 DEPTH_CENTRE_SHARE = 0.5
-# A depth image whose median valid value is above this is refused: the sign of millimetres passed as metres.
-MAX_DEPTH_M = 20.0
 _DEPTH_GRID = 6  # cells per side of the model's coarse z-buffer over the depth region (depth_translation)
 _FIT_STEPS = 10  # at most; each step cuts the error about twentyfold, and it stops once converged
 EXTENTS_FORMAT = "refiner-rt/extents/1"
@@ -248,29 +245,6 @@ def shape_disagreement(q_cam, extent_m, boxes_xyxy, K, image_size: tuple[int, in
     return out
 
 
-def validate_depth(depth, image_shape) -> np.ndarray:
-    """Check a depth image: ``H x W`` float metres matching the colour image; 0 or non-finite where unknown.
-
-    Raises:
-        TypeError: not a numpy array, or an integer array (raw sensor millimetres: convert with ``depth_mm / 1000``).
-        ValueError: a shape other than the image's ``(H, W)``, or values that look like millimetres (a median
-            valid depth above :data:`MAX_DEPTH_M`).
-    """
-    if not isinstance(depth, np.ndarray):
-        raise TypeError(f"depth must be a numpy array (H, W), float metres; got {type(depth).__name__}")
-    if depth.dtype.kind != "f":
-        raise TypeError(f"depth must be float metres (H, W); got dtype {depth.dtype} (a raw sensor image in "
-                        "millimetres? pass depth_mm.astype(np.float32) / 1000)")
-    if depth.shape != tuple(image_shape[:2]):
-        raise ValueError(f"depth must have the image's shape (H, W) = {tuple(image_shape[:2])}, float metres; "
-                         f"got shape {depth.shape}")
-    valid = depth[np.isfinite(depth) & (depth > 0)]
-    if valid.size and float(np.median(valid)) > MAX_DEPTH_M:
-        raise ValueError(f"depth must be in metres; its median valid value is {float(np.median(valid)):.1f} "
-                         f"(> {MAX_DEPTH_M:g} m: millimetres? divide by 1000)")
-    return depth
-
-
 def depth_translation(R, points_m, t_box, box_xyxy, K, depth) -> np.ndarray | None:
     """The translation with the distance taken from a depth image, or None where the box has no valid depth.
 
@@ -284,7 +258,7 @@ def depth_translation(R, points_m, t_box, box_xyxy, K, depth) -> np.ndarray | No
     Args:
         R: ``(3, 3)`` rotation, object to camera. points_m: ``(P, 3)`` metres, object frame.
         t_box: ``(3,)`` metres, the box fit's translation. box_xyxy: ``(4,)`` pixels. K: ``(3, 3)``.
-        depth: ``H x W`` float metres (:func:`validate_depth`).
+        depth: ``H x W`` float metres (:func:`refiner_rt.checks.validate_depth`).
     """
     box = np.asarray(box_xyxy, dtype=np.float64)
     h, w = depth.shape
@@ -427,7 +401,8 @@ class PoseEstimator:
                 1024.
             K: ``(3, 3)`` pinhole intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels (required).
             depth: optional ``H x W`` float depth image in **metres** registered to ``image_bgr`` (0 or non-finite
-                where unknown; :func:`validate_depth`). A box with no valid depth in its centre keeps the box fit.
+                where unknown; :func:`refiner_rt.checks.validate_depth`). A box with no valid depth in its centre
+                keeps the box fit.
 
         Returns:
             :class:`PoseEstimate`.

@@ -15,8 +15,9 @@ import refiner_rt
 from refiner_rt import quaternion as rq
 from refiner_rt.cli import main
 from refiner_rt.demo import SAMPLES_DIR, load_outlines, load_samples
+from refiner_rt.checks import validate_depth
 from refiner_rt.estimate import (PoseEstimator, _project, depth_translation, fit_translation, load_extents,
-                                 shape_disagreement, super_fibonacci, validate_depth)
+                                 shape_disagreement, super_fibonacci)
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
 
