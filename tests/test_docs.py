@@ -241,6 +241,32 @@ def test_model_card_commands_name_no_machine_folders():
     assert card.portable_command(portable) == portable
 
 
+def test_model_card_commands_name_a_cache_or_init_elsewhere_by_placeholder():
+    """A crop cache outside DATA and RUN is written CACHE; an --init checkpoint outside them RUN/<name>.init.pt (where
+    the release recovers the model it starts from), INIT without --save; a record's script path as its module.
+    export.release.coarse.card_command (what the studies record) gives the same."""
+    from export.release import card, coarse
+
+    cmd = ("python benchmarks/data_scaling.py --data /srv/d/ycb9_v1 --object 011_banana --cache runs/levers/cache "
+           "--init /srv/old/011_banana.pt --save /srv/r/v1/011_banana --json /srv/r/v1/011_banana.train.json")
+    portable = card.portable_command(cmd)
+    assert portable == ("python -m benchmarks.data_scaling --data DATA --object 011_banana --cache CACHE "
+                        "--init RUN/011_banana.init.pt --save RUN/011_banana --json RUN/011_banana.train.json")
+    assert card.portable_command(portable) == portable
+    inside = "python -m benchmarks.data_scaling --data /d --cache /r/c --init /r/a/x.pt --save /r/a"
+    assert card.portable_command(inside) == (
+        "python -m benchmarks.data_scaling --data DATA --cache RUN/c --init RUN/a/x.pt --save RUN/a")
+    assert card.portable_command("python -m m --init /srv/x.pt --cache /srv/c") == "python -m m --init INIT --cache CACHE"
+
+    run, data = Path("/srv/r/v7"), Path("/srv/d/ycb9_robot")
+    cmd = coarse.data_scaling_command(data, "011_banana", run, 300, 2500, Path("/srv/cache"), init=Path("/srv/x/a.pt"))
+    printed = shlex.split(coarse.card_command(cmd))
+    assert printed[:3] == ["python", "-m", "benchmarks.data_scaling"]
+    assert printed[printed.index("--cache") + 1] == "CACHE"
+    assert printed[printed.index("--init") + 1] == "RUN/011_banana.init.pt"
+    assert not [a for a in printed if a.startswith("/")]
+
+
 def test_first_stage_commands_train_on_turns_then_go_on_from_that_network():
     """An object of FIRST_STAGE trains twice: turns about its axis from scratch, then the recipe's stage from that
     checkpoint of the same split (no --init-other-set); the card prints both commands."""

@@ -173,9 +173,12 @@ def _deg(s: dict, key: str = "mean_deg") -> str:
 
 def portable_command(command: str) -> str:
     """``command`` as the model card prints it: a command to rerun (a script as its module,
-    :func:`models.evaluate.record.current_command`) with the build machine's folders written ``DATA`` (the ``--data``
-    folder) and ``RUN`` (the folder holding ``--save``), and each ``--extra-train`` folder by its name (a set of
-    benchmarks/DATA.md), so neither the card nor the JSON names a path outside the repository. Idempotent."""
+    :func:`models.evaluate.record.current_command`) that names no folder of the build machine. The ``--data`` folder
+    is written ``DATA`` and the folder holding ``--save`` ``RUN`` (paths inside them too); each ``--extra-train``
+    folder by its name (a set of benchmarks/DATA.md); a ``--cache`` elsewhere ``CACHE`` (a crop cache, rebuilt where
+    missing); an ``--init`` checkpoint elsewhere ``RUN/<name>.init.pt``, ``<name>`` the ``--save`` folder's (where
+    :func:`export.release.coarse.recover_shipped` writes the shipped model a build starts from), ``INIT`` without
+    ``--save``. So neither the card nor the JSON names a path outside the repository. Idempotent."""
     args = shlex.split(current_command(command))
 
     def value(flag: str) -> str | None:
@@ -195,6 +198,10 @@ def portable_command(command: str) -> str:
         flag = args[i - 1] if i else ""
         if flag == "--extra-train":
             a = Path(a).name
+        elif flag == "--cache":
+            a = placed(a) or "CACHE"
+        elif flag == "--init":
+            a = placed(a) or (f"RUN/{Path(save).name}.init.pt" if save else "INIT")
         else:
             a = placed(a) or a
         out.append(a)
@@ -293,7 +300,9 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
                   "REAL --card` (`benchmarks/results/real/real_ycbv_dev.json`). The real frames are for measuring "
                   "only: no model was trained, calibrated or chosen on them."]
     lines += [line for d in docs if "symmetric" in d["eval"]["int8"] for line in ("", _symmetry_sentence(d))]
-    lines += ["", "## How each model was made", ""]
+    lines += ["", "## How each model was made", "",
+              "Each training command names the build machine's folders `DATA` (the rendered set, benchmarks/DATA.md), "
+              "`RUN` (the run's folder) and `CACHE` (the crop cache, made where missing).", ""]
     for d in docs:
         t = d["train"]
         lines += [f"- `{d['object_id']}` (version {d['model_version']}, recipe `{d['recipe']['name']}`): "
