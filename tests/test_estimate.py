@@ -16,8 +16,8 @@ from refiner_rt import quaternion as rq
 from refiner_rt.cli import main
 from refiner_rt.demo import SAMPLES_DIR, load_outlines, load_samples
 from refiner_rt.checks import validate_depth
-from refiner_rt.estimate import (PoseEstimator, _project, depth_translation, fit_translation, load_extents,
-                                 shape_disagreement, super_fibonacci)
+from refiner_rt.estimate import PoseEstimator, depth_translation, shape_disagreement, super_fibonacci
+from refiner_rt.placement import fit_translation, load_extents, pixel_coordinates
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -37,7 +37,7 @@ def _cuboid(size=(0.08, 0.12, 0.04), n=12):
 
 
 def _box_of(points, R, t):
-    uv = _project(points @ R.T + t, K)
+    uv = pixel_coordinates(points @ R.T + t, K)
     return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
 
 

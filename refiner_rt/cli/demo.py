@@ -178,6 +178,6 @@ def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: 
     click.echo(f"{object_id}: refined q (wxyz) {np.array2string(q_ref, precision=4, separator=', ')}, "
                f"{float(rq.geodesic_angle(q_in, q_ref)):.1f} deg from the coarse one, {ms:.2f} ms ({ran})")
     outline = demo.load_outlines().get(object_id)
-    write_picture(out, demo.image_picture(image, K3, box, q_in, q_ref, outline))
+    write_picture(out, demo.image_picture(image, K3, box, q_in, q_ref, outline, object_id))
     click.echo(f"Wrote {out}: coarse (cyan) and refined (green) outlines, placed from the box (the refiner estimates "
                "rotation only).")
