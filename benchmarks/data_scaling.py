@@ -9,7 +9,7 @@ rather than guessed.
 Usage (from the repository root)::
 
     python -m benchmarks.data_scaling --data DIR --object 003_cracker_box --sizes 1000,3000,10000 \\
-        --samples 150000 [--augment] [--background 0.5] [--occlude 0.5] [--json benchmarks/results/data_scaling.json]
+        --samples 150000 [--augment] [--background 0.5] [--occlude 0.5] [--json benchmarks/results/data_scaling/data_scaling.json]
 
 For each mode the split is made once with the largest size (so the test crops are the same for every size) and
 each run trains on the first N crops of a seeded permutation of that split's training part. Every run draws

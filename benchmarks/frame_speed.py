@@ -16,7 +16,7 @@ so that the previous one's spinning onnxruntime workers have parked) and the fig
 session each, as a real object's would be; every shipped model has the same architecture, so the same speed) and
 the output says so.
 
-    python -m benchmarks.frame_speed --json benchmarks/results/frame_speed.json
+    python -m benchmarks.frame_speed --json benchmarks/results/frame_speed/frame_speed.json
     python -m benchmarks.frame_speed --model-dir DIR      # DIR/<obj>.int8.onnx instead of the shipped files
 """
 

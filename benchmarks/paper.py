@@ -10,7 +10,9 @@ Usage (from the repository root)::
     python -m benchmarks.paper --data data/ycb9 --runs runs/paper_exp            # every experiment
     python -m benchmarks.paper --data D --runs R --only baseline,scenes --models paper       # a subset
     python -m benchmarks.paper --list                                                        # experiments, status
-    python -m benchmarks.paper --report                  # results/*.json -> results/tables.md and PNG plots
+    python -m benchmarks.paper --report                  # RESULTS/*.json -> RESULTS/tables.md and PNG plots
+
+``--results`` (RESULTS) is ``benchmarks/results/paper`` unless given.
 
 Budgets (``--budget``): ``standard`` (default) is the recipes as written, except VGG-M at ``VGGM_REDUCED`` (224x224
 VGG-M from scratch trains about 50x slower per sample than the shallow network on a CPU, measured); ``full`` runs
@@ -56,7 +58,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 
-from models.evaluate.record import write_json  # (schema version and git commit in every result JSON)
+from models.evaluate.record import current_command, write_json  # write_json: schema version, git commit
 from models.train.paths import per_object_path
 
 # The two models of every table (the schedules used for the published results; see benchmarks/studies/paper_protocol/README.md).
@@ -629,7 +631,7 @@ def _plot_input_angle(doc: dict, path: Path) -> None:
 def shown_command(command: str) -> str:
     """``command`` as ``tables.md`` prints it: an absolute folder (also in ``--opt=/folder``) written from its last
     ``data`` or ``runs`` component on (where the runs keep their sets and models), else by its name, so the page
-    names no machine's paths."""
+    names no machine's paths; a script run by its path as its module (:func:`models.evaluate.record.current_command`)."""
     def shown(path: str) -> str:
         parts = Path(path).parts
         anchor = max((i for i, p in enumerate(parts) if p in ("data", "runs")), default=None)
@@ -641,7 +643,7 @@ def shown_command(command: str) -> str:
         if value.startswith("/"):
             arg = flag + eq + shown(value)
         out.append(arg)
-    return shlex.join(out)
+    return current_command(shlex.join(out))
 
 
 def write_report(results: Path) -> Path:
@@ -710,7 +712,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--runs", type=Path, help="Where trained models go: RUNS/<experiment>/<model>/<arch>.pt.")
     p.add_argument("--only", help=f"Comma-separated experiments (default: all): {', '.join(EXPERIMENTS)}.")
     p.add_argument("--models", default=",".join(RECIPES), help="Comma-separated models of RECIPES (default: all).")
-    p.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results", help="JSON/report folder.")
+    p.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results" / "paper",
+                   help="JSON/report folder (default: benchmarks/results/paper).")
     p.add_argument("--threads", type=int, default=0, help="Torch / onnxruntime threads (0: all cores).")
     p.add_argument("--cache", type=Path, help="Crop cache folder (default: DATA/.crops).")
     p.add_argument("--budget", choices=("standard", "full", "quick"), default="standard",

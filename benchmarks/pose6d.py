@@ -78,9 +78,9 @@ def support_points(vertices: np.ndarray, directions: int = EXTENT_DIRECTIONS) ->
 
 
 def write_extents(meshes: Path, path: Path, objects: list[str]) -> None:
-    """Write the package's extent points (``refiner_rt/weights/extents.json``, read by ``refiner_rt.estimate``)."""
+    """Write the package's extent points (``refiner_rt/weights/extents.json``, read by ``refiner_rt.placement``)."""
     from models.data.meshes import load_obj
-    from refiner_rt.estimate import EXTENTS_FORMAT
+    from refiner_rt.placement import EXTENTS_FORMAT
 
     doc = {"format": EXTENTS_FORMAT, "units": "mm",
            "object_frame": "YCB google_16k scan frame (models/data/ycb_models/<id>/textured.obj)",

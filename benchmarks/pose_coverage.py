@@ -11,7 +11,7 @@ images are read).
 Usage (from the repository root)::
 
     python -m benchmarks.pose_coverage --data DIR [--sizes 3000,5000,3000,3000] [--modes frames,scenes] \\
-        [--json benchmarks/results/pose_coverage.json]
+        [--json benchmarks/results/pose_coverage/pose_coverage.json]
     python -m benchmarks.pose_coverage --data DIR [--data DIR2 ...] --query REAL [--json PATH]
 
 With ``--query`` (a BOP folder of other images, e.g. real frames) nothing is split: every instance of the query

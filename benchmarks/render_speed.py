@@ -9,7 +9,7 @@ number of files that differ between the two outputs (0: the BMPs change no pixel
 Usage (from the repository root)::
 
     python -m benchmarks.render_speed                                  # 20 four-frame scenes of the shipped YCB meshes
-    python -m benchmarks.render_speed --scenes 40 --json benchmarks/results/render_speed.json
+    python -m benchmarks.render_speed --scenes 40 --json benchmarks/results/render_speed/render_speed.json
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ memory pattern settle in the first few thousand; see ``benchmarks/memory.py``). 
 Usage (from the repository root)::
 
     python -m benchmarks.soak                              # fusion fp32, 1,000,000 calls (about 15 min on one core)
-    python -m benchmarks.soak --calls 100000 --json benchmarks/results/soak_100k.json
+    python -m benchmarks.soak --calls 100000 --json benchmarks/results/soak/soak_100k.json
     python -m benchmarks.soak --model refiner.onnx --callers 4
     python -m benchmarks.soak --model refiner_rt/weights/003_cracker_box.int8.onnx   # a shipped (ray-frame) model
 

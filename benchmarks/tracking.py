@@ -40,8 +40,8 @@ Usage (from the repository root; the data is rendered with a seed no shipped mod
 
     refiner-rt render --out data/tracking_s555 --frames 7000 --frames-per-scene 100 --seed 555 --workers 2 \\
         --layout tabletop
-    python -m benchmarks.tracking --data data/tracking_s555 --json benchmarks/results/tracking.json \\
-        --plot benchmarks/results/tracking.png
+    python -m benchmarks.tracking --data data/tracking_s555 --json benchmarks/results/tracking/tracking.json \\
+        --plot benchmarks/results/tracking/tracking.png
 
 ``--model OBJ=FILE.onnx`` measures an ONNX file in place of a shipped model (default: every shipped model).
 """

@@ -11,7 +11,7 @@ variant and their ratio.
 Usage (from the repository root)::
 
     python -m benchmarks.train_speed                       # five-block fusion, batch 64, one thread
-    python -m benchmarks.train_speed --config '{}' --threads 2 --json benchmarks/results/train_speed.json
+    python -m benchmarks.train_speed --config '{}' --threads 2 --json benchmarks/results/train_speed/train_speed.json
 """
 
 from __future__ import annotations

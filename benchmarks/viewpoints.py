@@ -9,7 +9,7 @@ the real frames hold objects in all of these. Instances with ``visib_fract >= --
 Usage (from the repository root)::
 
     python -m benchmarks.viewpoints --data robot=data/ycb9_robot --data real=REAL \\
-        [--png benchmarks/viewpoints.png] [--json benchmarks/results/viewpoints.json]
+        [--png benchmarks/viewpoints.png] [--json benchmarks/results/viewpoints/viewpoints.json]
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Input checks at the runtime's public boundary, in one module: images, boxes, rotations, ``K``, ``D``, counts.
+"""Input checks at the runtime's public boundary, in one module: images, boxes, rotations, ``K``, ``D``, depth
+images, counts.
 
 Every public function of the runtime validates its arguments with these (and nothing else does the same check
 another way): a bad value raises ``ValueError`` or ``TypeError`` naming the argument, what was expected and what was
@@ -26,7 +27,7 @@ __all__ = ["SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS", "MAX_BOX_C
            "MIN_INSIDE_FRACTION", "K_MIN_FOCAL", "K_MAX_ABS", "DISTORTION_LENGTHS", "Q_ORDERS", "validate_image",
            "validate_boxes", "boxes_rows", "inside_fraction", "validate_K", "check_principal_point", "validate_D",
            "as_wxyz", "validate_rotations", "validate_settle", "validate_iterations", "validate_views", "check_batch",
-           "validate_threads", "check_coarse_rows"]
+           "validate_threads", "check_coarse_rows", "validate_depth", "MAX_DEPTH_M"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +57,8 @@ K_MAX_ABS = 1e9
 
 # The coefficient counts OpenCV's distortion model takes: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]].
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+# A depth image whose median valid value is above this is refused: the sign of millimetres passed as metres.
+MAX_DEPTH_M = 20.0
 _D_FORM = ("OpenCV's (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tau_x, tau_y]]]]): 4, 5, 8, 12 or 14 "
            "numbers (CameraInfo's d: plumb_bob 5, rational_polynomial 8)")
 
@@ -387,3 +390,26 @@ def check_coarse_rows(coarse, n: int) -> np.ndarray:
                          f"{'dtype ' + str(forced.dtype) if forced.dtype != bool else 'shape'} "
                          f"{forced.shape}")
     return forced
+
+
+def validate_depth(depth, image_shape) -> np.ndarray:
+    """Check a depth image: ``H x W`` float metres matching the colour image; 0 or non-finite where unknown.
+
+    Raises:
+        TypeError: not a numpy array, or an integer array (raw sensor millimetres: convert with ``depth_mm / 1000``).
+        ValueError: a shape other than the image's ``(H, W)``, or values that look like millimetres (a median
+            valid depth above :data:`MAX_DEPTH_M`).
+    """
+    if not isinstance(depth, np.ndarray):
+        raise TypeError(f"depth must be a numpy array (H, W), float metres; got {type(depth).__name__}")
+    if depth.dtype.kind != "f":
+        raise TypeError(f"depth must be float metres (H, W); got dtype {depth.dtype} (a raw sensor image in "
+                        "millimetres? pass depth_mm.astype(np.float32) / 1000)")
+    if depth.shape != tuple(image_shape[:2]):
+        raise ValueError(f"depth must have the image's shape (H, W) = {tuple(image_shape[:2])}, float metres; "
+                         f"got shape {depth.shape}")
+    valid = depth[np.isfinite(depth) & (depth > 0)]
+    if valid.size and float(np.median(valid)) > MAX_DEPTH_M:
+        raise ValueError(f"depth must be in metres; its median valid value is {float(np.median(valid)):.1f} "
+                         f"(> {MAX_DEPTH_M:g} m: millimetres? divide by 1000)")
+    return depth

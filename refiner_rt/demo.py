@@ -24,6 +24,7 @@ import numpy as np
 
 from refiner_rt import draw
 from refiner_rt import quaternion as rq
+from refiner_rt.placement import fit_translation
 
 __all__ = ["SAMPLES_DIR", "SampleObject", "SampleFrame", "Outline", "Refinement", "load_samples", "load_outlines",
            "coarse_rotations", "refine_samples", "demo_picture", "image_picture", "COLOURS"]
@@ -266,10 +267,11 @@ def legend(width: int, items: dict) -> np.ndarray:
 
 
 def image_picture(image: np.ndarray, K: np.ndarray, box_xyxy, q_in: np.ndarray, q_refined: np.ndarray,
-                  outline: Outline | None) -> np.ndarray:
+                  outline: Outline | None, object_id: str = "") -> np.ndarray:
     """A user's image (BGR) with the box, and the coarse and refined rotations drawn as outlines with axes, under a
-    legend band, placed by :func:`refiner_rt.draw.translation_from_box` (the refiner estimates rotation only), or as
-    axes alone without an outline for the object."""
+    legend band, placed on the box by :func:`refiner_rt.placement.fit_translation` (the refiner estimates rotation
+    only; the points fitted: :func:`refiner_rt.draw.placement_points` of ``object_id``), or as axes alone without an
+    outline for the object."""
     canvas = image.copy()
     x1, y1, x2, y2 = (float(v) for v in box_xyxy)
     cv2.rectangle(canvas, (int(round(x1)), int(round(y1))), (int(round(x2)) - 1, int(round(y2)) - 1), (200, 200, 200),
@@ -278,7 +280,7 @@ def image_picture(image: np.ndarray, K: np.ndarray, box_xyxy, q_in: np.ndarray, 
     for name, q in (("coarse", q_in), ("refined", q_refined)):
         R = rq.to_matrix(q)
         if outline is not None:
-            t = draw.translation_from_box(outline.points_m, R, K, box_xyxy)
+            t = fit_translation(R, draw.placement_points(object_id, outline), box_xyxy, K, image.shape[:2])
             uv, z = draw.project(outline.points_m, R, t, K)
             radius = 0.6 * outline.spacing_m * K[0, 0] / float((R @ outline.centroid_m + t)[2])
             draw.draw_outline(canvas, uv, z, radius, COLOURS[name], 2)

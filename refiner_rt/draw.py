@@ -7,7 +7,9 @@ Conventions: rotations ``R`` map object coordinates to camera coordinates (``x_c
 
 An outline is drawn from points only (no mesh is needed at run time): the projected points are drawn as discs
 about as wide as their spacing on the surface, the discs are merged by a morphological closing, and the outer
-contour of the result is drawn. It is a silhouette up to about half a point spacing (a few millimetres).
+contour of the result is drawn. It is a silhouette up to about half a point spacing (a few millimetres). An object
+whose translation is not known is placed on its box by the fit the estimator places its poses with
+(:func:`refiner_rt.placement.fit_translation`, the object's shipped extent points: :func:`placement_points`).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import cv2
 import numpy as np
 
 from refiner_rt import quaternion as rq
+from refiner_rt.placement import fit_translation, load_extents
 from refiner_rt.preprocess import crop_matrix
 
 AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 80, 0))  # BGR of the x, y, z axes: red, green, blue
@@ -27,7 +30,7 @@ AXIS_COLOURS = ((0, 0, 255), (0, 200, 0), (255, 80, 0))  # BGR of the x, y, z ax
 POSE_COLOURS = {"truth": (255, 255, 255), "coarse": (255, 215, 0), "refined": (60, 225, 60)}
 LOST_COLOUR = (40, 40, 255)
 
-__all__ = ["AXIS_COLOURS", "POSE_COLOURS", "LOST_COLOUR", "PoseOverlay", "annotate_poses", "draw_axes_projected", "project", "centroid_translation", "translation_from_box", "outline_mask", "draw_outline", "draw_axes",
+__all__ = ["AXIS_COLOURS", "POSE_COLOURS", "LOST_COLOUR", "PoseOverlay", "annotate_poses", "draw_axes_projected", "project", "centroid_translation", "placement_points", "outline_mask", "draw_outline", "draw_axes",
            "crop_view"]
 
 
@@ -48,18 +51,13 @@ def centroid_translation(centroid_m: np.ndarray, R_true: np.ndarray, t_true: np.
     return np.asarray(t_true, dtype=np.float64) + np.asarray(R_true) @ c - np.asarray(R) @ c
 
 
-def translation_from_box(points_m: np.ndarray, R: np.ndarray, K: np.ndarray, box_xyxy) -> np.ndarray:
-    """A translation for drawing when none is known: the object's centroid on the viewing ray through the box centre,
-    at the depth where its projected extent matches the box's larger side (a weak-perspective estimate)."""
-    K = np.asarray(K, dtype=np.float64)
-    x1, y1, x2, y2 = (float(v) for v in box_xyxy)
-    ray = np.linalg.solve(K, [0.5 * (x1 + x2) - 0.5, 0.5 * (y1 + y2) - 0.5, 1.0])  # OpenCV pixel centre of the box
-    c = points_m.mean(axis=0)
-    t1 = ray - np.asarray(R) @ c  # centroid at depth 1 m
-    uv, _ = project(points_m, R, t1, K)
-    extent = float(np.max(uv.max(axis=0) - uv.min(axis=0)))
-    z = extent / max(x2 - x1, y2 - y1)
-    return ray * z - np.asarray(R) @ c
+def placement_points(object_id: str, outline) -> np.ndarray:
+    """``(P, 3)`` metres: the points whose projected box :func:`refiner_rt.placement.fit_translation` puts on an
+    object's box when its translation is not known (the estimator's fit, with its border and occlusion rules): the
+    object's shipped extent points (``weights/extents.json``), else its outline points (``outline``, a
+    :class:`refiner_rt.demo.Outline`). ``object_id`` may carry a ``#instance`` suffix."""
+    extent = load_extents().get(object_id.split("#", 1)[0])
+    return outline.points_m if extent is None else extent
 
 
 def outline_mask(uv: np.ndarray, z: np.ndarray, radius_px: float, shape: tuple[int, int]) -> np.ndarray:
@@ -145,7 +143,7 @@ class PoseOverlay:
         q_refined: ``(4,)`` refined object-to-camera rotation, ``wxyz``.
         q_input: ``(4,)`` the detector's coarse rotation given in this frame (``wxyz``), or None.
         t: ``(3,)`` the object frame's origin in the camera frame (metres), or None: placed from the box
-            (:func:`translation_from_box`).
+            (:func:`refiner_rt.placement.fit_translation` of :func:`placement_points`).
         lost: the loss-of-track check flagged the track in this frame (drawn in :data:`LOST_COLOUR`).
         score: the refinement's confidence (:attr:`refiner_rt.RefineResult.score`), printed in the label, or None.
     """
@@ -191,7 +189,8 @@ def annotate_poses(image: np.ndarray, K: np.ndarray, objects: list[PoseOverlay],
             if outline is None:
                 draw_axes(out, (0.5 * (x1 + x2), 0.5 * (y1 + y2)), R, 0.4 * min(x2 - x1, y2 - y1), width, colour)
                 continue
-            t = translation_from_box(outline.points_m, R, K, o.box) if o.t is None else np.asarray(o.t, float)
+            t = (fit_translation(R, placement_points(o.object_id, outline), o.box, K, out.shape[:2]) if o.t is None
+                 else np.asarray(o.t, float))
             uv, z = project(outline.points_m, R, t, K)
             depth = float((R @ outline.centroid_m + t)[2])
             radius = 0.6 * outline.spacing_m * K[0, 0] / max(depth, 1e-3)

@@ -22,9 +22,9 @@ module finds one by search (docs/pose6d.md):
 3. **Polish**: the winner is refined once more by the object's fine refiner (docs/design.md §8), when one ships.
 4. **Translation** from the box, ``K`` and the object's extent points (``weights/extents.json``: the mesh vertices
    farthest along 1,024 directions, whose projected bounding box is the mesh's own from any viewpoint): the posed
-   points' projected bounding box is fitted to the box (:func:`fit_translation`); with a depth image, the depth of
-   the box's centre region sets the distance (:func:`depth_translation`, with the surface points of
-   ``samples/outlines.json``).
+   points' projected bounding box is fitted to the box (:func:`refiner_rt.placement.fit_translation`, the fit the
+   drawings use too); with a depth image, the depth of the box's centre region sets the distance
+   (:func:`depth_translation`, with the surface points of ``samples/outlines.json``).
 
 Conventions: rotations object to camera (``x_cam = R @ x_obj + t``), translations in metres, the shipped models'
 object frame (the YCB google_16k scan frame, :mod:`refiner_rt.frames`); quaternions ``wxyz``; images ``H x W x 3``
@@ -38,24 +38,20 @@ Example:
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import ray_quaternions
-from refiner_rt.checks import validate_boxes, validate_image, validate_K
+from refiner_rt.checks import validate_boxes, validate_depth, validate_image, validate_K
+from refiner_rt.placement import fit_translation, load_extents, pixel_coordinates, sides_clear_of_border
 from refiner_rt.preprocess import crop_to_square
-from refiner_rt.pretrained import WEIGHTS_DIR
 from refiner_rt.session import RefinerSession
 
-__all__ = ["PoseEstimator", "PoseEstimate", "load_extents", "EXTENTS_FILE", "EXTENTS_FORMAT", "super_fibonacci",
-           "fit_translation", "depth_translation", "shape_disagreement", "validate_depth", "DEFAULT_HYPOTHESES",
-           "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG", "BORDER_PX",
-           "MAX_DEPTH_M"]
+__all__ = ["PoseEstimator", "PoseEstimate", "super_fibonacci", "depth_translation", "shape_disagreement",
+           "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG"]
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
 DEFAULT_HYPOTHESES = 3
@@ -68,30 +64,9 @@ SHAPE_WEIGHT_DEG = 30.0
 # The check pass's turn of each hypothesis for the "return" ranking, within the refiner's 30-degree training range
 # (15 ranked better than 25 and 40 on rendered scenes: docs/pose6d.md).
 RETURN_TURN_DEG = 15.0
-# A box side within this many pixels of the image border is taken to be cut by the border (the object goes on
-# beyond it): the translation fit does not use it.
-BORDER_PX = 2.0
 # The central share of the box (each side) whose valid depths give the object's distance.
 DEPTH_CENTRE_SHARE = 0.5
-# A depth image whose median valid value is above this is refused: the sign of millimetres passed as metres.
-MAX_DEPTH_M = 20.0
 _DEPTH_GRID = 6  # cells per side of the model's coarse z-buffer over the depth region (depth_translation)
-_FIT_STEPS = 10  # at most; each step cuts the error about twentyfold, and it stops once converged
-EXTENTS_FORMAT = "refiner-rt/extents/1"
-EXTENTS_FILE = WEIGHTS_DIR / "extents.json"
-
-
-@lru_cache(maxsize=1)
-def load_extents() -> dict[str, np.ndarray]:
-    """``{object id: (P, 3) metres}``: the shipped extent points per object (the shipped models' object frame).
-
-    Raises:
-        FileNotFoundError / ValueError: the file is missing or of another format.
-    """
-    doc = json.loads(EXTENTS_FILE.read_text())
-    if doc.get("format") != EXTENTS_FORMAT:
-        raise ValueError(f"{EXTENTS_FILE}: format {doc.get('format')!r} is not {EXTENTS_FORMAT!r}")
-    return {obj: np.asarray(o["points_mm"], dtype=np.float64) / 1000.0 for obj, o in doc["objects"].items()}
 
 
 def super_fibonacci(n: int) -> np.ndarray:
@@ -128,101 +103,11 @@ class PoseEstimate:
         return len(self.t)
 
 
-def _project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """``(..., P, 2)`` continuous pixel coordinates of camera-frame points (K's pixel centres at integers)."""
-    z = points_cam[..., 2]
-    u = (K[0, 0] * points_cam[..., 0] + K[0, 1] * points_cam[..., 1]) / z + K[0, 2] + 0.5
-    v = K[1, 1] * points_cam[..., 1] / z + K[1, 2] + 0.5
-    return np.stack([u, v], axis=-1)
-
-
-def _box_sides_trusted(box: np.ndarray, image_size: tuple[int, int] | None) -> np.ndarray:
-    """``(4,)`` bools: which sides ``x1, y1, x2, y2`` of a box are not at the image border (``BORDER_PX``)."""
-    if image_size is None:
-        return np.ones(4, dtype=bool)
-    h, w = image_size
-    return np.array([box[0] > BORDER_PX, box[1] > BORDER_PX, box[2] < w - BORDER_PX, box[3] < h - BORDER_PX])
-
-
-def fit_translation(R, points_m, box_xyxy, K, image_size: tuple[int, int] | None = None) -> np.ndarray:
-    """The translation that puts the bounding box of the projected, posed points on ``box_xyxy``.
-
-    The rule for boxes smaller than the object's projection (docs/pose6d.md, "Translation"):
-
-    * a side at the image border (within :data:`BORDER_PX`; needs ``image_size``) is cut there and is not used;
-    * the distance comes from the box dimension (width or height, of those with both sides usable) that gives the
-      *nearer* distance, i.e. the larger ratio of box to model extent: an occluder only ever shrinks the visible
-      box, so the less shrunk dimension is the truer one (no usable dimension: both are used the same way);
-    * the position across the ray matches the box centre along an axis with both sides usable, else the one usable
-      side (neither: the centre).
-
-    Solved by a fixed-point iteration (the projected box at the current ``t``, a scale step for the distance and a
-    shift for the position); for an uncut, unoccluded box it converges to the exact translation.
-
-    Args:
-        R: ``(3, 3)`` rotation, object to camera.
-        points_m: ``(P, 3)`` object surface points, metres, object frame.
-        box_xyxy: ``(4,)`` box ``(x1, y1, x2, y2)`` in pixels, continuous coordinates.
-        K: ``(3, 3)`` pinhole intrinsics (pixels, OpenCV's pixel centres).
-        image_size: ``(H, W)`` of the image, for the border rule; None: every side is used.
-
-    Returns:
-        ``(3,)`` float64 metres: ``t`` with ``x_cam = R @ x_obj + t``.
-    """
-    R = np.asarray(R, dtype=np.float64)
-    K = np.asarray(K, dtype=np.float64)
-    box = np.asarray(box_xyxy, dtype=np.float64)
-    rotated = np.asarray(points_m, dtype=np.float64) @ R.T
-    trusted = _box_sides_trusted(box, image_size)
-    use_w, use_h = bool(trusted[0] and trusted[2]), bool(trusted[1] and trusted[3])
-    if not (use_w or use_h):
-        use_w = use_h = True
-    size = max(float(np.ptp(rotated[:, 0])), float(np.ptp(rotated[:, 1])), 1e-6)
-    # Start on the ray through the box centre at the distance where the object's size fills the box.
-    f = 0.5 * (K[0, 0] + K[1, 1])
-    z0 = f * size / max(box[2] - box[0], box[3] - box[1])
-    centre = np.array([0.5 * (box[0] + box[2]) - 0.5, 0.5 * (box[1] + box[3]) - 0.5, 1.0])
-    ray = np.linalg.solve(K, centre)
-    t = ray * z0 - rotated.mean(axis=0)
-    for _ in range(_FIT_STEPS):
-        uv = _project(rotated + t, K)
-        lo, hi = uv.min(axis=0), uv.max(axis=0)
-        ratios = []
-        if use_w:
-            ratios.append((box[2] - box[0]) / max(hi[0] - lo[0], 1e-9))
-        if use_h:
-            ratios.append((box[3] - box[1]) / max(hi[1] - lo[1], 1e-9))
-        scale = max(ratios)  # the larger box/model ratio: the nearer distance (the less occluded dimension)
-        c = rotated.mean(axis=0) + t
-        c = c / scale  # move the centroid along its ray: the projection grows by about `scale`
-        t = c - rotated.mean(axis=0)
-        uv = _project(rotated + t, K)
-        lo, hi = uv.min(axis=0), uv.max(axis=0)
-        shift = np.zeros(2)
-        for axis, (a, b) in enumerate(((0, 2), (1, 3))):
-            if trusted[a] and trusted[b]:
-                shift[axis] = 0.5 * (box[a] + box[b]) - 0.5 * (lo[axis] + hi[axis])
-            elif trusted[a]:
-                shift[axis] = box[a] - lo[axis]
-            elif trusted[b]:
-                shift[axis] = box[b] - hi[axis]
-            else:
-                shift[axis] = 0.5 * (box[a] + box[b]) - 0.5 * (lo[axis] + hi[axis])
-        z = c[2]
-        dy = shift[1] * z / K[1, 1]
-        dx = (shift[0] * z - K[0, 1] * dy) / K[0, 0]
-        t_next = t + np.array([dx, dy, 0.0])
-        if abs(scale - 1.0) < 1e-9 and abs(dx) + abs(dy) < 1e-9:
-            return t_next
-        t = t_next
-    return t
-
-
 def shape_disagreement(q_cam, extent_m, boxes_xyxy, K, image_size: tuple[int, int] | None = None) -> np.ndarray:
     """``(M,)`` in ``[0, 1)``: how far the projected box of each posed object disagrees in shape with its box,
     ``1 - min(rw, rh) / max(rw, rh)`` with ``rw, rh`` the box's width and height over the projection's (the object
     placed on the box's viewing ray at the distance its size suggests). 0 for a box with a side at the image border
-    (:data:`BORDER_PX`; needs ``image_size``): its shape is the border's.
+    (:data:`refiner_rt.placement.BORDER_PX`; needs ``image_size``): its shape is the border's.
 
     Args:
         q_cam: ``(M, 4)`` wxyz rotations, object to camera. extent_m: ``(P, 3)`` extent points, metres.
@@ -238,37 +123,14 @@ def shape_disagreement(q_cam, extent_m, boxes_xyxy, K, image_size: tuple[int, in
     side = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
     size = np.maximum(np.ptp(pts[..., 0], axis=1), np.ptp(pts[..., 1], axis=1))
     z = 0.5 * (K[0, 0] + K[1, 1]) * size / side
-    uv = _project(pts - pts.mean(axis=1, keepdims=True) + (rays * z[:, None])[:, None, :], K)
+    uv = pixel_coordinates(pts - pts.mean(axis=1, keepdims=True) + (rays * z[:, None])[:, None, :], K)
     rw = (boxes[:, 2] - boxes[:, 0]) / np.maximum(np.ptp(uv[..., 0], axis=1), 1e-9)
     rh = (boxes[:, 3] - boxes[:, 1]) / np.maximum(np.ptp(uv[..., 1], axis=1), 1e-9)
     out = 1.0 - np.minimum(rw, rh) / np.maximum(rw, rh)
     if image_size is not None:
-        cut = ~np.array([_box_sides_trusted(b, image_size).all() for b in boxes], dtype=bool)
+        cut = ~np.array([sides_clear_of_border(b, image_size).all() for b in boxes], dtype=bool)
         out[cut] = 0.0
     return out
-
-
-def validate_depth(depth, image_shape) -> np.ndarray:
-    """Check a depth image: ``H x W`` float metres matching the colour image; 0 or non-finite where unknown.
-
-    Raises:
-        TypeError: not a numpy array, or an integer array (raw sensor millimetres: convert with ``depth_mm / 1000``).
-        ValueError: a shape other than the image's ``(H, W)``, or values that look like millimetres (a median
-            valid depth above :data:`MAX_DEPTH_M`).
-    """
-    if not isinstance(depth, np.ndarray):
-        raise TypeError(f"depth must be a numpy array (H, W), float metres; got {type(depth).__name__}")
-    if depth.dtype.kind != "f":
-        raise TypeError(f"depth must be float metres (H, W); got dtype {depth.dtype} (a raw sensor image in "
-                        "millimetres? pass depth_mm.astype(np.float32) / 1000)")
-    if depth.shape != tuple(image_shape[:2]):
-        raise ValueError(f"depth must have the image's shape (H, W) = {tuple(image_shape[:2])}, float metres; "
-                         f"got shape {depth.shape}")
-    valid = depth[np.isfinite(depth) & (depth > 0)]
-    if valid.size and float(np.median(valid)) > MAX_DEPTH_M:
-        raise ValueError(f"depth must be in metres; its median valid value is {float(np.median(valid)):.1f} "
-                         f"(> {MAX_DEPTH_M:g} m: millimetres? divide by 1000)")
-    return depth
 
 
 def depth_translation(R, points_m, t_box, box_xyxy, K, depth) -> np.ndarray | None:
@@ -284,7 +146,7 @@ def depth_translation(R, points_m, t_box, box_xyxy, K, depth) -> np.ndarray | No
     Args:
         R: ``(3, 3)`` rotation, object to camera. points_m: ``(P, 3)`` metres, object frame.
         t_box: ``(3,)`` metres, the box fit's translation. box_xyxy: ``(4,)`` pixels. K: ``(3, 3)``.
-        depth: ``H x W`` float metres (:func:`validate_depth`).
+        depth: ``H x W`` float metres (:func:`refiner_rt.checks.validate_depth`).
     """
     box = np.asarray(box_xyxy, dtype=np.float64)
     h, w = depth.shape
@@ -300,7 +162,7 @@ def depth_translation(R, points_m, t_box, box_xyxy, K, depth) -> np.ndarray | No
     centroid = rotated.mean(axis=0)
     posed = rotated + np.asarray(t_box, dtype=np.float64)
     c = centroid + np.asarray(t_box, dtype=np.float64)
-    uv = _project(posed, np.asarray(K, dtype=np.float64))
+    uv = pixel_coordinates(posed, np.asarray(K, dtype=np.float64))
     gx = np.floor((uv[:, 0] - (cx - hw)) / (2 * hw) * _DEPTH_GRID)
     gy = np.floor((uv[:, 1] - (cy - hh)) / (2 * hh) * _DEPTH_GRID)
     inside = (gx >= 0) & (gx < _DEPTH_GRID) & (gy >= 0) & (gy < _DEPTH_GRID)
@@ -427,7 +289,8 @@ class PoseEstimator:
                 1024.
             K: ``(3, 3)`` pinhole intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels (required).
             depth: optional ``H x W`` float depth image in **metres** registered to ``image_bgr`` (0 or non-finite
-                where unknown; :func:`validate_depth`). A box with no valid depth in its centre keeps the box fit.
+                where unknown; :func:`refiner_rt.checks.validate_depth`). A box with no valid depth in its centre
+                keeps the box fit.
 
         Returns:
             :class:`PoseEstimate`.

@@ -265,3 +265,43 @@ def test_a_picture_or_bag_path_the_command_cannot_use_is_one_error_line(tmp_path
     assert "Traceback" not in res.output and res.output.startswith("Error: ") and str(tmp_path) in res.output
     if args[0] != "track":
         assert ".png" in res.output  # what is expected
+
+
+def test_prepare_output_makes_the_missing_folders_of_an_output_and_names_the_option_when_it_cannot(tmp_path):
+    import click
+
+    from refiner_rt.cli import prepare_output
+
+    out = prepare_output(str(tmp_path / "a" / "b" / "poses.json"), "'--out'")
+    assert out == tmp_path / "a" / "b" / "poses.json" and out.parent.is_dir() and not out.exists()
+    assert prepare_output(Path("poses.json"), "'--out'") == Path("poses.json")  # the working folder: nothing to make
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(click.BadParameter, match="cannot create the folder .*file") as err:
+        prepare_output(tmp_path / "file" / "poses.json", "'--out'")
+    assert err.value.param_hint == "'--out'"
+
+
+@pytest.mark.parametrize("args, option", [
+    (["demo", "--out", "{file}/demo.png"], "--out"),
+    (["estimate", "{frame}", "--K", "1066.8,1067.5,313,241.3", "--object", "035_power_drill",
+      "--box", "438,202,636,368", "--out", "{file}/poses.json"], "--out"),
+    (["estimate", "{frame}", "--K", "1066.8,1067.5,313,241.3", "--object", "035_power_drill",
+      "--box", "438,202,636,368", "--overlay", "{file}/poses.png"], "--overlay"),
+    (["track", "{tmp}", "{file}", "-o", "{file}/rotations.json"], "--out"),
+    (["track", "--bag", "{tmp}", "-o", "{file}/out_bag"], "--out"),
+], ids=["demo --out", "estimate --out", "estimate --overlay", "track -o", "track --bag -o"])
+def test_every_command_makes_a_missing_output_folder_by_one_rule(tmp_path, args, option):
+    """demo, estimate and track treat an output's folder alike (refiner_rt.cli.prepare_output): a missing one is
+    made (each command's own tests write into new folders), and one that cannot be made (a file in its way) is one
+    error line naming the option, before any work."""
+    from refiner_rt import pretrained_models
+
+    if "--object" in args and "035_power_drill" not in {m.object_id for m in pretrained_models()}:
+        pytest.skip("the shipped power-drill model is not in this checkout")
+    file = tmp_path / "not_a_folder"
+    file.write_text("{}")
+    frame = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples" / "000002_000001.jpg"
+    argv = [a.replace("{tmp}", str(tmp_path)).replace("{file}", str(file)).replace("{frame}", str(frame)) for a in args]
+    res = CliRunner().invoke(main, argv)
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output and "cannot create the folder" in res.output and option in res.output

@@ -15,7 +15,8 @@ from refiner_rt import pretrained as pt
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 DOCS = [README, ROOT / "benchmarks" / "RESULTS.md", ROOT / "benchmarks" / "DATA.md",
-        ROOT / "refiner_rt" / "samples" / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+        ROOT / "refiner_rt" / "samples" / "README.md", ROOT / "benchmarks" / "results" / "README.md",
+        *sorted((ROOT / "docs").glob("*.md")),
         *sorted((ROOT / "benchmarks" / "studies").glob("**/README.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 
@@ -71,6 +72,46 @@ def test_no_machine_paths_or_internal_issue_numbers():
             hits += [f"{name}:{i}: {line.strip()}" for i, line in enumerate(path.read_text().splitlines(), 1)
                      if bad.search(line)]
     assert not hits, "\n".join(hits)
+
+
+def test_results_sit_in_the_folder_of_the_script_that_writes_them():
+    """benchmarks/results/ holds one folder per writing script and its README, which names every folder."""
+    results = ROOT / "benchmarks" / "results"
+    loose = sorted(p.name for p in results.iterdir() if p.is_file() and p.name != "README.md")
+    assert not loose, f"files straight in benchmarks/results/ (put them in their script's folder): {loose}"
+    listed = set(re.findall(r"`(\w+)/`", (results / "README.md").read_text()))
+    folders = {p.name for p in results.iterdir() if p.is_dir()}
+    assert folders <= listed, f"folders benchmarks/results/README.md does not describe: {sorted(folders - listed)}"
+
+
+def test_recorded_commands_are_printed_as_commands_to_rerun_now():
+    """A record's script run by its path is printed as its module; a result file it wrote straight into
+    benchmarks/results/ in its script's folder there; a command already in that form is kept."""
+    from models.evaluate.record import current_command
+
+    old = ("python benchmarks/tracking.py --data data/t --json benchmarks/results/tracking.json "
+           "--plot=benchmarks/results/tracking.png")
+    new = current_command(old)
+    assert new == ("python -m benchmarks.tracking --data data/t --json benchmarks/results/tracking/tracking.json "
+                   "--plot=benchmarks/results/tracking/tracking.png")
+    assert current_command(new) == new
+    assert current_command("python benchmarks/studies/cascade/cascade.py --x 1") == (
+        "python -m benchmarks.studies.cascade.cascade --x 1")
+    assert (current_command("refiner-rt bench --cpu --json benchmarks/results/bench.json")
+            == "refiner-rt bench --cpu --json benchmarks/results/bench/bench.json")
+    kept = "python -m benchmarks.real --data REAL --json benchmarks/results/real/x.json --plot runs/x.png"
+    assert current_command(kept) == kept
+    assert current_command("python benchmarks/a.py --x 1 && python benchmarks/b.py") == (
+        "python -m benchmarks.a --x 1 && python -m benchmarks.b")
+
+
+def test_generated_documents_print_scripts_as_modules():
+    """The model card and the paper experiments' tables print the commands as they are run now (python -m)."""
+    from models.evaluate import report
+
+    for doc in (ROOT / "refiner_rt" / "weights" / "MODELS.md", ROOT / "benchmarks" / "results" / "paper" / "tables.md",
+                *report.DOCS):
+        assert not re.search(r"python benchmarks/\S+\.py", doc.read_text()), f"{doc}: python benchmarks/X.py"
 
 
 DESIGN = ROOT / "docs" / "design.md"
@@ -198,6 +239,32 @@ def test_model_card_commands_name_no_machine_folders():
         "'{\"conv_channels\": [16, 32]}' --cache DATA/.crops --save RUN/003_cracker_box "
         "--json RUN/003_cracker_box.train.json --extra-train ycb9_v0")
     assert card.portable_command(portable) == portable
+
+
+def test_model_card_commands_name_a_cache_or_init_elsewhere_by_placeholder():
+    """A crop cache outside DATA and RUN is written CACHE; an --init checkpoint outside them RUN/<name>.init.pt (where
+    the release recovers the model it starts from), INIT without --save; a record's script path as its module.
+    export.release.coarse.card_command (what the studies record) gives the same."""
+    from export.release import card, coarse
+
+    cmd = ("python benchmarks/data_scaling.py --data /srv/d/ycb9_v1 --object 011_banana --cache runs/levers/cache "
+           "--init /srv/old/011_banana.pt --save /srv/r/v1/011_banana --json /srv/r/v1/011_banana.train.json")
+    portable = card.portable_command(cmd)
+    assert portable == ("python -m benchmarks.data_scaling --data DATA --object 011_banana --cache CACHE "
+                        "--init RUN/011_banana.init.pt --save RUN/011_banana --json RUN/011_banana.train.json")
+    assert card.portable_command(portable) == portable
+    inside = "python -m benchmarks.data_scaling --data /d --cache /r/c --init /r/a/x.pt --save /r/a"
+    assert card.portable_command(inside) == (
+        "python -m benchmarks.data_scaling --data DATA --cache RUN/c --init RUN/a/x.pt --save RUN/a")
+    assert card.portable_command("python -m m --init /srv/x.pt --cache /srv/c") == "python -m m --init INIT --cache CACHE"
+
+    run, data = Path("/srv/r/v7"), Path("/srv/d/ycb9_robot")
+    cmd = coarse.data_scaling_command(data, "011_banana", run, 300, 2500, Path("/srv/cache"), init=Path("/srv/x/a.pt"))
+    printed = shlex.split(coarse.card_command(cmd))
+    assert printed[:3] == ["python", "-m", "benchmarks.data_scaling"]
+    assert printed[printed.index("--cache") + 1] == "CACHE"
+    assert printed[printed.index("--init") + 1] == "RUN/011_banana.init.pt"
+    assert not [a for a in printed if a.startswith("/")]
 
 
 def test_first_stage_commands_train_on_turns_then_go_on_from_that_network():

@@ -15,8 +15,9 @@ import refiner_rt
 from refiner_rt import quaternion as rq
 from refiner_rt.cli import main
 from refiner_rt.demo import SAMPLES_DIR, load_outlines, load_samples
-from refiner_rt.estimate import (PoseEstimator, _project, depth_translation, fit_translation, load_extents,
-                                 shape_disagreement, super_fibonacci, validate_depth)
+from refiner_rt.checks import validate_depth
+from refiner_rt.estimate import PoseEstimator, depth_translation, shape_disagreement, super_fibonacci
+from refiner_rt.placement import fit_translation, load_extents, pixel_coordinates
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -36,7 +37,7 @@ def _cuboid(size=(0.08, 0.12, 0.04), n=12):
 
 
 def _box_of(points, R, t):
-    uv = _project(points @ R.T + t, K)
+    uv = pixel_coordinates(points @ R.T + t, K)
     return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
 
 
@@ -250,7 +251,7 @@ def test_cli_help():
 def test_cli_run_writes_json_and_overlay(tmp_path, sample):
     frame, image, objects = sample
     obj = objects["003_cracker_box"]
-    out, overlay = tmp_path / "poses.json", tmp_path / "poses.png"
+    out, overlay = tmp_path / "json" / "poses.json", tmp_path / "pictures" / "poses.png"  # folders made
     fx, fy, cx, cy = frame.K[0, 0], frame.K[1, 1], frame.K[0, 2], frame.K[1, 2]
     args = ["estimate", str(frame.path), "--K", f"{fx},{fy},{cx},{cy}", "--object", "003_cracker_box",
             "--box", ",".join(f"{v:g}" for v in obj.box_xyxy), "--out", str(out), "--overlay", str(overlay)]

@@ -83,6 +83,9 @@ def test_the_report_shows_commands_without_machine_paths(runner):
     assert shown == "python -m benchmarks.paper --data data/ycb9 --runs runs/paper_exp --cache cache --only baseline"
     assert runner.shown_command("x --data=/data/alice/proj/data/ycb9 --runs=/opt/a/runs/x --n=3") == (
         "x --data=data/ycb9 --runs=runs/x --n=3")
+    # records written before the python -m layout name the script by its path: printed as the command run now
+    assert runner.shown_command("python benchmarks/paper.py --data /srv/data/ycb9 --only baseline") == (
+        "python -m benchmarks.paper --data data/ycb9 --only baseline")
 
 
 def test_second_invocation_skips_finished_experiments(runner, ran, capsys):

@@ -624,7 +624,7 @@ def test_track_command_writes_the_tracked_rotations_and_a_strip(tmp_path):
     from refiner_rt.cli import main
 
     frames, dets, model = write_sequence(tmp_path, n=4)
-    out, strip = tmp_path / "rot.json", tmp_path / "strip.png"
+    out, strip = tmp_path / "out" / "rot.json", tmp_path / "pictures" / "strip.png"  # missing folders are made
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
                                     "--video", str(strip), "--strip", "3"])
     assert res.exit_code == 0, res.output

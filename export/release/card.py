@@ -18,6 +18,7 @@ import numpy as np
 
 from models.evaluate.appearance import CARD_JSON as APPEARANCE_JSON
 from models.evaluate.real import DEFAULT_JSON as REAL_JSON
+from models.evaluate.record import current_command
 from models.evaluate.report import fine_table
 from refiner_rt.metadata import file_sha256
 from refiner_rt.pretrained import INDEX_FILE, INDEX_FORMAT, WEIGHTS_DIR, model_file_name
@@ -225,22 +226,38 @@ def _deg(s: dict, key: str = "mean_deg") -> str:
 
 
 def portable_command(command: str) -> str:
-    """``command`` as the model card prints it: the build machine's folders written ``DATA`` (the ``--data``
-    folder) and ``RUN`` (the folder holding ``--save``), and each ``--extra-train`` folder by its name (a set of
-    benchmarks/DATA.md), so neither the card nor the JSON names a path outside the repository. Idempotent."""
-    args = shlex.split(command)
-    folders = {}
-    for flag, name in (("--data", "DATA"), ("--save", "RUN")):
-        if flag in args[:-1]:
-            value = Path(args[args.index(flag) + 1])
-            folders[str(value if name == "DATA" else value.parent)] = name
-    args = [Path(a).name if i and args[i - 1] == "--extra-train" else a for i, a in enumerate(args)]
-    out = []
-    for a in args:
+    """``command`` as the model card prints it: a command to rerun (a script as its module,
+    :func:`models.evaluate.record.current_command`) that names no folder of the build machine. The ``--data`` folder
+    is written ``DATA`` and the folder holding ``--save`` ``RUN`` (paths inside them too); each ``--extra-train``
+    folder by its name (a set of benchmarks/DATA.md); a ``--cache`` elsewhere ``CACHE`` (a crop cache, rebuilt where
+    missing); an ``--init`` checkpoint elsewhere ``RUN/<name>.init.pt``, ``<name>`` the ``--save`` folder's (where
+    :func:`export.release.coarse.recover_shipped` writes the shipped model a build starts from), ``INIT`` without
+    ``--save``. So neither the card nor the JSON names a path outside the repository. Idempotent."""
+    args = shlex.split(current_command(command))
+
+    def value(flag: str) -> str | None:
+        return args[args.index(flag) + 1] if flag in args[:-1] else None
+
+    data, save = value("--data"), value("--save")
+    folders = {**({data: "DATA"} if data else {}), **({str(Path(save).parent): "RUN"} if save else {})}
+
+    def placed(a: str) -> str | None:
         for folder, name in folders.items():
             if a == folder or a.startswith(folder + "/"):
-                a = name + a[len(folder):]
-                break
+                return name + a[len(folder):]
+        return None
+
+    out = []
+    for i, a in enumerate(args):
+        flag = args[i - 1] if i else ""
+        if flag == "--extra-train":
+            a = Path(a).name
+        elif flag == "--cache":
+            a = placed(a) or "CACHE"
+        elif flag == "--init":
+            a = placed(a) or (f"RUN/{Path(save).name}.init.pt" if save else "INIT")
+        else:
+            a = placed(a) or a
         out.append(a)
     return shlex.join(out)
 
@@ -337,7 +354,9 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
                   "REAL --card` (`benchmarks/results/real/real_ycbv_dev.json`). The real frames are for measuring "
                   "only: no model was trained, calibrated or chosen on them."]
     lines += [line for d in docs if "symmetric" in d["eval"]["int8"] for line in ("", _symmetry_sentence(d))]
-    lines += ["", "## How each model was made", ""]
+    lines += ["", "## How each model was made", "",
+              "Each training command names the build machine's folders `DATA` (the rendered set, benchmarks/DATA.md), "
+              "`RUN` (the run's folder) and `CACHE` (the crop cache, made where missing).", ""]
     for d in docs:
         t = d["train"]
         lines += [f"- `{d['object_id']}` (version {d['model_version']}, recipe `{d['recipe']['name']}`): "
@@ -360,7 +379,7 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
                   + f"{d['eval']['int8']['all']['n']} test crops from {d['eval']['test_scenes']} "
                   + ("fresh scenes that hold it." if _fresh(d) else "held-out scenes."),
                   "  ```bash\n"
-                  + (f"  {d['first_stage']['command']}\n" if d.get("first_stage") else "")
+                  + (f"  {portable_command(d['first_stage']['command'])}\n" if d.get("first_stage") else "")
                   + f"  {portable_command(d['train_command'])}\n  ```"]
     if docs:
         by_scheme: dict = {}
@@ -381,7 +400,7 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
     if speed:
         m = speed.get("machine", {})
         lines += ["", "## Speed", "",
-                  f"`{speed.get('command', 'python -m export.release.coarse speed')}`: batch 1, one thread, the full "
+                  f"`{current_command(speed.get('command', 'python -m export.release.coarse speed'))}`: batch 1, one thread, the full "
                   f"`refine()` path with `K` (crop from a 640x480 frame, network, composition), median of "
                   f"{speed.get('rounds', '?')} interleaved rounds on {m.get('cpu', '?')} "
                   f"({', '.join(m.get('isa_flags', []))}). Compare rows, not machines."]

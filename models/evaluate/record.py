@@ -68,6 +68,40 @@ def provenance(module: str, argv: list[str] | None, threads: int | None = None, 
             "machine": record}
 
 
+RESULTS_DIR = "benchmarks/results"
+
+
+def current_command(command: str) -> str:
+    """A recorded ``command`` as the generated documents print it, so that it can be rerun today: a script run by
+    its path, as the records before the ``python -m`` layout wrote it (``python benchmarks/NAME.py``, ``python
+    benchmarks/studies/STUDY/SCRIPT.py``), as its module (``python -m benchmarks.NAME``); a result file written
+    straight into ``benchmarks/results/`` (where every script wrote before the folder was split) in the sub-folder of
+    the script that wrote it, named after the script (``--json benchmarks/results/tracking.json`` of
+    ``benchmarks.tracking`` -> ``benchmarks/results/tracking/tracking.json``) or the ``refiner-rt`` command
+    (``refiner-rt bench`` -> ``benchmarks/results/bench/``), the rule of ``benchmarks/results/README.md``. Everything
+    else is kept as recorded; commands joined by ``&&`` are rewritten one by one. Idempotent.
+    """
+    if " && " in command:
+        return " && ".join(current_command(c) for c in command.split(" && "))
+    args = shlex.split(command)
+    if args[:1] == ["python"] and len(args) > 1 and args[1].endswith(".py") and not args[1].startswith(("/", "..")):
+        args = ["python", "-m", args[1][: -len(".py")].replace("/", "."), *args[2:]]
+    if args[:2] == ["python", "-m"] and len(args) > 2:
+        folder = args[2].rsplit(".", 1)[-1]
+    elif args[:1] == ["refiner-rt"] and len(args) > 1:
+        folder = args[1]
+    else:
+        return command
+    out = []
+    for arg in args:
+        flag, eq, value = arg.partition("=") if arg.startswith("--") else ("", "", arg)
+        head, _, name = value.rpartition("/")
+        if head == RESULTS_DIR and name:
+            arg = f"{flag}{eq}{RESULTS_DIR}/{folder}/{name}"
+        out.append(arg)
+    return shlex.join(out)
+
+
 def machine() -> dict:
     """CPU model, instruction-set flags that matter for speed, and core count."""
     model, flags = platform.processor() or "unknown", []

@@ -21,7 +21,7 @@ from refiner_rt import __version__
 from refiner_rt.errors import TRAINING_INSTALL, ModelError
 
 __all__ = ["main", "LazyGroup", "LazyCommand", "RUNTIME_COMMANDS", "ENTRY_POINT_GROUP", "plugged_commands",
-           "check_picture_path", "write_picture", "PICTURE_SUFFIXES",
+           "check_picture_path", "write_picture", "PICTURE_SUFFIXES", "prepare_output",
            "missing_message"]
 
 # Where other packages declare their subcommands (pyproject.toml, [project.entry-points."refiner_rt.commands"]).
@@ -68,6 +68,27 @@ def check_picture_path(path):
     if path.suffix.lower() not in PICTURE_SUFFIXES:
         raise click.ClickException(f"cannot write a picture to {path}: expected a file ending in "
                                    f"{', '.join(PICTURE_SUFFIXES)}; got {path.suffix or 'no suffix'!r}")
+    return path
+
+
+def prepare_output(path, param_hint: str):
+    """``path``, an output of a command (a file, or ``track --bag``'s new bag folder), as a ``Path`` whose missing
+    parent folders have been created: the one rule of every ``refiner-rt`` output (``demo --out``, ``estimate
+    --out/--overlay``, ``track -o/--video``), applied once the options are checked and before the work, so that a
+    long run does not fail at its end. The output itself is not created here.
+
+    Raises:
+        click.BadParameter: the parent folder cannot be made (a file in its way, no permission), naming
+            ``param_hint`` (the option, e.g. ``"'--out'"``).
+    """
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise click.BadParameter(f"cannot create the folder {path.parent} for {path.name}: {exc.strerror or exc}",
+                                 param_hint=param_hint) from None
     return path
 
 
@@ -188,4 +209,5 @@ def main():
 
     Conventions: quaternions wxyz (scalar first), rotations object-to-camera,
     images HxWx3 uint8 BGR, boxes (x1, y1, x2, y2) in pixels, angles in degrees.
+    Output files: a missing folder of one is made.
     """

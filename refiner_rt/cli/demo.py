@@ -9,7 +9,7 @@ import click
 import cv2
 import numpy as np
 
-from refiner_rt.cli import check_picture_path, write_picture
+from refiner_rt.cli import check_picture_path, prepare_output, write_picture
 
 __all__ = ["demo_cmd", "numbers_callback"]
 
@@ -75,9 +75,8 @@ def demo_cmd(out, seed, threads, image_path, box, q, K, object_id, cascade):
         missing = [name for name, v in extra.items() if v is None]
         if missing:
             raise click.UsageError(f"--image needs {', '.join(missing)} as well")
-    if out.parent != Path("") and not out.parent.is_dir():
-        raise click.BadParameter(f"directory {out.parent} does not exist", param_hint="'--out'")
     check_picture_path(out)
+    prepare_output(out, "'--out'")
     t0 = time.perf_counter()
     if image_path is None:
         _samples(out, seed, threads, cascade)
@@ -179,6 +178,6 @@ def _own_image(out: Path, threads: int, image_path: Path, box, q, K, object_id: 
     click.echo(f"{object_id}: refined q (wxyz) {np.array2string(q_ref, precision=4, separator=', ')}, "
                f"{float(rq.geodesic_angle(q_in, q_ref)):.1f} deg from the coarse one, {ms:.2f} ms ({ran})")
     outline = demo.load_outlines().get(object_id)
-    write_picture(out, demo.image_picture(image, K3, box, q_in, q_ref, outline))
+    write_picture(out, demo.image_picture(image, K3, box, q_in, q_ref, outline, object_id))
     click.echo(f"Wrote {out}: coarse (cyan) and refined (green) outlines, placed from the box (the refiner estimates "
                "rotation only).")

@@ -16,7 +16,7 @@ import click
 import cv2
 import numpy as np
 
-from refiner_rt.cli import check_picture_path, write_picture
+from refiner_rt.cli import check_picture_path, prepare_output, write_picture
 from refiner_rt.cli.demo import numbers_callback
 
 __all__ = ["estimate_cmd", "read_depth"]
@@ -143,9 +143,6 @@ def estimate_cmd(images, K, object_id, boxes, detections_path, depths, depth_uni
 
     if depths and len(depths) != len(images):
         raise click.UsageError(f"--depth given {len(depths)} time{'s' if len(depths) != 1 else ''} for {len(images)} images: one per image, in order")
-    for path in (out, overlay):
-        if path is not None and path.parent != Path("") and not path.parent.is_dir():
-            raise click.BadParameter(f"directory {path.parent} does not exist", param_hint=f"'{path}'")
     if overlay is not None:
         check_picture_path(overlay)
     K3 = np.array([[K[0], 0.0, K[2]], [0.0, K[1], K[3]], [0.0, 0.0, 1.0]])
@@ -155,6 +152,9 @@ def estimate_cmd(images, K, object_id, boxes, detections_path, depths, depth_uni
     if unknown:
         raise click.BadParameter(f"no shipped model for {', '.join(map(repr, unknown))}; shipped: "
                                  f"{', '.join(shipped)}", param_hint="'--object'")
+    for path, option in ((out, "'--out'"), (overlay, "'--overlay'")):
+        if path is not None:
+            prepare_output(path, option)
     kwargs = {} if hypotheses is None else {"hypotheses": hypotheses}
     estimators: dict = {}
     t0 = time.perf_counter()

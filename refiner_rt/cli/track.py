@@ -34,6 +34,7 @@ import numpy as np
 
 from refiner_rt import draw
 from refiner_rt.checks import MAX_ITERATIONS, MAX_VIEWS
+from refiner_rt.cli import prepare_output
 
 __all__ = ["track_cmd", "read_detections", "frame_files", "annotate", "OUTPUT_FORMAT"]
 
@@ -318,6 +319,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         unused = [f"{flag} ({why})" for flag, (value, why) in instead.items() if value]
         if unused:
             raise click.UsageError(f"not with --bag, only with FRAMES DETECTIONS: {'; '.join(unused)}")
+        prepare_output(out_path, "'-o' / '--out'")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
                           class_map, fp32, prediction, lost_deg, threads, settle_deg, views, detector_weight,
                           sync_tolerance_ms, identity_is_pose, estimate_missing)
@@ -329,6 +331,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     if out_path.suffix.lower() != ".json":
         raise click.BadParameter(f"expected a .json file for the rotations (a video or image strip goes to --video); "
                                  f"got {out_path.name!r}", param_hint="'-o' / '--out'")
+    prepare_output(out_path, "'-o' / '--out'")
     try:
         K, dets = read_detections(detections)
     except ValueError as exc:
@@ -359,6 +362,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.ClickException(str(exc)) from None
 
     video = _VideoOutput(video_path, len(files), strip_frames, fps) if video_path else None
+    if video is not None:
+        prepare_output(video_path, "'--video'")
     results, scores, lost, refined, seconds = {}, {}, {}, 0, 0.0
     for index, path in enumerate(files):
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -388,7 +393,6 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
                                  lost=o in tracker.lost, score=tracker.scores.get(o)) for o, q in out.items()]))
     if video is not None:
         video.close()
-    out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps({
         "format": OUTPUT_FORMAT,
         "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",

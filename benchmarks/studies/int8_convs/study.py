@@ -21,6 +21,7 @@ without checkpoints, HELDOUT and CALIB: rendered scenes of seeds no model traine
     python -m benchmarks.studies.int8_convs.study --data DATA --run RUN --json benchmarks/studies/int8_convs/results.json
     python -m benchmarks.studies.int8_convs.study --heldout HELDOUT --calibration CALIB \\
         --json benchmarks/studies/int8_convs/results_vnni.json
+    python -m benchmarks.studies.int8_convs.study --report benchmarks/studies/int8_convs/results.json   # the tables
 
 Candidates (``static-qdq-int8-conv`` variants differ in which convolutions are quantised, by input channels, and
 in whether the fully connected layers are quantised statically or dynamically):
@@ -239,7 +240,8 @@ def option_speed(path: Path, rounds: int = 9, calls: int = 200) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.studies.int8_convs.study",
+                                 description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, help="rendered dataset (training crops calibrate, test crops score)")
     ap.add_argument("--run", type=Path, help="the build's run folder: RUN/<obj>/*.pt")
     ap.add_argument("--heldout", type=Path, help="instead of --data/--run: rendered scenes no model trained on, every "
@@ -251,8 +253,17 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--skip-accuracy", action="store_true", help="only speed and profile")
     ap.add_argument("--skip-speed", action="store_true", help="only accuracy (the speed keys of --json are kept)")
-    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--json", type=Path, help="the results file (required unless --report); a rerun updates it")
+    ap.add_argument("--report", type=Path, metavar="JSON", help="print the Markdown tables of this results file "
+                    "(what the README quotes) and stop")
     args = ap.parse_args(argv)
+    if args.report is not None:
+        if not args.report.is_file():
+            ap.error(f"--report: no such file: {args.report}")
+        print(report(json.loads(args.report.read_text())))
+        return 0
+    if args.json is None:
+        ap.error("--json is required (unless --report)")
     from export.quantize import dataset_calibration
     from export.release.coarse import evaluate, evaluate_fresh, scoring_mode
     from models.data.pipeline import whole_folder_spec
@@ -388,7 +399,4 @@ def report(doc: dict) -> str:
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--report"]:
-        print(report(json.loads(Path(sys.argv[2]).read_text())))
-        raise SystemExit(0)
     raise SystemExit(main())
