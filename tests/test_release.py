@@ -112,3 +112,20 @@ def test_build_refuses_a_from_weights_path_that_is_not_a_folder(tmp_path, capsys
     err = capsys.readouterr().err
     assert "--from-weights" in err and "not a folder" in err
     assert not (tmp_path / "run").exists()
+
+
+def test_the_release_readme_builds_the_objects_that_ship():
+    """Every ``--objects`` list of a coarse build in export/release/README.md names objects that ship, all of them."""
+    import re
+
+    from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
+
+    text = (ROOT / "export" / "release" / "README.md").read_text()
+    shipped = {p.name.removesuffix(".int8.onnx") for p in WEIGHTS_DIR.glob("0*.int8.onnx")
+               if not p.name.endswith(".fine.int8.onnx")}
+    lists = [m.split(",") for m in re.findall(r"coarse build .*?--objects (\S+)", text, flags=re.S)]
+    assert lists and shipped
+    for objects in lists:
+        if objects != ["OBJECT"]:
+            assert set(objects) == shipped, objects
+    assert all((WEIGHTS_DIR / model_file_name(o, int8=True)).is_file() for o in shipped)
