@@ -50,8 +50,9 @@ from refiner_rt.placement import fit_translation, load_extents, pixel_coordinate
 from refiner_rt.preprocess import crop_to_square
 from refiner_rt.session import RefinerSession
 
-__all__ = ["PoseEstimator", "PoseEstimate", "super_fibonacci", "depth_translation", "shape_disagreement",
-           "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG"]
+__all__ = ["PoseEstimator", "PoseEstimate", "super_fibonacci", "return_turns", "depth_translation",
+           "shape_disagreement", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS",
+           "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG"]
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
 DEFAULT_HYPOTHESES = 3
@@ -80,6 +81,14 @@ def super_fibonacci(n: int) -> np.ndarray:
     alpha, beta = 2.0 * np.pi * s / phi, 2.0 * np.pi * s / psi
     xyzw = np.stack([r * np.sin(alpha), r * np.cos(alpha), big_r * np.sin(beta), big_r * np.cos(beta)], axis=1)
     return rq.canonical(rq.from_xyzw(xyzw))
+
+
+def return_turns(n: int) -> np.ndarray:
+    """``(n, 4)`` wxyz unit quaternions: the "return" check's turn of each of ``n`` hypotheses, :data:`RETURN_TURN_DEG`
+    about axes spread over the sphere (the vector parts of the last ``n`` of ``super_fibonacci(2 n)``). A hypothesis
+    ``q`` is checked from ``q * turn`` (the turn in the object frame). Deterministic."""
+    axes = super_fibonacci(2 * n)[n:, 1:]
+    return rq.from_axis_angle(axes / np.linalg.norm(axes, axis=1, keepdims=True), RETURN_TURN_DEG)
 
 
 @dataclass(frozen=True)
@@ -216,9 +225,7 @@ class PoseEstimator:
         self.coarse, self.fine, self.points_m, self.extent_m = coarse, fine, pts, ext
         self.hypotheses, self.passes, self.ranking = int(hypotheses), int(passes), ranking
         self._q_hyp = super_fibonacci(self.hypotheses)
-        # One fixed turn per hypothesis for the "return" check, about axes spread over the sphere.
-        axes = super_fibonacci(2 * self.hypotheses)[self.hypotheses:, 1:]
-        self._q_turn = rq.from_axis_angle(axes / np.linalg.norm(axes, axis=1, keepdims=True), RETURN_TURN_DEG)
+        self._q_turn = return_turns(self.hypotheses)  # one fixed turn per hypothesis for the "return" check
 
     @classmethod
     def pretrained(cls, object_id: str, int8: bool = True, threads: int = 1, fine: bool = True,

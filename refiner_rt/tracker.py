@@ -57,6 +57,21 @@ output: near the truth it moves little). A flagged object is listed in :attr:`Re
 :meth:`RefinerTracker.update` is given a ``detector``, it is re-initialised from the detector's coarse pose and
 refined from it in the same update, and :attr:`RefinerTracker.redetections` counts it.
 
+Re-initialisation without a detector (``reinit=True``, with ``lost_deg``): a flagged object for which the detector
+gives no pose is searched for on its box. Its rotation is refined :data:`REINIT_PASSES` more times; where that turns
+it by more than :data:`REINIT_GATE_DEG` (the refiner pulls it elsewhere), the rotation search of
+:class:`refiner_rt.PoseEstimator` runs on the box: :data:`REINIT_HYPOTHESES` rotations spread over SO(3) about the
+box's viewing ray and the track's own, each refined :data:`REINIT_PASSES` times, ranked by the "return" residual
+(plus the box-shape term for shipped objects; docs/pose6d.md); a start other than the track's own wins only by
+:data:`REINIT_MARGIN_DEG`. The winner is taken, as a new start, only where one more pass moves it by at most
+``lost_deg`` (the check would pass it); elsewhere the track is kept and stays in :attr:`RefinerTracker.lost`.
+:attr:`RefinerTracker.reinits` counts the objects re-initialised. Cost: only on flagged objects,
+:data:`REINIT_PASSES` network passes, and where the gate opens ``(REINIT_HYPOTHESES + 1) * (REINIT_PASSES + 1) - 2``
+more. On rendered video it ends part of the excursions of tracks started 45-90 degrees off and leaves tracks started
+within 30 degrees about as they were (``benchmarks/studies/tracking_real``, "Ending excursions"). What it cannot
+end: a view whose refinement has a wrong fixed point (the search's passes settle there too) and a front-back flip
+that agrees with itself (the check does not flag it).
+
 A :class:`refiner_rt.RefinerCascade` in place of a session runs its coarse refiner, then its fine one, on every
 update (its gate is for single refinements: from frame to frame the fine refiner alone let small errors add up on
 rendered video), and its coarse refiner is the loss check's second opinion. It averages its own views
@@ -82,13 +97,18 @@ from collections.abc import Mapping
 import numpy as np
 
 from refiner_rt import quaternion as rq
+from refiner_rt.distortion import undistort_boxes
+from refiner_rt.estimate import SHAPE_WEIGHT_DEG, return_turns, shape_disagreement, super_fibonacci
+from refiner_rt.geometry import ray_quaternions
+from refiner_rt.placement import load_extents
 from refiner_rt.checks import (as_wxyz, boxes_rows, validate_boxes, validate_D, validate_image, validate_iterations,
                                validate_K, validate_settle, validate_views)
 from refiner_rt.quaternion import inverse_rows, multiply_rows, normalize_rows
 from refiner_rt.refiner import Refiner, load
 from refiner_rt.session import RefineResult
 
-__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "LOST_DEG", "object_name"]
+__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "LOST_DEG", "REINIT_PASSES", "REINIT_GATE_DEG", "REINIT_HYPOTHESES",
+           "REINIT_MARGIN_DEG", "object_name"]
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +125,13 @@ DEFAULT_HOLD_MAX_CORRECTION_DEG = 3.0
 # rendered robot-layout video (tracking_robot_s561, benchmarks/studies/tracking_real) with the temporal filter on,
 # the largest share of tracks ending above 30 degrees flagged with at most 10% of good frames (below 15) flagged
 LOST_DEG = 2.5
+# re-initialising a flagged track from its box (reinit=True): chosen on rendered robot-layout video
+# (tracking_robot_s561, benchmarks/studies/tracking_real, "Ending excursions"): the least error of tracks started 45-90
+# degrees off among the variants that left tracks started within 30 degrees no worse
+REINIT_PASSES = 3  # refinement passes from each start
+REINIT_GATE_DEG = 15.0  # the search runs where those passes turn the track's own rotation by more than this
+REINIT_HYPOTHESES = 8  # rotations over SO(3) searched besides the track's own
+REINIT_MARGIN_DEG = 20.0  # another start replaces the track's own only with a ranking residual this much lower
 TURN_OUTLIER_DEG = 0.2  # per update: a track's change further from the medoid than this and twice the median is left out
 INSTANCE_SEPARATOR = "#"  # "003_cracker_box#2": the second cracker box, refined by the cracker box's model
 
@@ -177,6 +204,9 @@ class RefinerTracker:
             where it turns the rotation by more than this many degrees, as :meth:`RefinerSession.refine` (for
             detector poses that may be more than 30 degrees off; :data:`refiner_rt.SETTLE_DEG`). A
             :class:`RefinerCascade` takes its own ``settle_deg``. None (default): every pass is kept.
+        reinit: with ``lost_deg``, re-initialise a flagged object the detector has no pose for by a rotation search
+            on its box (module docstring): costs nothing on objects not flagged. False (default): a flagged object
+            keeps its track and is listed in :attr:`lost`.
 
     Raises:
         ValueError / TypeError: a bad argument, named, with what was expected and what was given.
@@ -192,7 +222,8 @@ class RefinerTracker:
     def __init__(self, session, K, q0: Mapping, *, predict: bool | str = False, iterations: int = 1, views: int = 1,
                  lost_deg: float | None = None, detector_weight: float | None = None, q_order: str = "wxyz",
                  D=None, settle_deg: float | None = None, motion_window: int | None = None,
-                 prediction_weight: float | None = None, max_correction_deg: float | None = None):
+                 prediction_weight: float | None = None, max_correction_deg: float | None = None,
+                 reinit: bool = False):
         self.K = validate_K(K).copy()
         self.D = validate_D(D)
         as_wxyz(np.zeros((0, 4)), q_order)  # checks q_order
@@ -237,8 +268,15 @@ class RefinerTracker:
         if self.lost_deg is not None and self.detector_weight is not None:
             raise ValueError("lost_deg and detector_weight are two uses of a detector's poses (only when a track is "
                              "lost, or fused in every frame); choose one")
-        self.lost: list[str] = []  # objects the last update flagged lost (and could not re-detect)
+        if not isinstance(reinit, bool):
+            raise TypeError(f"reinit must be True or False; got {reinit!r}")
+        if reinit and self.lost_deg is None:
+            raise ValueError(f"reinit=True needs lost_deg: the loss-of-track check picks the tracks to re-initialise "
+                             f"(e.g. lost_deg={LOST_DEG}, refiner_rt.tracker.LOST_DEG)")
+        self.reinit = reinit
+        self.lost: list[str] = []  # objects the last update flagged lost (neither re-detected nor re-initialised)
         self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
+        self.reinits = 0  # objects re-initialised by the rotation search on their box (reinit=True), in all
         self.scores: dict[str, float] = {}  # the last update's RefineResult.score per refined object
         self.iterations = validate_iterations(iterations)
         self.views = validate_views(views)
@@ -364,8 +402,9 @@ class RefinerTracker:
             ``{object id: (4,) float64 wxyz, w >= 0}``: the refined object-to-camera rotation of each object in
             ``boxes`` (the others are in :attr:`rotations`).
 
-        After the call, :attr:`lost` lists the objects of this update that were flagged lost and not re-detected
-        (always empty without ``lost_deg``), and :attr:`redetections` has grown by the number re-detected.
+        After the call, :attr:`lost` lists the objects of this update that were flagged lost and neither re-detected
+        nor (``reinit=True``) re-initialised by the search on their box (always empty without ``lost_deg``);
+        :attr:`redetections` and :attr:`reinits` have grown by the numbers re-detected and re-initialised.
 
         Raises:
             ValueError / TypeError: a bad image or box, a box for an object that is not tracked, a ``detector``
@@ -422,13 +461,14 @@ class RefinerTracker:
                 refined[i] = _blend(tracked[i], q_det, self.detector_weight)
             results.append((sess, ids, rows, refined, tracked, raw, score,
                             self._flag_lost(sess, image, ids, rows, refined)))
-        redetected, lost = {}, []
+        redetected, lost = {}, []  # redetected: object id -> (rotation, score) of a new start
+        reinitialised = 0
         for sess, ids, rows, refined, tracked, raw, score, flagged in results:
-            found, poses = [], []
+            found, poses, missing = [], [], []
             for i in flagged:
                 q = self._ask(detector, ids[i])
                 if q is None:
-                    lost.append(ids[i])
+                    missing.append(i)
                 else:
                     found.append(i)
                     poses.append(q)
@@ -436,12 +476,20 @@ class RefinerTracker:
                 again = self._refine(sess, image, [rows[i] for i in found], np.array(poses), [True] * len(found))
                 redetected.update({ids[i]: (q, sc) for i, q, sc in zip(found, again.q_refined.tolist(),
                                                                        again.score.tolist())})
+            starts = (self._search(sess, image, [ids[i] for i in missing], [rows[i] for i in missing],
+                                   [refined[i] for i in missing]) if self.reinit and missing else [None] * len(missing))
+            for i, start in zip(missing, starts):
+                if start is None:
+                    lost.append(ids[i])
+                else:
+                    redetected[ids[i]] = start
+                    reinitialised += 1
         out, scores = {}, {}
         for sess, ids, rows, refined, tracked, raw, score, flagged in results:
             for object_id, q, q_tracked, q_raw, sc in zip(ids, refined, tracked, raw, score):
                 track = self._tracks[object_id]
                 scores[object_id] = sc
-                if object_id in redetected:  # a detector's pose, refined: a new start, not motion
+                if object_id in redetected:  # a detector's pose refined, or the search's: a new start, not motion
                     (track.q, scores[object_id]), track.refined, track.velocity, track.missed = (
                         redetected[object_id], True, None, 0)
                     track.history = []
@@ -466,7 +514,8 @@ class RefinerTracker:
         self._updates += 1
         self.lost = lost
         self.scores = scores
-        self.redetections += len(redetected)
+        self.redetections += len(redetected) - reinitialised
+        self.reinits += reinitialised
         return out
 
     def update_from_detector(self, image, boxes: Mapping, poses: Mapping, sessions: Mapping | None = None
@@ -529,6 +578,56 @@ class RefinerTracker:
                             K=self.K, D=self.D, coarse=np.ones(len(checked), dtype=bool), **passes).q_refined
         moved = rq.geodesic_angle(np.array([refined[i] for i in checked]), again)
         return [i for i, m in zip(checked, moved) if m > self.lost_deg]
+
+    def _search(self, sess: Refiner, image, ids: list, rows: list, q_track: list) -> list:
+        """Per flagged object (``reinit``, module docstring): ``(rotation, score)`` of the start the search on its box
+        found, or None where the track is kept: its own rotation refined :data:`REINIT_PASSES` times turned by at
+        most :data:`REINIT_GATE_DEG`, or the search's winner would be flagged too."""
+        boxes, q_track = np.array(rows, dtype=np.float64), np.array(q_track, dtype=np.float64)
+        own = self._passes(sess, image, boxes, q_track, REINIT_PASSES)
+        go = np.flatnonzero(rq.geodesic_angle(own, q_track) > REINIT_GATE_DEG)
+        out = [None] * len(ids)
+        if len(go) == 0:
+            return out
+        h, m = REINIT_HYPOTHESES, REINIT_HYPOTHESES + 1  # per object: the hypotheses, then the track's own
+        pinhole = boxes[go] if self.D is None else undistort_boxes(boxes[go], self.K, self.D)
+        searched = np.zeros((len(go) * h, 4))
+        if h:  # (0: the track's own rotation alone, refined further)
+            starts = rq.multiply(np.repeat(ray_quaternions(self.K, pinhole), h, axis=0),
+                                 np.tile(super_fibonacci(h), (len(go), 1)))
+            searched = self._passes(sess, image, np.repeat(boxes[go], h, axis=0), starts, REINIT_PASSES)
+        q = np.concatenate([searched.reshape(len(go), h, 4), own[go][:, None]], axis=1).reshape(-1, 4)
+        rep = np.repeat(boxes[go], m, axis=0)
+        back = sess.refine(image, rep, rq.multiply(q, np.tile(return_turns(m), (len(go), 1))), K=self.K, D=self.D,
+                           coarse=np.ones(len(rep), dtype=bool)).q_refined
+        residual = rq.geodesic_angle(back, q).reshape(len(go), m)
+        extents = load_extents()
+        winners = []
+        for k, i in enumerate(go):
+            ranked = residual[k].copy()
+            extent = extents.get(object_name(ids[i]))
+            if extent is not None:  # the box-shape term where the object's extent points ship
+                ranked += SHAPE_WEIGHT_DEG * shape_disagreement(q[k * m:(k + 1) * m], extent,
+                                                                np.repeat(pinhole[k][None], m, axis=0), self.K,
+                                                                image.shape[:2])
+            ranked[-1] -= REINIT_MARGIN_DEG
+            winners.append(q[k * m + int(np.argmin(ranked))])
+        winners = rq.canonical(np.array(winners))
+        check = sess.refine(image, boxes[go], winners, K=self.K, D=self.D, coarse=np.ones(len(go), dtype=bool))
+        moved = rq.geodesic_angle(check.q_refined, winners)
+        for k, i in enumerate(go):
+            if moved[k] <= self.lost_deg:
+                out[i] = (winners[k].tolist(), float(check.score[k]))
+        return out
+
+    def _passes(self, sess: Refiner, image, boxes: np.ndarray, q: np.ndarray, passes: int) -> np.ndarray:
+        """``q`` refined ``passes`` times (a session in one call, a cascade one call per pass)."""
+        coarse = np.ones(len(boxes), dtype=bool)
+        if sess.per_call_passes:
+            return sess.refine(image, boxes, q, K=self.K, D=self.D, coarse=coarse, iterations=passes).q_refined
+        for _ in range(passes):
+            q = sess.refine(image, boxes, q, K=self.K, D=self.D, coarse=coarse).q_refined
+        return q
 
     def _ask(self, detector, object_id: str) -> list | None:
         """The detector's coarse pose for an object (checked, unit), or None when it has none."""
@@ -627,7 +726,8 @@ class RefinerTracker:
                 f"motion_window={self.motion_window}, prediction_weight={self.prediction_weight}, "
                 f"max_correction_deg={self.max_correction_deg}, "
                 f"iterations={self.iterations}, "
-                f"lost_deg={self.lost_deg}, detector_weight={self.detector_weight}, settle_deg={self.settle_deg})")
+                f"lost_deg={self.lost_deg}, reinit={self.reinit}, detector_weight={self.detector_weight}, "
+                f"settle_deg={self.settle_deg})")
 
 
 def _optional_in_range(value, name: str, high: float, number: str, in_range: str) -> float | None:

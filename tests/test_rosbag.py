@@ -580,6 +580,32 @@ def test_lost_deg_with_a_bag_writes_the_lost_flag(tmp_path, lost_deg, flagged):
     assert "/refiner_rt/lost" not in read_bag(write_and_track(tmp_path, image, K, arrays))
 
 
+def test_reinit_with_a_bag_reaches_the_tracker(tmp_path):
+    """--reinit with --bag and --lost-deg: RosRefiner hands reinit=True to its RefinerTracker (the tracks of this still
+    bag stay near their truth); without --lost-deg, and in refine mode, it is refused by name."""
+    image, K, objects = _frames()[0]
+    objects = objects[:2]
+    arrays = [_array(i, [_detection(o["object_id"], o["box_xyxy"], _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW)
+                         for o in objects]) for i in range(3)]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    write_sequence_bag(bag, image, K, arrays)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--lost-deg", "2.5", "--reinit"])
+    assert res.exit_code == 0, res.output
+    for o in objects:
+        q = read_bag(out)[pose_topic(o["object_id"])][-1][1].pose.orientation
+        assert rq.geodesic_angle(rq.from_xyzw(np.array([q.x, q.y, q.z, q.w])), np.array(o["q_gt_wxyz"])) < 12.0
+    r = RosRefiner("track", lost_deg=2.5, reinit=True)
+    assert r.tracker_kwargs == {"lost_deg": 2.5, "reinit": True}
+    for i in range(3):
+        r.process(_image(image, i), _info(K, i), arrays[i])
+    with pytest.raises(ValueError, match="reinit=True needs lost_deg"):
+        RosRefiner("track", reinit=True)
+    with pytest.raises(ValueError, match="apply to mode='track' only"):
+        RosRefiner("refine", lost_deg=2.5, reinit=True)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "o2"), "--reinit"])
+    assert res.exit_code == 2 and "--lost-deg" in res.output
+
+
 def write_and_track(tmp_path, image, K, arrays) -> Path:
     bag, out = tmp_path / "plain_in", tmp_path / "plain_out"
     write_sequence_bag(bag, image, K, arrays)

@@ -378,6 +378,8 @@ def test_pretrained_names_load_once_and_are_shared(weights):  # noqa: F811
     (dict(detector_weight="0.3"), TypeError, r"detector_weight must be a number in \(0, 1\] or None"),
     (dict(detector_weight=True), TypeError, r"detector_weight must be a number in \(0, 1\] or None"),
     (dict(detector_weight=0.3, lost_deg=2.0), ValueError, "lost_deg and detector_weight are two uses"),
+    (dict(reinit=True), ValueError, "reinit=True needs lost_deg"),
+    (dict(reinit=1, lost_deg=2.5), TypeError, "reinit must be True or False"),
 ])
 def test_bad_construction_is_named(kwargs, error, match):
     args = dict(session=session(), K=K, q0={"003_cracker_box": Q0[0]})
@@ -463,6 +465,111 @@ def test_no_check_and_no_detector_call_without_lost_deg():
     for _ in range(3):
         tracker.update(IMG, {"003_cracker_box": BOX_A}, detector=lambda object_id: pytest.fail("asked"))
     assert tracker.lost == [] and tracker.redetections == 0
+
+
+# ------------------------------------------------------------------------------ re-initialising from the box
+class PullToTruth:
+    """A made-up refiner (the :class:`refiner_rt.Refiner` protocol) with a known answer: each pass takes a rotation
+    within ``basin_deg`` of ``truth`` onto it, and turns any other by ``walk_deg`` about the object's x axis (a view
+    with no fixed point nearby). Rotations in the camera frame; boxes, K and the image are ignored."""
+
+    per_call_passes = True
+
+    def __init__(self, truth, basin_deg=75.0, walk_deg=10.0):
+        from types import SimpleNamespace
+
+        self.contract = SimpleNamespace(objects=("900_test_object",))
+        self.truth = np.asarray(truth, dtype=np.float64)
+        self.basin_deg, self.walk = basin_deg, rq.from_axis_angle([1.0, 0.0, 0.0], walk_deg)
+        self.calls = []  # rows per call
+
+    def _pass(self, q):
+        near = rq.geodesic_angle(q, self.truth[None]) <= self.basin_deg
+        return rq.canonical(np.where(near[:, None], self.truth[None], rq.multiply(q, np.tile(self.walk, (len(q), 1)))))
+
+    def refine(self, image, boxes, q_in, *, K=None, D=None, coarse=None, iterations=1, views=1, settle_deg=None,
+               q_order="wxyz"):
+        q = rq.normalize(np.asarray(q_in, dtype=np.float64).reshape(-1, 4))
+        self.calls.append(len(q))
+        before = q
+        for _ in range(iterations):
+            before, q = q, self._pass(q)
+        return RefineResult(q_refined=q, q_out=rq.canonical(rq.multiply(rq.inverse(before), q)), q_in=q_in)
+
+
+TRUTH = rq.from_axis_angle([0.3, 0.5, -0.8], 40.0)
+OBJ = "900_test_object"
+
+
+def test_reinit_recovers_the_known_pose_of_a_track_that_walks_off():
+    """A track 150 degrees off, where the refiner walks 40 degrees a pass: the check flags it at its second update
+    (no detector), its own rotation refined 3 more times turns far (above the 15-degree gate), and the search over
+    SO(3) finds the truth (one of its 8 starts lies within the refiner's basin; the truth comes back from a 15-degree
+    turn, while the walking track lands at least 40 - 15 degrees away, more than the 20-degree margin it is given);
+    one more pass leaves the truth where it is, so it is taken: the update returns the truth, the track is
+    re-initialised (not lost) and stays there."""
+    start = rq.multiply(TRUTH, rq.from_axis_angle([1.0, 0.0, 0.0], 150.0))
+    refiner = PullToTruth(TRUTH, walk_deg=40.0)
+    tracker = RefinerTracker({OBJ: refiner}, K, {OBJ: start}, lost_deg=2.5, reinit=True)
+    tracker.update(IMG, {OBJ: BOX_A})  # from the coarse pose: not checked
+    assert tracker.lost == [] and tracker.reinits == 0
+    q = tracker.update(IMG, {OBJ: BOX_A})[OBJ]
+    assert tracker.reinits == 1 and tracker.lost == [] and tracker.redetections == 0
+    assert rq.geodesic_angle(q, TRUTH) < 1e-6
+    for _ in range(2):  # a new start at the truth: nothing flagged, nothing searched
+        calls = len(refiner.calls)
+        q = tracker.update(IMG, {OBJ: BOX_A})[OBJ]
+        assert rq.geodesic_angle(q, TRUTH) < 1e-6
+        assert tracker.lost == [] and tracker.reinits == 1 and len(refiner.calls) == calls + 2  # update and check
+
+
+def test_reinit_costs_nothing_on_a_good_track():
+    """A track at the truth is never flagged: the same rotations as without reinit, two refine calls per update
+    (the update and the check), no search."""
+    near = rq.multiply(TRUTH, rq.from_axis_angle([0.0, 1.0, 0.0], 10.0))
+    plain, searched = PullToTruth(TRUTH), PullToTruth(TRUTH)
+    a = RefinerTracker({OBJ: plain}, K, {OBJ: near}, lost_deg=2.5)
+    b = RefinerTracker({OBJ: searched}, K, {OBJ: near}, lost_deg=2.5, reinit=True)
+    for _ in range(4):
+        np.testing.assert_array_equal(a.update(IMG, {OBJ: BOX_A})[OBJ], b.update(IMG, {OBJ: BOX_A})[OBJ])
+        assert b.lost == [] and b.reinits == 0
+    assert plain.calls == searched.calls == [1] + [1, 1] * 3
+
+
+def test_reinit_keeps_a_flagged_track_its_own_passes_barely_move():
+    """A track the refiner walks 4 degrees a pass is flagged (4 > 2.5) but its own 3 passes turn it 12 degrees, under
+    the 15-degree gate: no search, the track kept as the filter has it, and listed lost."""
+    start = rq.multiply(TRUTH, rq.from_axis_angle([1.0, 0.0, 0.0], 150.0))
+    plain, searched = PullToTruth(TRUTH, walk_deg=4.0), PullToTruth(TRUTH, walk_deg=4.0)
+    a = RefinerTracker({OBJ: plain}, K, {OBJ: start}, lost_deg=2.5)
+    b = RefinerTracker({OBJ: searched}, K, {OBJ: start}, lost_deg=2.5, reinit=True)
+    for n in range(3):
+        np.testing.assert_array_equal(a.update(IMG, {OBJ: BOX_A})[OBJ], b.update(IMG, {OBJ: BOX_A})[OBJ])
+        assert b.lost == ([OBJ] if n else []) and b.reinits == 0
+    assert searched.calls == [1] + [1, 1, 1] * 2  # update, check, and the own rotation's passes (one call)
+
+
+def test_reinit_takes_no_start_the_check_would_flag_again():
+    """The constant model turns every rotation by 7 degrees, at the truth too: the gate opens (21 degrees in 3
+    passes), but every start the search ranks first moves 7 degrees more, above lost_deg: nothing is taken, the
+    rotation is q0 * c^n as without reinit, and the object is listed lost."""
+    tracker = _unfiltered(session(frame="ray"), K, {"003_cracker_box": Q0[0]}, lost_deg=5.0, reinit=True)
+    for n in range(1, 4):
+        q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
+        assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT) ** n)
+        assert tracker.lost == (["003_cracker_box"] if n > 1 else []) and tracker.reinits == 0
+
+
+def test_a_detector_pose_comes_before_the_search():
+    """With a detector pose for a flagged object the tracker restarts from it (a redetection), no search."""
+    start = rq.multiply(TRUTH, rq.from_axis_angle([1.0, 0.0, 0.0], 150.0))
+    refiner = PullToTruth(TRUTH, walk_deg=40.0)
+    tracker = RefinerTracker({OBJ: refiner}, K, {OBJ: start}, lost_deg=2.5, reinit=True)
+    tracker.update(IMG, {OBJ: BOX_A})
+    q_det = rq.multiply(TRUTH, rq.from_axis_angle([0.0, 0.0, 1.0], 20.0))
+    q = tracker.update(IMG, {OBJ: BOX_A}, detector={OBJ: q_det})[OBJ]
+    assert tracker.redetections == 1 and tracker.reinits == 0 and rq.geodesic_angle(q, TRUTH) < 1e-6
+    assert refiner.calls == [1, 1, 1, 1]  # update, check, the detection's refinement
 
 
 # ------------------------------------------------------------------------------ fusing a detector
@@ -746,6 +853,29 @@ def test_track_command_lists_the_frames_where_the_lost_check_fires(tmp_path, los
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
                                     "--lost-deg", "0"])
     assert res.exit_code != 0 and "--lost-deg" in res.output
+
+
+def test_track_command_reinit_searches_flagged_tracks_and_needs_lost_deg(tmp_path):
+    """--reinit with --lost-deg: the tracker gets reinit=True (the constant model's starts all move 7 degrees more, so
+    nothing is taken and the frames stay lost, as test_reinit_takes_no_start_the_check_would_flag_again shows for the
+    class); the output records it; without --lost-deg the command refuses it, naming both flags."""
+    import json
+
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=3)
+    out = tmp_path / "rot.json"
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--lost-deg", "5", "--reinit"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["reinit"] is True and doc["reinits"] == 0
+    assert doc["lost"] == {name: ["003_cracker_box"] for name in ("000001.png", "000002.png")}
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                    "--reinit"])
+    assert res.exit_code == 2 and "--reinit" in res.output and "--lost-deg" in res.output
 
 
 def test_track_command_with_shipped_names_and_a_reset(tmp_path, weights):  # noqa: F811

@@ -99,16 +99,23 @@ TRACKERS = {
     "track": {},  # RefinerTracker's defaults: the temporal filter
     "track_lost": {"lost_deg": LOST_DEG},  # and the loss-of-track check at its chosen threshold
     "track_views4": {"views": 4, "lost_deg": LOST_DEG},  # four box-jittered views per update (best on s561)
+    "track_reinit": {"lost_deg": LOST_DEG, "reinit": True},  # and a flagged track re-initialised by a search on its box
 }
 
 
-def draws(video: Video, seed: int, n_frames: int) -> tuple[dict, dict]:
-    """The start pose and the per-frame detector poses of every sequence of ``video`` for ``seed``."""
+def draws(video: Video, seed: int, n_frames: int, start_deg: tuple[float, float] = (0.0, 30.0)) -> tuple[dict, dict]:
+    """The start pose and the per-frame detector poses of every sequence of ``video`` for ``seed``: per-frame poses
+    U(0, 30) degrees around the truth, the start U(``start_deg``) (other than U(0, 30), e.g. U(45, 90) for a track
+    already lost, drawn from a generator of its own, ``signals.py``'s, so the per-frame poses stay the same)."""
     start, per_frame = {}, {}
     for s in video.seqs:
         rng = sequence_rng(seed, s)
         noise0 = rq.sample_rotation_noise(1, "uniform", 0, 30, rng)[0]
         noise = rq.sample_rotation_noise(n_frames, "uniform", 0, 30, rng)
+        if tuple(start_deg) != (0.0, 30.0):
+            lo, hi = start_deg
+            own = np.random.default_rng([seed, int(s.scene), sum(map(ord, s.object_id)), int(lo)])
+            noise0 = rq.sample_rotation_noise(1, "uniform", lo, hi, own)[0]
         f0 = min(s.images)
         start[s.object_id] = rq.multiply(s.q_gt[f0], noise0)
         per_frame[s.object_id] = {f: rq.multiply(s.q_gt[f], noise[i % n_frames]) for i, f in enumerate(video.frames)
@@ -116,11 +123,13 @@ def draws(video: Video, seed: int, n_frames: int) -> tuple[dict, dict]:
     return start, per_frame
 
 
-def run_video(video: Video, sessions: dict, seed: int, trackers: dict) -> dict:
-    """Per method and object: per-frame errors (NaN where the object is not scored), scores and lost flags."""
+def run_video(video: Video, sessions: dict, seed: int, trackers: dict, start_deg: tuple[float, float] = (0.0, 30.0),
+              tracker=RefinerTracker) -> dict:
+    """Per method and object: per-frame errors (NaN where the object is not scored), scores and lost flags; the
+    trackers (``tracker``: the class, :class:`RefinerTracker` or a subclass) start U(``start_deg``) off."""
     n = len(video.frames)
     index = {f: i for i, f in enumerate(video.frames)}
-    start, det = draws(video, seed, n)
+    start, det = draws(video, seed, n, start_deg)
     out = {}
     rec = {}
     for s in video.seqs:
@@ -131,24 +140,24 @@ def run_video(video: Video, sessions: dict, seed: int, trackers: dict) -> dict:
         rec[s.object_id] = {"err": err}
     out["per_frame"] = rec
     for name, kwargs in trackers.items():
-        tracker = RefinerTracker({s.object_id: sessions[s.object_id] for s in video.seqs}, video.K, {}, **kwargs)
+        track = tracker({s.object_id: sessions[s.object_id] for s in video.seqs}, video.K, {}, **kwargs)
         rec = {s.object_id: {"err": np.full(n, np.nan), "score": np.full(n, np.nan), "lost": np.zeros(n, bool)}
                for s in video.seqs}
         for f in video.frames:
             boxes = {}
             for s in video.seqs:
                 if f in s.images:
-                    if s.object_id not in tracker:
-                        tracker.add(s.object_id, start[s.object_id])
+                    if s.object_id not in track:
+                        track.add(s.object_id, start[s.object_id])
                     boxes[s.object_id] = s.boxes[f]
-            q = tracker.update(video.images[f], boxes)
-            scores = getattr(tracker, "scores", {})
+            q = track.update(video.images[f], boxes)
+            scores = getattr(track, "scores", {})
             for s in video.seqs:
                 if s.object_id in q:
                     r = rec[s.object_id]
                     r["err"][index[f]] = error_deg(s.object_id, q[s.object_id], s.q_gt[f])
                     r["score"][index[f]] = scores.get(s.object_id, np.nan)
-                    r["lost"][index[f]] = s.object_id in tracker.lost
+                    r["lost"][index[f]] = s.object_id in track.lost
         out[name] = rec
     return out
 
@@ -180,7 +189,8 @@ def curves(runs: list[dict], method: str) -> list[float | None]:
     return [None if np.all(np.isnan(c)) else round(float(np.nanmean(c)), 3) for c in stack.T]
 
 
-def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None, trackers: dict) -> dict:
+def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None, trackers: dict,
+        start_deg: tuple[float, float] = (0.0, 30.0), tracker=RefinerTracker, first_seed: int = 0) -> dict:
     videos = load_videos(data, scenes, max_frames)
     sessions: dict[str, RefinerSession] = {}
     for v in videos:
@@ -190,7 +200,8 @@ def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None, track
     methods = ["per_frame", *trackers]
     per_video, all_runs = {}, []
     for v in videos:
-        runs = [run_video(v, sessions, seed, trackers) for seed in range(seeds)]
+        runs = [run_video(v, sessions, seed, trackers, start_deg, tracker)
+                for seed in range(first_seed, first_seed + seeds)]
         all_runs += runs
         per_video[v.name] = {"objects": [s.object_id for s in v.seqs], "frames": len(v.frames),
                              "summary": {m: summarise(runs, m) for m in methods},
@@ -198,6 +209,8 @@ def run(data: Path, max_frames: int, seeds: int, scenes: list[str] | None, track
         line = "  ".join(f"{m} {per_video[v.name]['summary'][m]['mean_deg']:5.2f}" for m in methods)
         print(f"{v.name} ({len(v.seqs)} objects): {line}", flush=True)
     return {"data": dataset_name(data), "max_frames": max_frames, "seeds": seeds, "noise": "uniform:0:30",
+            **({"start": f"uniform:{start_deg[0]:g}:{start_deg[1]:g}"} if tuple(start_deg) != (0.0, 30.0) else {}),
+            **({"first_seed": first_seed} if first_seed else {}),
             "model": "shipped INT8 coarse refiners, one pass per object and frame, threads=1",
             "trackers": trackers, "summary": {m: summarise(all_runs, m) for m in methods}, "videos": per_video}
 

@@ -255,6 +255,10 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
                    "\"lost\" lists those frames, for a detector's new \"q\" (with --bag: the /refiner_rt/lost "
                    "topic). 2.5 is the value chosen on rendered video (refiner_rt.tracker.LOST_DEG). Default: no "
                    "check.")
+@click.option("--reinit", is_flag=True,
+              help="With --lost-deg: re-initialise a flagged object that has no detector \"q\" in the frame from a "
+                   "rotation search on its box (the pose estimator's, the track's own rotation one of the starts; "
+                   "RefinerTracker(reinit=True), docs/tracking.md). Costs nothing on objects not flagged.")
 @click.option("--detector-weight", type=click.FloatRange(0.0, 1.0, min_open=True), default=None,
               help="Fuse a tracked object's later detector poses (\"q\") instead of restarting from them: refine each "
                    "beside the track and keep the rotation this share of the way to it (0.5: the weight measured "
@@ -282,7 +286,7 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
 @click.option("--fps", type=click.FloatRange(min=0.1), default=15.0, show_default=True, help="Frame rate of --video.")
 def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
               sync_tolerance_ms, identity_is_pose, estimate_missing, class_map, models, fp32, K_text, predict,
-              scene_motion, lost_deg,
+              scene_motion, lost_deg, reinit,
               detector_weight, iterations, views, settle_deg, threads, video_path, strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
@@ -301,6 +305,9 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.UsageError("--views is for single refiners; --cascade averages its own views (four for each of "
                                "its refiners): give one of them")
 
+    if reinit and lost_deg is None:
+        raise click.UsageError("--reinit re-initialises the tracks the loss-of-track check flags: give --lost-deg "
+                               "too (2.5, refiner_rt.tracker.LOST_DEG)")
     if lost_deg is not None and detector_weight is not None:
         raise click.UsageError("--lost-deg and --detector-weight are two uses of the detections' \"q\" (restart a "
                                "lost track, or fuse every pose); give one")
@@ -322,7 +329,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         prepare_output(out_path, "'-o' / '--out'")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
                           class_map, fp32, prediction, lost_deg, threads, settle_deg, views, detector_weight,
-                          sync_tolerance_ms, identity_is_pose, estimate_missing)
+                          sync_tolerance_ms, identity_is_pose, estimate_missing, reinit)
     if frames is None or detections is None:
         raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
     used = [flag for flag, value in bag_only.items() if value]
@@ -357,7 +364,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         if settle_deg is not None:
             iterations = max(iterations, 2)
         tracker = RefinerTracker(refiners, K, {}, predict=prediction, iterations=iterations, views=views,
-                                 lost_deg=lost_deg, detector_weight=detector_weight, settle_deg=settle_deg)
+                                 lost_deg=lost_deg, detector_weight=detector_weight, settle_deg=settle_deg,
+                                 reinit=reinit)
     except (ValueError, TypeError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
 
@@ -397,6 +405,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         "format": OUTPUT_FORMAT,
         "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",
         "K": K.tolist(), "predict": predict, "scene_motion": scene_motion, "iterations": iterations, "views": None if cascade else views, "settle_deg": settle_deg, "lost_deg": lost_deg,
+        "reinit": reinit, "reinits": tracker.reinits,  # tracks re-initialised by the search on their box, in all
         "detector_weight": detector_weight,
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
         "cascade": {o: str(r.fine.model_path) for o, r in refiners.items() if r is not sessions[o]},
@@ -411,7 +420,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
 
 def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic, class_map, fp32,
                predict, lost_deg, threads, settle_deg, views, detector_weight=None, sync_tolerance_ms=None,
-               identity_is_pose=False, estimate_missing=False):
+               identity_is_pose=False, estimate_missing=False, reinit=False):
     """``track --bag``: :func:`refiner_rt.rosbag.refine_bag` with a progress bar and one-line errors; approximate
     stamp matches and lost tracks are reported on stderr."""
     from refiner_rt.ros import RosRefiner
@@ -426,7 +435,7 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
                 raise ValueError(f"{class_map}: not a readable JSON object ({exc})") from None
             if not isinstance(mapping, dict) or not all(isinstance(v, str) for v in mapping.values()):
                 raise ValueError(f"{class_map}: expected a JSON object {{detector class id: YCB id}}")
-        extra = {k: v for k, v in {"predict": predict, "lost_deg": lost_deg,
+        extra = {k: v for k, v in {"predict": predict, "lost_deg": lost_deg, "reinit": reinit,
                                    "detector_weight": detector_weight}.items() if v}
         if extra and mode != "track":
             flags = ["--scene-motion" if k == "predict" and v == "scene" else "--" + k.replace("_", "-")
