@@ -103,6 +103,12 @@ def test_recorded_commands_are_printed_as_commands_to_rerun_now():
     assert current_command(kept) == kept
     assert current_command("python benchmarks/a.py --x 1 && python benchmarks/b.py") == (
         "python -m benchmarks.a --x 1 && python -m benchmarks.b")
+    # a folder argument is kept; a file that lives in another script's folder is printed where it is
+    folder = "python -m benchmarks.paper --results benchmarks/results/paper"
+    assert current_command(folder) == folder
+    assert current_command("python benchmarks/pose_coverage.py --json benchmarks/results/pose_coverage_real_ycbv_dev.json"
+                           ) == ("python -m benchmarks.pose_coverage --json "
+                                 "benchmarks/results/real/pose_coverage_real_ycbv_dev.json")
 
 
 def test_generated_documents_print_scripts_as_modules():

@@ -93,11 +93,14 @@ def current_command(command: str) -> str:
     else:
         return command
     out = []
+    root = Path(__file__).resolve().parents[2]
     for arg in args:
         flag, eq, value = arg.partition("=") if arg.startswith("--") else ("", "", arg)
         head, _, name = value.rpartition("/")
-        if head == RESULTS_DIR and name:
-            arg = f"{flag}{eq}{RESULTS_DIR}/{folder}/{name}"
+        if head == RESULTS_DIR and Path(name).suffix:  # a file (a folder argument stays as recorded)
+            # where the file is now (the rule's exceptions: a script writing into another's folder), else the rule
+            found = sorted(p.parent.name for p in (root / RESULTS_DIR).glob(f"*/{name}"))
+            arg = f"{flag}{eq}{RESULTS_DIR}/{found[0] if len(found) == 1 else folder}/{name}"
         out.append(arg)
     return shlex.join(out)
 
