@@ -112,17 +112,45 @@ def test_build_refuses_a_from_weights_path_that_is_not_a_folder(tmp_path, capsys
     err = capsys.readouterr().err
     assert "--from-weights" in err and "not a folder" in err
     assert not (tmp_path / "run").exists()
+    (tmp_path / "v5").mkdir()
+    (tmp_path / "v5" / "011_banana.onnx").write_bytes(b"")
+    with pytest.raises(SystemExit):
+        coarse.main(["build", "--data", str(tmp_path / "data"), "--run", str(tmp_path / "run"), "--objects",
+                     "011_banana,035_power_drill", "--from-weights", str(tmp_path / "v5")])
+    err = capsys.readouterr().err
+    assert "holds no fp32 file of 035_power_drill" in err and "011_banana," not in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_recovered_start_is_reused_only_from_the_same_file(tmp_path):
+    """``RUN/<id>.init.pt`` recovered from one fp32 file is not taken as the start of a build from another (e.g. a
+    scratch folder of an earlier build with the package's model, then ``--from-weights``)."""
+    import torch
+
+    from refiner_rt.metadata import file_sha256
+
+    (tmp_path / "v5").mkdir()
+    src = tmp_path / "v5" / "011_banana.onnx"
+    src.write_bytes(b"an earlier version")
+    (tmp_path / "run").mkdir()
+    torch.save({"recovered_from": {"file": "011_banana.onnx", "sha256": "0" * 64}},
+               tmp_path / "run" / "011_banana.init.pt")
+    from unittest import mock
+
+    with mock.patch("models.load_checkpoint", return_value=(None, {"recovered_from": {"sha256": "0" * 64}})):
+        with pytest.raises(SystemExit, match="recovered from another file"):
+            coarse.recover_shipped("011_banana", tmp_path, tmp_path / "run", tmp_path, weights=tmp_path / "v5")
+    assert file_sha256(src) != "0" * 64
 
 
 def test_the_release_readme_builds_the_objects_that_ship():
     """Every ``--objects`` list of a coarse build in export/release/README.md names objects that ship, all of them."""
     import re
 
-    from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name
+    from refiner_rt.pretrained import WEIGHTS_DIR, model_file_name, pretrained_models
 
     text = (ROOT / "export" / "release" / "README.md").read_text()
-    shipped = {p.name.removesuffix(".int8.onnx") for p in WEIGHTS_DIR.glob("0*.int8.onnx")
-               if not p.name.endswith(".fine.int8.onnx")}
+    shipped = {m.object_id for m in pretrained_models()}  # the card's list
     lists = [m.split(",") for m in re.findall(r"coarse build .*?--objects (\S+)", text, flags=re.S)]
     assert lists and shipped
     for objects in lists:

@@ -254,14 +254,20 @@ def recover_shipped(obj: str, data: Path, run: Path, cache: Path, weights: Path 
     from refiner_rt.metadata import parse_metadata
 
     out = run / f"{obj}.init.pt"
-    if not out.is_file():
-        src = (weights or WEIGHTS_DIR) / model_file_name(obj, int8=False)
+    src = (weights or WEIGHTS_DIR) / model_file_name(obj, int8=False)
+    if out.is_file():  # reused only when it was recovered from the file this build starts from
+        _, info = models.load_checkpoint(out)
+        if src.is_file() and info.get("recovered_from", {}).get("sha256") != file_sha256(src):
+            raise SystemExit(f"[{obj}] {out} was recovered from another file than {src}: remove it, or use another "
+                             "--run")
+    else:
         if not src.is_file():
             raise SystemExit(f"[{obj}] no shipped fp32 model to start from ({src})")
         props = metadata_props(src)
-        if weights is None and not any_version and props.get("model_version") == MODEL_VERSION:
-            raise SystemExit(f"[{obj}] the shipped model is already version {MODEL_VERSION}; version {MODEL_VERSION} "
-                             "starts from the version before it")
+        if not any_version and props.get("model_version") == MODEL_VERSION:
+            where = "the shipped model" if weights is None else f"{src}"
+            raise SystemExit(f"[{obj}] {where} is already version {MODEL_VERSION}; version {MODEL_VERSION} "
+                             "starts from the version before it (--from-weights: a folder of that version's files)")
         try:
             cal = dataset_calibration(data, parse_metadata(props), cache_root=cache)
         except (FileNotFoundError, ValueError) as exc:
@@ -756,8 +762,18 @@ def main(argv=None) -> int:
             detect_format(args.real)
         except (FileNotFoundError, ValueError) as exc:
             ap.error(f"--real: {exc}")
-    if args.from_weights is not None and not args.from_weights.is_dir():
-        ap.error(f"--from-weights: expected a folder holding <id>.onnx fp32 files; {args.from_weights} is not a folder")
+    if args.from_weights is not None:
+        if not args.from_weights.is_dir():
+            ap.error(f"--from-weights: expected a folder holding <id>.onnx fp32 files; {args.from_weights} is not a "
+                     "folder")
+        objects = [o.strip() for o in args.objects.split(",") if o.strip()]
+        lacking = [o for o in objects
+                   if not (args.from_weights / model_file_name(o, int8=False)).is_file()]
+        if lacking:  # checked before hours of training, not after
+            ap.error(f"--from-weights: {args.from_weights} holds no fp32 file of {', '.join(lacking)} "
+                     f"(expected {model_file_name(lacking[0], int8=False)})")
+        if set(FIRST_STAGE) & set(objects):
+            ap.error(f"--from-weights: {', '.join(sorted(FIRST_STAGE))} train from scratch (FIRST_STAGE)")
     for folder in args.extra_train:
         if not folder.is_dir():
             ap.error(f"--extra-train: expected a rendered dataset folder; {folder} is not a folder")
