@@ -23,7 +23,7 @@ Usage (from the repository root)::
 
     python -m benchmarks.appearance --real REAL [--rendered cycles=DIR --rendered tiny=DIR] \\
         [--model OBJ=PATH ...] --json benchmarks/results/appearance/v6.json --plot benchmarks/results/appearance/v6.png
-    python -m benchmarks.appearance --real REAL --rendered cycles=data/ycb9_robot_cycles_val_s43 \
+    python -m benchmarks.appearance --real REAL --rendered cycles=data/ycb9_robot_cycles_val_s43 \\
         --rendered tiny=data/ycb9_robot_tiny_val_s43 --card     # the model card's appearance columns
 """
 
@@ -106,7 +106,9 @@ def main(argv=None) -> int:
             ap.error("--card records the shipped INT8 models: it takes neither --model nor --fp32")
         if args.real is None or {"cycles", "tiny"} - {name for name, _ in args.rendered} or args.skip:
             ap.error("--card needs --real REAL, --rendered cycles=DIR and --rendered tiny=DIR, and no --skip")
-        args.json = args.json or CARD_JSON
+        if args.json is not None:
+            ap.error(f"--card writes the card's record ({CARD_JSON.name}); leave --json out")
+        args.json = CARD_JSON
     if args.real is not None and not args.real.is_dir():
         ap.error(f"--real {args.real}: no such folder")
     models = chosen_models(args.model, args.fp32, ap.error)

@@ -613,7 +613,10 @@ class RefinerTracker:
             ranked[-1] -= REINIT_MARGIN_DEG
             winners.append(q[k * m + int(np.argmin(ranked))])
         winners = rq.canonical(np.array(winners))
-        check = sess.refine(image, boxes[go], winners, K=self.K, D=self.D, coarse=np.ones(len(go), dtype=bool))
+        # the loss check's own pass (its views too), so that a winner taken is one the next check passes
+        views = {"views": self.views} if sess.per_call_passes else {}
+        check = sess.refine(image, boxes[go], winners, K=self.K, D=self.D, coarse=np.ones(len(go), dtype=bool),
+                            **views)
         moved = rq.geodesic_angle(check.q_refined, winners)
         for k, i in enumerate(go):
             if moved[k] <= self.lost_deg:

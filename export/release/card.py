@@ -84,9 +84,6 @@ def _real(real_json: Path = REAL_JSON) -> dict:
     return out
 
 
-FINE_DIR = ROOT / "benchmarks" / "results" / "fine"
-
-
 def _fine() -> dict:
     """Per object, the fine refiner that ships (:mod:`export.release.fine`): its files, version and card, for records
     whose files are in the package and whose cascade was measured with the coarse INT8 file that ships now."""
@@ -172,6 +169,7 @@ def appearance_markdown(appearance: dict) -> str:
     if not appearance:
         return ""
     a0 = next(iter(appearance.values()))
+    cy0 = next((a["cycles"] for a in appearance.values() if "cycles" in a), {})
     lines = ["", "## Appearance", "",
              f"How much the pixels of a real camera or a physically based renderer cost each INT8 refiner, written by "
              f"`python -m benchmarks.appearance --real REAL --rendered cycles=DIR --rendered tiny=DIR --card` "
@@ -180,9 +178,9 @@ def appearance_markdown(appearance: dict) -> str:
              "strength (exposure, gamma, white balance, saturation, contrast, sharpening, noise, blur, JPEG, half "
              "resolution); the worst effect's error minus the clean frames'. Gap: the real dev frames minus the same "
              "frames with the object re-drawn at its true pose by the training renderer. Cycles: "
-             "`ycb9_robot_cycles_val_s43`, robot-layout scenes rendered by Blender Cycles under varied light and "
+             "`" + cy0.get("data", "?") + "`, robot-layout scenes rendered by Blender Cycles under varied light and "
              "materials (no model trained on them), against the same arrangements rendered by the training renderer "
-             "(`ycb9_robot_tiny_val_s43`). The real frames are for measuring only.",
+             "(`" + cy0.get("tiny_data", "?") + "`). The real frames are for measuring only.",
              "",
              "| object | stress test: worst effect (cost) | dev gap: real - re-drawn | Cycles val mean | renderer twin "
              "mean | Cycles / twin |",

@@ -199,5 +199,6 @@ def per_object(doc: dict) -> dict:
                 out.setdefault(obj, {})["cycles"] = {"mean_deg": round(c["mean_deg"], 3),
                                                      "tiny_mean_deg": round(t["mean_deg"], 3),
                                                      "ratio": round(c["mean_deg"] / t["mean_deg"], 3),
-                                                     "data": sets["cycles"]["data"]}
+                                                     "data": sets["cycles"]["data"],
+                                                     "tiny_data": sets["tiny"]["data"]}
     return out

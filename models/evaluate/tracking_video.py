@@ -9,7 +9,6 @@ tracked together, as a robot's tracker would, over its first ``max_frames`` fram
 from __future__ import annotations
 
 from dataclasses import dataclass
-import time
 from pathlib import Path
 
 import cv2
@@ -17,7 +16,7 @@ import numpy as np
 
 from models.data.objects import SCAN_FRAME_SYMMETRIES
 from models.data.symmetry import symmetric_error
-from models.evaluate.tracking import Sequence, cpu_record, load_sequences, sequence_rng
+from models.evaluate.tracking import Sequence, load_sequences, sequence_rng
 from refiner_rt import quaternion as rq
 from refiner_rt.session import RefinerSession
 from refiner_rt.tracker import LOST_DEG, RefinerTracker

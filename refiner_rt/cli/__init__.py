@@ -209,5 +209,5 @@ def main():
 
     Conventions: quaternions wxyz (scalar first), rotations object-to-camera,
     images HxWx3 uint8 BGR, boxes (x1, y1, x2, y2) in pixels, angles in degrees.
-    Output files: a missing folder of one is made.
+    Output files of demo, estimate and track: a missing folder of one is made.
     """

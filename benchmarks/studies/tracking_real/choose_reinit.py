@@ -87,6 +87,10 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path)
     a = p.parse_args(argv)
     names = a.variants.split(",") if a.variants else list(VARIANTS)
+    for given, known, option in ((names, VARIANTS, "--variants"), (a.starts.split(","), STARTS, "--starts")):
+        bad = [x for x in given if x not in known]
+        if bad:
+            p.error(f"{option}: unknown {', '.join(bad)}; expected of {', '.join(known)}")
     doc = {"data": a.data.resolve().name, "starts": {k: STARTS[k] for k in a.starts.split(",")}, "seeds": a.seeds,
            "max_frames": a.max_frames, "lost_deg": LOST_DEG, "variants": {n: VARIANTS[n] for n in names},
            "results": {}}
