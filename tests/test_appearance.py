@@ -98,13 +98,13 @@ def test_per_object_columns_are_each_objects_worst_case_gap_and_cycles_ratio(app
     s = appearance.run_stress(reader, real_folder, tmp_path / "work", draws=2, seed=0, cases=cases, progress=False)
     dark = appearance.stressed_copy(real_folder, tmp_path / "dark", "brightness", 0.5)
     doc = {"stress": s, "rendered": appearance.run_rendered(reader, {"cycles": dark, "tiny": real_folder}, 2, 0),
-           "gap": {"objects": {"003_cracker_box": {"gap_deg": 0.5}}}}
+           "gap": {"objects": {"003_cracker_box": {"gap_deg": 0.5, "instances": 7}}}}
     cols = appearance.per_object(doc)["003_cracker_box"]
     clean = s["clean_objects"]["003_cracker_box"]
     costs = {c["case"]: c["objects"]["003_cracker_box"] - clean for c in s["cases"]}
     worst = max(costs, key=costs.get)
     assert cols["stress_worst"] == {"case": worst, "cost_deg": pytest.approx(costs[worst], abs=1e-3)}
-    assert cols["gap_deg"] == 0.5
+    assert cols["gap_deg"] == 0.5 and cols["real_instances"] == 7
     sets = doc["rendered"]["sets"]
     assert cols["cycles"]["ratio"] == pytest.approx(sets["cycles"]["objects"]["003_cracker_box"]["mean_deg"]
                                                     / sets["tiny"]["objects"]["003_cracker_box"]["mean_deg"], abs=1e-3)

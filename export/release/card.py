@@ -182,13 +182,13 @@ def appearance_markdown(appearance: dict) -> str:
              "materials (no model trained on them), against the same arrangements rendered by the training renderer "
              "(`" + cy0.get("tiny_data", "?") + "`). The real frames are for measuring only.",
              "",
-             "| object | stress test: worst effect (cost) | dev gap: real - re-drawn | Cycles val mean | renderer twin "
+             "| object | stress test: worst effect (cost) | dev gap: real - re-drawn (instances) | Cycles val mean | renderer twin "
              "mean | Cycles / twin |",
              "|---|---|---:|---:|---:|---:|"]
     for obj, a in sorted(appearance.items()):
         sw, cy = a.get("stress_worst"), a.get("cycles")
         lines.append(f"| {obj} | " + (f"{sw['case']} ({sw['cost_deg']:+.2f})" if sw else "-")
-                     + (f" | {a['gap_deg']:+.2f}" if "gap_deg" in a else " | -")
+                     + (f" | {a['gap_deg']:+.2f} ({a['real_instances']})" if "gap_deg" in a else " | -")
                      + (f" | {cy['mean_deg']:.2f} | {cy['tiny_mean_deg']:.2f} | {cy['ratio']:.2f}x |" if cy
                         else " | - | - | - |"))
     return "\n".join(lines) + "\n"

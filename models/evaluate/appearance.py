@@ -190,7 +190,7 @@ def per_object(doc: dict) -> dict:
                 cost, case = max(costs)
                 out.setdefault(obj, {})["stress_worst"] = {"case": case, "cost_deg": round(cost, 3)}
     for obj, g in (doc.get("gap") or {}).get("objects", {}).items():
-        out.setdefault(obj, {})["gap_deg"] = round(g["gap_deg"], 3)
+        out.setdefault(obj, {}).update(gap_deg=round(g["gap_deg"], 3), real_instances=g["instances"])
     sets = (doc.get("rendered") or {}).get("sets", {})
     if "cycles" in sets and "tiny" in sets:
         for obj, c in sets["cycles"]["objects"].items():
