@@ -556,16 +556,23 @@ def test_track_with_detector_weight_on_a_bag_fuses_as_the_frames_path_does(tmp_p
     assert res.exit_code == 2 and "--detector-weight apply to --mode track" in res.output
 
 
-@pytest.mark.parametrize("lost_deg, flagged", [("0.001", True), ("179", False)])
-def test_lost_deg_with_a_bag_writes_the_lost_flag(tmp_path, lost_deg, flagged):
-    """--lost-deg with --bag: /refiner_rt/lost at every frame, holding the detections the check flagged (every
-    refined track at 0.001 degrees, none at 179; the first frame is refined from a coarse pose, never checked)."""
+def _still_bag(tmp_path):
+    """Three frames of one still image, two objects: a coarse pose on the first frame, box-only detections after
+    (an rclpy-default orientation); written as a bag. ``(image, K, objects, arrays, bag, out)``."""
     image, K, objects = _frames()[0]
     objects = objects[:2]
     arrays = [_array(i, [_detection(o["object_id"], o["box_xyxy"], _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW)
                          for o in objects]) for i in range(3)]
     bag, out = tmp_path / "in", tmp_path / "out"
     write_sequence_bag(bag, image, K, arrays)
+    return image, K, objects, arrays, bag, out
+
+
+@pytest.mark.parametrize("lost_deg, flagged", [("0.001", True), ("179", False)])
+def test_lost_deg_with_a_bag_writes_the_lost_flag(tmp_path, lost_deg, flagged):
+    """--lost-deg with --bag: /refiner_rt/lost at every frame, holding the detections the check flagged (every
+    refined track at 0.001 degrees, none at 179; the first frame is refined from a coarse pose, never checked)."""
+    image, K, objects, arrays, bag, out = _still_bag(tmp_path)
     res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--lost-deg", lost_deg])
     assert res.exit_code == 0, res.output
     lost = read_bag(out)["/refiner_rt/lost"]
@@ -583,12 +590,7 @@ def test_lost_deg_with_a_bag_writes_the_lost_flag(tmp_path, lost_deg, flagged):
 def test_reinit_with_a_bag_reaches_the_tracker(tmp_path):
     """--reinit with --bag and --lost-deg: RosRefiner hands reinit=True to its RefinerTracker (the tracks of this still
     bag stay near their truth); without --lost-deg, and in refine mode, it is refused by name."""
-    image, K, objects = _frames()[0]
-    objects = objects[:2]
-    arrays = [_array(i, [_detection(o["object_id"], o["box_xyxy"], _xyzw(_q_in(o, 0)) if i == 0 else IDENTITY_XYZW)
-                         for o in objects]) for i in range(3)]
-    bag, out = tmp_path / "in", tmp_path / "out"
-    write_sequence_bag(bag, image, K, arrays)
+    image, K, objects, arrays, bag, out = _still_bag(tmp_path)
     res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--lost-deg", "2.5", "--reinit"])
     assert res.exit_code == 0, res.output
     for o in objects:
@@ -597,7 +599,7 @@ def test_reinit_with_a_bag_reaches_the_tracker(tmp_path):
     r = RosRefiner("track", lost_deg=2.5, reinit=True)
     assert r.tracker_kwargs == {"lost_deg": 2.5, "reinit": True}
     for i in range(3):
-        r.process(_image(image, i), _info(K, i), arrays[i])
+        assert len(r.process(_image(image, i), _info(K, i), arrays[i])) == len(objects)
     with pytest.raises(ValueError, match="reinit=True needs lost_deg"):
         RosRefiner("track", reinit=True)
     with pytest.raises(ValueError, match="apply to mode='track' only"):
