@@ -17,6 +17,8 @@ lever        training
 ``norm``     the network's input normalisation ``per_crop`` (each crop by its own per-channel mean and spread,
              inside the graph: a gain and an offset per channel, such as exposure and white balance, cancel)
 ``photo_norm`` ``photo`` and ``norm`` together
+``photo_half_norm`` ``norm`` with ``photo`` at half its probabilities (:data:`PHOTO_HALF`): does a milder
+             augmentation keep the Cycles set's gain without ``photo``'s cost on the TinyRenderer renders?
 ===========  ===================================================================================================
 
 Each row is trained with ``--seeds`` (three by default: a seed alone moves a row by up to 3 degrees at this size),
@@ -55,9 +57,11 @@ from models.evaluate.record import write_json
 # working camera's (narrower than theirs); the probabilities are theirs.
 PHOTO = {"downscale": 0.2, "motion_blur": 0.2, "blur": 0.4, "sensor_noise": 0.3, "white_balance": 0.3,
          "brightness": 0.5, "gamma": 0.3, "contrast": 0.3, "colour": 0.3, "sharpness": 0.3, "jpeg": 0.3}
-LEVERS = {"control": {}, "photo": PHOTO, "aa": {}, "norm": {}, "photo_norm": PHOTO}
+PHOTO_HALF = {name: p / 2 for name, p in PHOTO.items()}
+LEVERS = {"control": {}, "photo": PHOTO, "aa": {}, "norm": {}, "photo_norm": PHOTO, "photo_half_norm": PHOTO_HALF}
 CONFIG = {"aa": {"crop_filter": "antialias"}, "norm": {"input_norm": "per_crop"},
-          "photo_norm": {"input_norm": "per_crop"}}  # network config keys a lever sets
+          "photo_norm": {"input_norm": "per_crop"},
+          "photo_half_norm": {"input_norm": "per_crop"}}  # network config keys a lever sets
 
 
 def row_folder(run: Path, lever: str, seed: int) -> Path:
