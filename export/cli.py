@@ -27,6 +27,7 @@ from export.defaults import (
     SCHEMES,
 )
 from models.train.paths import per_object_path, per_object_siblings
+from refiner_rt.cli import prepare_output
 
 __all__ = ["export_cmd"]
 
@@ -130,8 +131,7 @@ def export_cmd(
     # (export.quantize.calibrated_scheme_for); without --calib, the dynamic scheme, which needs no data.
     scheme = int8_scheme or (None if calib is not None else DEFAULT_SCHEME)
     output = output if output is not None else checkpoint.with_suffix(".onnx")
-    if not output.parent.is_dir():
-        raise click.BadParameter(f"directory {output.parent} does not exist", param_hint="'-o' / '--output'")
+    output = prepare_output(output, "'-o' / '--output'")  # the CLI's one output rule: a missing folder is made
     if not os.access(output.parent, os.W_OK | os.X_OK):
         raise click.BadParameter(f"directory {output.parent} is not writable", param_hint="'-o' / '--output'")
     # (checkpoint, fp32 output, INT8 output): per-object siblings are named so that `refiner-rt eval` finds them

@@ -502,6 +502,10 @@ def bench_command(extension: BenchExtension | None = None) -> click.Command:
         if max(batches) > MAX_BATCH:
             raise click.BadParameter(f"batch sizes must be at most {MAX_BATCH} (RefinerSession's MAX_BATCH crops per call)",
                                      param_hint="--batch")
+        if json_path:
+            from refiner_rt.cli import prepare_output
+
+            prepare_output(json_path, "'--json'")  # the CLI's one output rule, before minutes of timing
         machine = extension.machine_info(machine_info())
 
         def echo(msg):

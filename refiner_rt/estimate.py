@@ -51,7 +51,7 @@ from refiner_rt.preprocess import crop_to_square
 from refiner_rt.session import RefinerSession
 
 __all__ = ["PoseEstimator", "PoseEstimate", "super_fibonacci", "return_turns", "depth_translation",
-           "shape_disagreement", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS",
+           "shape_disagreement", "ranking_residual", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS",
            "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG"]
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
@@ -110,6 +110,17 @@ class PoseEstimate:
 
     def __len__(self) -> int:
         return len(self.t)
+
+
+def ranking_residual(residual_deg, q_cam, extent_m, boxes_xyxy, K, image_size: tuple[int, int]) -> np.ndarray:
+    """``(M,)`` degrees: the ranking of rotation hypotheses, lower first: the return residual ``residual_deg`` plus,
+    where the object's extent points are known (``extent_m`` not None), :data:`SHAPE_WEIGHT_DEG` times
+    :func:`shape_disagreement`. The one rule of :class:`PoseEstimator` (``ranking="return+shape"``) and of
+    :class:`refiner_rt.tracker.RefinerTracker`'s re-initialisation."""
+    residual = np.asarray(residual_deg, dtype=np.float64)
+    if extent_m is None:
+        return residual.copy()
+    return residual + SHAPE_WEIGHT_DEG * shape_disagreement(q_cam, extent_m, boxes_xyxy, K, image_size)
 
 
 def shape_disagreement(q_cam, extent_m, boxes_xyxy, K, image_size: tuple[int, int] | None = None) -> np.ndarray:
@@ -274,10 +285,9 @@ class PoseEstimator:
         residual = rq.geodesic_angle(self.coarse.refine_crops(crops, start).q_refined, q)
         q_ray_box = ray_quaternions(K, boxes)
         if self.ranking == "return+shape":
-            rows_boxes = np.repeat(boxes, h, axis=0)
             q_all = rq.multiply(np.repeat(q_ray_box, h, axis=0), q)
-            residual = residual + SHAPE_WEIGHT_DEG * shape_disagreement(q_all, self.extent_m, rows_boxes, K,
-                                                                        image.shape[:2])
+            residual = ranking_residual(residual, q_all, self.extent_m, np.repeat(boxes, h, axis=0), K,
+                                        image.shape[:2])
         best = residual.reshape(n, h).argmin(axis=1)
         rows = np.arange(n) * h + best
         q_ray = q[rows]

@@ -98,11 +98,11 @@ import numpy as np
 
 from refiner_rt import quaternion as rq
 from refiner_rt.distortion import undistort_boxes
-from refiner_rt.estimate import SHAPE_WEIGHT_DEG, return_turns, shape_disagreement, super_fibonacci
+from refiner_rt.estimate import ranking_residual, return_turns, super_fibonacci
 from refiner_rt.geometry import ray_quaternions
 from refiner_rt.placement import load_extents
-from refiner_rt.checks import (as_wxyz, boxes_rows, validate_boxes, validate_D, validate_image, validate_iterations,
-                               validate_K, validate_settle, validate_views)
+from refiner_rt.checks import (MAX_BATCH, as_wxyz, boxes_rows, validate_boxes, validate_D, validate_image,
+                               validate_iterations, validate_K, validate_settle, validate_views)
 from refiner_rt.quaternion import inverse_rows, multiply_rows, normalize_rows
 from refiner_rt.refiner import Refiner, load
 from refiner_rt.session import RefineResult
@@ -589,39 +589,45 @@ class RefinerTracker:
         out = [None] * len(ids)
         if len(go) == 0:
             return out
+        # in chunks that keep every call within the batch limit: REINIT_HYPOTHESES + 1 starts per object, each seen
+        # by as many views as any of the calls takes (the check's, or a cascade's own)
+        views = max(self.views or 1, getattr(sess, "coarse_views", 1) or 1, getattr(sess, "fine_views", 1) or 1)
+        chunk = max(1, MAX_BATCH // ((REINIT_HYPOTHESES + 1) * views))
+        for at in range(0, len(go), chunk):
+            part = go[at:at + chunk]
+            for i, found in zip(part, self._search_chunk(sess, image, [ids[i] for i in part], boxes[part], own[part])):
+                out[i] = found
+        return out
+
+    def _search_chunk(self, sess: Refiner, image, ids: list, boxes: np.ndarray, own: np.ndarray) -> list:
+        """:meth:`_search` on boxes whose own rotation turned too far: per box ``(rotation, score)`` or None."""
         h, m = REINIT_HYPOTHESES, REINIT_HYPOTHESES + 1  # per object: the hypotheses, then the track's own
-        pinhole = boxes[go] if self.D is None else undistort_boxes(boxes[go], self.K, self.D)
-        searched = np.zeros((len(go) * h, 4))
+        n = len(boxes)
+        pinhole = boxes if self.D is None else undistort_boxes(boxes, self.K, self.D)
+        searched = np.zeros((n * h, 4))
         if h:  # (0: the track's own rotation alone, refined further)
             starts = rq.multiply(np.repeat(ray_quaternions(self.K, pinhole), h, axis=0),
-                                 np.tile(super_fibonacci(h), (len(go), 1)))
-            searched = self._passes(sess, image, np.repeat(boxes[go], h, axis=0), starts, REINIT_PASSES)
-        q = np.concatenate([searched.reshape(len(go), h, 4), own[go][:, None]], axis=1).reshape(-1, 4)
-        rep = np.repeat(boxes[go], m, axis=0)
-        back = sess.refine(image, rep, rq.multiply(q, np.tile(return_turns(m), (len(go), 1))), K=self.K, D=self.D,
+                                 np.tile(super_fibonacci(h), (n, 1)))
+            searched = self._passes(sess, image, np.repeat(boxes, h, axis=0), starts, REINIT_PASSES)
+        q = np.concatenate([searched.reshape(n, h, 4), own[:, None]], axis=1).reshape(-1, 4)
+        rep = np.repeat(boxes, m, axis=0)
+        back = sess.refine(image, rep, rq.multiply(q, np.tile(return_turns(m), (n, 1))), K=self.K, D=self.D,
                            coarse=np.ones(len(rep), dtype=bool)).q_refined
-        residual = rq.geodesic_angle(back, q).reshape(len(go), m)
+        residual = rq.geodesic_angle(back, q).reshape(n, m)
         extents = load_extents()
         winners = []
-        for k, i in enumerate(go):
-            ranked = residual[k].copy()
-            extent = extents.get(object_name(ids[i]))
-            if extent is not None:  # the box-shape term where the object's extent points ship
-                ranked += SHAPE_WEIGHT_DEG * shape_disagreement(q[k * m:(k + 1) * m], extent,
-                                                                np.repeat(pinhole[k][None], m, axis=0), self.K,
-                                                                image.shape[:2])
+        for k in range(n):
+            ranked = ranking_residual(residual[k], q[k * m:(k + 1) * m], extents.get(object_name(ids[k])),
+                                      np.repeat(pinhole[k][None], m, axis=0), self.K, image.shape[:2])
             ranked[-1] -= REINIT_MARGIN_DEG
             winners.append(q[k * m + int(np.argmin(ranked))])
         winners = rq.canonical(np.array(winners))
         # the loss check's own pass (its views too), so that a winner taken is one the next check passes
         views = {"views": self.views} if sess.per_call_passes else {}
-        check = sess.refine(image, boxes[go], winners, K=self.K, D=self.D, coarse=np.ones(len(go), dtype=bool),
-                            **views)
+        check = sess.refine(image, boxes, winners, K=self.K, D=self.D, coarse=np.ones(n, dtype=bool), **views)
         moved = rq.geodesic_angle(check.q_refined, winners)
-        for k, i in enumerate(go):
-            if moved[k] <= self.lost_deg:
-                out[i] = (winners[k].tolist(), float(check.score[k]))
-        return out
+        return [(winners[k].tolist(), float(check.score[k])) if moved[k] <= self.lost_deg else None
+                for k in range(n)]
 
     def _passes(self, sess: Refiner, image, boxes: np.ndarray, q: np.ndarray, passes: int) -> np.ndarray:
         """``q`` refined ``passes`` times (a session in one call, a cascade one call per pass)."""

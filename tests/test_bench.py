@@ -186,7 +186,7 @@ SMALL = {
 
 
 def test_bench_builds_fp32_and_int8_rows_of_variants(tmp_path):
-    out = tmp_path / "bench.json"
+    out = tmp_path / "results" / "bench.json"  # a folder that does not exist yet: the CLI's output rule makes it
     args = ["bench", "--shipped", "none", "--archs", "", "--variant", f"shallow=shallow:{json.dumps(SMALL['shallow'])}",
             "--variant", f"vggm=vggm:{json.dumps(SMALL['vggm'])}", "--batch", "1", "--threads", "1",
             "--seconds", "0.05", "--json", str(out)]

@@ -221,9 +221,18 @@ def test_cli_export_errors(tmp_path):
     result = runner.invoke(cli_main, ["export", str(ckpt), "--opset", "13"])
     assert result.exit_code == 2 and "13 is not in the range x>=18" in result.output
 
-    result = runner.invoke(cli_main, ["export", str(ckpt), "-o", str(tmp_path / "nodir" / "m.onnx")])
-    assert result.exit_code == 2 and "does not exist" in result.output
+    result = runner.invoke(cli_main, ["export", str(ckpt), "-o", str(junk / "m.onnx")])  # a file in the folder's way
+    assert result.exit_code == 2 and "cannot create the folder" in result.output and "Traceback" not in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.pt", "s.pt"]
+
+
+def test_cli_export_makes_a_missing_output_folder(tmp_path):
+    """The CLI's output rule (refiner_rt.cli.prepare_output): -o into a folder that does not exist yet makes it."""
+    ckpt = models.save_checkpoint(models.build_refiner("shallow", **small_config("shallow")), tmp_path / "s.pt")
+    out = tmp_path / "new" / "deeper" / "m.onnx"
+    result = CliRunner().invoke(cli_main, ["export", str(ckpt), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert out.is_file() and out.stat().st_size > 0
 
 
 def test_cli_export_into_an_unwritable_folder_is_one_error_line(monkeypatch, tmp_path):

@@ -523,6 +523,23 @@ def test_reinit_recovers_the_known_pose_of_a_track_that_walks_off():
         assert tracker.lost == [] and tracker.reinits == 1 and len(refiner.calls) == calls + 2  # update and check
 
 
+def test_reinit_searches_many_flagged_tracks_in_calls_within_the_batch_limit():
+    """200 instances of one object, each 150 degrees off: all are flagged at once and the search (9 starts each, 1,800
+    rows) runs in chunks whose every call stays within MAX_BATCH crops; every track gets the truth back."""
+    from refiner_rt.checks import MAX_BATCH
+
+    start = rq.multiply(TRUTH, rq.from_axis_angle([1.0, 0.0, 0.0], 150.0))
+    refiner = PullToTruth(TRUTH, walk_deg=40.0)
+    ids = [f"{OBJ}#{k}" for k in range(200)]
+    tracker = RefinerTracker(refiner, K, {i: start for i in ids}, lost_deg=2.5, reinit=True)
+    boxes = {i: BOX_A for i in ids}
+    tracker.update(IMG, boxes)
+    out = tracker.update(IMG, boxes)
+    assert tracker.reinits == 200 and tracker.lost == []
+    assert max(rq.geodesic_angle(np.array([out[i] for i in ids]), TRUTH[None])) < 1e-6
+    assert max(refiner.calls) <= MAX_BATCH and sum(c > 200 for c in refiner.calls) >= 2  # the search's calls, chunked
+
+
 def test_reinit_costs_nothing_on_a_good_track():
     """A track at the truth is never flagged: the same rotations as without reinit, two refine calls per update
     (the update and the check), no search."""
