@@ -233,7 +233,8 @@ class RefinedPose:
     and ``q_xyzw`` (the same, ROS order), ``position`` (the detection's, or ``None``), ``box`` and ``score`` (the
     detection's), ``refine_score``: the refinement's confidence in ``(0, 1]``, :attr:`refiner_rt.RefineResult.score`
     (in ``"track"`` mode the tracker's, :attr:`refiner_rt.RefinerTracker.scores`), ``lost``: the loss-of-track check
-    flagged it in this frame (``lost_deg``; always False without it and in ``"refine"`` mode), and ``q_input_wxyz``:
+    flagged it in this frame (``lost_deg``; always False without it and in ``"refine"`` mode), ``reinitialised``: the
+    tracker's rotation search on its box gave it a new start in this frame (``reinit``), and ``q_input_wxyz``:
     the detection's coarse rotation in this frame, or None."""
 
     object_id: str
@@ -243,6 +244,7 @@ class RefinedPose:
     score: float
     lost: bool = False
     refine_score: float | None = None
+    reinitialised: bool = False
     q_input_wxyz: np.ndarray | None = None
 
     @property
@@ -447,7 +449,8 @@ class RosRefiner:
             return []
         sessions = {key: self._model(seen[key].object_id) for key in poses if key not in tracker}
         refined = tracker.update_from_detector(image, boxes, poses, sessions=sessions)
-        lost = set(tracker.lost)
+        lost, again = set(tracker.lost), set(tracker.reinitialised)
         return [RefinedPose(key, q, seen[key].position, seen[key].box, seen[key].score, lost=key in lost,
-                            refine_score=tracker.scores.get(key), q_input_wxyz=poses.get(key))
+                            refine_score=tracker.scores.get(key), q_input_wxyz=poses.get(key),
+                            reinitialised=key in again)
                 for key, q in refined.items()]

@@ -100,7 +100,7 @@ def object_frame(object_id: str) -> str:
 class BagSummary:
     """What :func:`refine_bag` did: topics read, images and detection messages, how they matched (``approximate``:
     matches whose stamps differ, by up to ``max_offset_ms``), frames refined, poses written (per instance), lost
-    flags (instance -> frames), transforms written, detections skipped (by object id)."""
+    flags and re-initialisations (instance -> frames), transforms written, detections skipped (by object id)."""
 
     image_topic: str
     info_topic: str
@@ -115,6 +115,7 @@ class BagSummary:
     transforms: int = 0
     objects: dict = field(default_factory=dict)  # instance id -> poses written
     lost: dict = field(default_factory=dict)  # instance id -> frames the loss-of-track check flagged it in
+    reinitialised: dict = field(default_factory=dict)  # instance id -> frames its track was re-initialised in
     skipped: dict = field(default_factory=dict)
     output_topics: list = field(default_factory=list)
 
@@ -264,6 +265,8 @@ def refine_bag(bag: Path, out: Path, refiner: RosRefiner, *, image_topic: str | 
                         summary.objects[p.object_id] = summary.objects.get(p.object_id, 0) + 1
                         if p.lost:
                             summary.lost[p.object_id] = summary.lost.get(p.object_id, 0) + 1
+                        if p.reinitialised:
+                            summary.reinitialised[p.object_id] = summary.reinitialised.get(p.object_id, 0) + 1
                     summary.poses += len(poses)
                     transforms = [_transform_msg(store, msg.header, p) for p in poses if p.position is not None]
                     if transforms:

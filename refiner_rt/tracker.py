@@ -277,6 +277,7 @@ class RefinerTracker:
         self.lost: list[str] = []  # objects the last update flagged lost (neither re-detected nor re-initialised)
         self.redetections = 0  # objects re-initialised from a detector's pose by update(), in all
         self.reinits = 0  # objects re-initialised by the rotation search on their box (reinit=True), in all
+        self.reinitialised: list[str] = []  # the objects the last update re-initialised that way
         self.scores: dict[str, float] = {}  # the last update's RefineResult.score per refined object
         self.iterations = validate_iterations(iterations)
         self.views = validate_views(views)
@@ -462,7 +463,7 @@ class RefinerTracker:
             results.append((sess, ids, rows, refined, tracked, raw, score,
                             self._flag_lost(sess, image, ids, rows, refined)))
         redetected, lost = {}, []  # redetected: object id -> (rotation, score) of a new start
-        reinitialised = 0
+        reinitialised = []
         for sess, ids, rows, refined, tracked, raw, score, flagged in results:
             found, poses, missing = [], [], []
             for i in flagged:
@@ -483,7 +484,7 @@ class RefinerTracker:
                     lost.append(ids[i])
                 else:
                     redetected[ids[i]] = start
-                    reinitialised += 1
+                    reinitialised.append(ids[i])
         out, scores = {}, {}
         for sess, ids, rows, refined, tracked, raw, score, flagged in results:
             for object_id, q, q_tracked, q_raw, sc in zip(ids, refined, tracked, raw, score):
@@ -514,8 +515,9 @@ class RefinerTracker:
         self._updates += 1
         self.lost = lost
         self.scores = scores
-        self.redetections += len(redetected) - reinitialised
-        self.reinits += reinitialised
+        self.redetections += len(redetected) - len(reinitialised)
+        self.reinits += len(reinitialised)
+        self.reinitialised = reinitialised
         return out
 
     def update_from_detector(self, image, boxes: Mapping, poses: Mapping, sessions: Mapping | None = None

@@ -41,6 +41,22 @@ def _box_of(points, R, t):
     return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
 
 
+def test_pixel_coordinates_are_opencvs_projection_half_a_pixel_on():
+    """The placement's projection against OpenCV's (an independent one): OpenCV puts pixel centres at integers, the
+    continuous box coordinates at half-integers, so the two differ by exactly 0.5 px. OpenCV reads no skew: a skewed
+    K is held to the homogeneous product ``K @ p / z`` instead."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-0.1, 0.1, (50, 3)) + [0.02, -0.03, 0.9]
+    ref = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, None)[0].reshape(-1, 2)
+    np.testing.assert_allclose(pixel_coordinates(pts, K), ref + 0.5, atol=1e-9)
+    Ks = K.copy()
+    Ks[0, 1] = 3.5
+    h = pts @ Ks.T
+    np.testing.assert_allclose(pixel_coordinates(pts, Ks), h[:, :2] / h[:, 2:] + 0.5, atol=1e-9)
+
+
 def test_super_fibonacci_spreads_unit_rotations_over_so3():
     q = super_fibonacci(512)
     assert q.shape == (512, 4) and np.all(q[:, 0] >= 0)

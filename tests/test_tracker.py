@@ -515,12 +515,14 @@ def test_reinit_recovers_the_known_pose_of_a_track_that_walks_off():
     assert tracker.lost == [] and tracker.reinits == 0
     q = tracker.update(IMG, {OBJ: BOX_A})[OBJ]
     assert tracker.reinits == 1 and tracker.lost == [] and tracker.redetections == 0
+    assert tracker.reinitialised == [OBJ]  # this update's
     assert rq.geodesic_angle(q, TRUTH) < 1e-6
     for _ in range(2):  # a new start at the truth: nothing flagged, nothing searched
         calls = len(refiner.calls)
         q = tracker.update(IMG, {OBJ: BOX_A})[OBJ]
         assert rq.geodesic_angle(q, TRUTH) < 1e-6
         assert tracker.lost == [] and tracker.reinits == 1 and len(refiner.calls) == calls + 2  # update and check
+        assert tracker.reinitialised == []
 
 
 def test_reinit_searches_many_flagged_tracks_in_calls_within_the_batch_limit():
@@ -535,7 +537,7 @@ def test_reinit_searches_many_flagged_tracks_in_calls_within_the_batch_limit():
     boxes = {i: BOX_A for i in ids}
     tracker.update(IMG, boxes)
     out = tracker.update(IMG, boxes)
-    assert tracker.reinits == 200 and tracker.lost == []
+    assert tracker.reinits == 200 and tracker.lost == [] and sorted(tracker.reinitialised) == sorted(ids)
     assert max(rq.geodesic_angle(np.array([out[i] for i in ids]), TRUTH[None])) < 1e-6
     assert max(refiner.calls) <= MAX_BATCH and sum(c > 200 for c in refiner.calls) >= 2  # the search's calls, chunked
 
@@ -888,7 +890,7 @@ def test_track_command_reinit_searches_flagged_tracks_and_needs_lost_deg(tmp_pat
                                     "--lost-deg", "5", "--reinit"])
     assert res.exit_code == 0, res.output
     doc = json.loads(out.read_text())
-    assert doc["reinit"] is True and doc["reinits"] == 0
+    assert doc["reinit"] is True and doc["reinits"] == 0 and doc["reinitialised"] == {}
     assert doc["lost"] == {name: ["003_cracker_box"] for name in ("000001.png", "000002.png")}
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
                                     "--reinit"])

@@ -372,7 +372,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     video = _VideoOutput(video_path, len(files), strip_frames, fps) if video_path else None
     if video is not None:
         prepare_output(video_path, "'--video'")
-    results, scores, lost, refined, seconds = {}, {}, {}, 0, 0.0
+    results, scores, lost, reinitialised, refined, seconds = {}, {}, {}, {}, 0, 0.0
     for index, path in enumerate(files):
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
@@ -395,6 +395,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         scores[path.name] = {o: round(float(tracker.scores[o]), 4) for o in out if o in tracker.scores}
         if tracker.lost:
             lost[path.name] = list(tracker.lost)
+        if tracker.reinitialised:
+            reinitialised[path.name] = list(tracker.reinitialised)
         if video is not None:
             video.add(index, annotate(image, K, [
                 draw.PoseOverlay(o, np.asarray(boxes[o], dtype=np.float64), q, q_input=frame_dets[o]["q"],
@@ -412,6 +414,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         "frames": results,
         "scores": scores,  # frame -> object -> RefineResult.score of its refinement there (docs/tracking.md)
         "lost": lost,  # frame -> objects the loss-of-track check flagged there (docs/tracking.md; empty without --lost-deg)
+        "reinitialised": reinitialised,  # frame -> objects the search on their box gave a new start there (--reinit)
     }, indent=1))
     per_frame = 1e3 * seconds / len(files)
     click.echo(f"{len(files)} frames, {len(object_ids)} objects, {refined} refinements: {per_frame:.2f} ms per frame "
@@ -469,6 +472,9 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
                    f"matched no image within {tolerance:g} ms", err=True)
     if summary.lost:
         click.echo(f"lost (the loss-of-track check, frames per instance; on /refiner_rt/lost): {summary.lost}",
+                   err=True)
+    if summary.reinitialised:
+        click.echo(f"re-initialised (--reinit: the search on the box, frames per instance): {summary.reinitialised}",
                    err=True)
     click.echo(f"{summary.images} images ({summary.image_topic}), {summary.frames_with_detections} with detections "
                f"({summary.detections_topic}), {summary.poses} poses of {len(summary.objects)} objects in "
