@@ -63,7 +63,7 @@ def stressed_copy(data: Path, out: Path, op: str, strength, seed: int = STRESS_S
     stamp = out / "stress.json"
     if stamp.is_file() and json.loads(stamp.read_text()) == json.loads(json.dumps(record)):
         return out
-    work = out.with_name(out.name + ".tmp")
+    work = out.with_name(f"{out.name}.tmp-{os.getpid()}")  # this process's own: two runs may make the same copy
     shutil.rmtree(work, ignore_errors=True)
     shutil.copytree(data, work, ignore=shutil.ignore_patterns("depth", "mask*"))
     for i, path in enumerate(sorted(work.glob("*/rgb/*"))):
@@ -76,8 +76,14 @@ def stressed_copy(data: Path, out: Path, op: str, strength, seed: int = STRESS_S
         if path.suffix != ".png":
             path.unlink()
     (work / "stress.json").write_text(json.dumps(record))
+    if stamp.is_file() and json.loads(stamp.read_text()) == json.loads(json.dumps(record)):
+        shutil.rmtree(work)  # another run finished the same copy meanwhile: keep its
+        return out
     shutil.rmtree(out, ignore_errors=True)
-    work.rename(out)
+    try:
+        work.rename(out)
+    except OSError:  # another run's copy landed between the check and the rename
+        shutil.rmtree(work)
     return out
 
 
