@@ -55,6 +55,21 @@ def test_the_release_recipe_is_the_data_scaling_run(tmp_path):
         assert mine.symmetries == {"003_cracker_box": {}}
 
 
+def test_version_7_is_the_pilots_chosen_lever():
+    """The recipe of model version 7 is the version-7 pilot's chosen row (benchmarks/studies/appearance/v7_levers,
+    ``norm``): the version-6 recipe with the lever's network config and photometric probabilities (none), for the
+    pilot's 60,000 samples; nothing else differs."""
+    from benchmarks.studies.appearance.v7_levers import CONFIG, LEVERS
+
+    v6, v7 = load_recipe("robot-roll-v6").as_dict(), load_recipe(coarse.RECIPE_NAME).as_dict()
+    lever = "norm"
+    assert coarse.RECIPE["photometric"] == LEVERS[lever]
+    assert v7["arch_config"] == {**v6["arch_config"], **CONFIG[lever]}
+    assert v7["samples"] == 60_000 and coarse.MODEL_VERSION == "7"
+    changed = {k for k in v6 if v6[k] != v7[k]} - {"name", "arch_config", "samples"}
+    assert changed == {f"aug_{op}" for op in LEVERS[lever]}  # nothing else moved
+
+
 def test_each_shipped_model_record_names_the_release_recipe(tmp_path):
     """Every build record of the current model version: its recorded training command (the data_scaling run that
     made the shipped weights) is the run :func:`export.release.coarse.shipped_recipe` gives for the same object,
