@@ -99,6 +99,7 @@ TRACKERS = {
     "track_lost": {"lost_deg": LOST_DEG},  # and the loss-of-track check at its chosen threshold
     "track_views4": {"views": 4, "lost_deg": LOST_DEG},  # four box-jittered views per update (best on s561)
     "track_reinit": {"lost_deg": LOST_DEG, "reinit": True},  # and a flagged track re-initialised by a search on its box
+    "track_views4_reinit": {"views": 4, "lost_deg": LOST_DEG, "reinit": True},  # both
 }
 
 
