@@ -542,6 +542,32 @@ def test_reinit_searches_many_flagged_tracks_in_calls_within_the_batch_limit():
     assert max(refiner.calls) <= MAX_BATCH and sum(c > 200 for c in refiner.calls) >= 2  # the search's calls, chunked
 
 
+class PullToTruthPerPass(PullToTruth):
+    """:class:`PullToTruth` as a cascade calls it: one pass per call (``per_call_passes`` False), views of its own."""
+
+    per_call_passes = False
+    coarse_views, fine_views = 2, 2
+
+    def refine(self, image, boxes, q_in, *, K=None, D=None, coarse=None, q_order="wxyz"):
+        return super().refine(image, boxes, q_in, K=K, D=D, coarse=coarse)
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_reinit_with_a_cascade_and_a_distorted_camera(distorted):
+    """The re-initialisation through a refiner that takes one pass per call (a cascade: the passes are calls) and with
+    lens distortion (the search's boxes undistorted first): the walked-off track gets the truth back, as with a
+    session; the hypotheses' passes came as single-pass calls of 8 rows."""
+    start = rq.multiply(TRUTH, rq.from_axis_angle([1.0, 0.0, 0.0], 150.0))
+    refiner = PullToTruthPerPass(TRUTH, walk_deg=40.0)
+    D = [0.1, -0.05, 0.001, 0.0005, 0.0] if distorted else None
+    tracker = RefinerTracker({OBJ: refiner}, K, {OBJ: start}, lost_deg=2.5, reinit=True, D=D)
+    tracker.update(IMG, {OBJ: BOX_A})
+    q = tracker.update(IMG, {OBJ: BOX_A})[OBJ]
+    assert tracker.reinits == 1 and tracker.reinitialised == [OBJ] and tracker.lost == []
+    assert rq.geodesic_angle(q, TRUTH) < 1e-6
+    assert refiner.calls.count(8) == 3  # REINIT_PASSES single-pass calls of the 8 hypotheses
+
+
 def test_reinit_costs_nothing_on_a_good_track():
     """A track at the truth is never flagged: the same rotations as without reinit, two refine calls per update
     (the update and the check), no search."""
