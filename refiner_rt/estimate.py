@@ -51,8 +51,8 @@ from refiner_rt.preprocess import crop_to_square
 from refiner_rt.session import RefinerSession
 
 __all__ = ["PoseEstimator", "PoseEstimate", "super_fibonacci", "return_turns", "depth_translation",
-           "shape_disagreement", "ranking_residual", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING", "RANKINGS",
-           "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG"]
+           "shape_disagreement", "ranking_residual", "DEFAULT_HYPOTHESES", "DEFAULT_PASSES", "DEFAULT_RANKING",
+           "RANKINGS", "RETURN_TURN_DEG", "SHAPE_WEIGHT_DEG"]
 
 # The search's defaults, chosen on rendered scenes (benchmarks/pose6d.py --choose; docs/pose6d.md).
 DEFAULT_HYPOTHESES = 3

@@ -61,7 +61,11 @@ def stressed_copy(data: Path, out: Path, op: str, strength, seed: int = STRESS_S
 
     record = {"data": str(Path(data).resolve()), "op": op, "strength": strength, "seed": seed}
     stamp = out / "stress.json"
-    if stamp.is_file() and json.loads(stamp.read_text()) == json.loads(json.dumps(record)):
+
+    def finished() -> bool:  # ``out`` holds a finished copy of this input and case (this run's or another's)
+        return stamp.is_file() and json.loads(stamp.read_text()) == json.loads(json.dumps(record))
+
+    if finished():
         return out
     work = out.with_name(f"{out.name}.tmp-{os.getpid()}")  # this process's own: two runs may make the same copy
     shutil.rmtree(work, ignore_errors=True)
@@ -76,7 +80,7 @@ def stressed_copy(data: Path, out: Path, op: str, strength, seed: int = STRESS_S
         if path.suffix != ".png":
             path.unlink()
     (work / "stress.json").write_text(json.dumps(record))
-    if stamp.is_file() and json.loads(stamp.read_text()) == json.loads(json.dumps(record)):
+    if finished():
         shutil.rmtree(work)  # another run finished the same copy meanwhile: keep its
         return out
     shutil.rmtree(out, ignore_errors=True)
