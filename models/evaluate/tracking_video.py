@@ -100,6 +100,8 @@ TRACKERS = {
     "track_views4": {"views": 4, "lost_deg": LOST_DEG},  # four box-jittered views per update (best on s561)
     "track_reinit": {"lost_deg": LOST_DEG, "reinit": True},  # and a flagged track re-initialised by a search on its box
     "track_views4_reinit": {"views": 4, "lost_deg": LOST_DEG, "reinit": True},  # both
+    "track_starts5": {"starts": 5},  # five starts per update, each on its own box jitter, averaged (best on s561)
+    "track_starts5_reinit": {"starts": 5, "lost_deg": LOST_DEG, "reinit": True},  # and the re-initialisation
 }
 
 
