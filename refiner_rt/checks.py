@@ -23,11 +23,12 @@ import numpy as np
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import MAX_VIEWS
 
-__all__ = ["SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_VIEWS", "MAX_BOX_COORDINATE", "MIN_BOX_SIDE",
-           "MIN_INSIDE_FRACTION", "K_MIN_FOCAL", "K_MAX_ABS", "DISTORTION_LENGTHS", "Q_ORDERS", "validate_image",
-           "validate_boxes", "boxes_rows", "inside_fraction", "validate_K", "check_principal_point", "validate_D",
-           "as_wxyz", "validate_rotations", "validate_settle", "validate_iterations", "validate_views", "check_batch",
-           "validate_threads", "check_coarse_rows", "validate_depth", "MAX_DEPTH_M"]
+__all__ = ["SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_STARTS", "MAX_VIEWS", "MAX_BOX_COORDINATE",
+           "MIN_BOX_SIDE", "MIN_INSIDE_FRACTION", "K_MIN_FOCAL", "K_MAX_ABS", "DISTORTION_LENGTHS", "Q_ORDERS",
+           "validate_image", "validate_boxes", "boxes_rows", "inside_fraction", "validate_K",
+           "check_principal_point", "validate_D", "as_wxyz", "validate_rotations", "validate_settle",
+           "validate_iterations", "validate_views", "validate_starts", "check_batch", "validate_threads",
+           "check_coarse_rows", "validate_depth", "MAX_DEPTH_M"]
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,8 @@ SMALL_BATCH = 32
 MAX_BATCH = 1024
 # iterations: each one is a network pass (the paper does 1); bounded so that a wrong value cannot run for hours.
 MAX_ITERATIONS = 16
+# RefinerTracker(starts=...): the last rotation and up to eight rotations turned from it (a cube's corner axes)
+MAX_STARTS = 9
 # Box coordinates beyond a million pixels (far past any camera) are refused: they would only make black crops, and
 # past ~1e154 the window's and the viewing ray's arithmetic overflows to inf.
 MAX_BOX_COORDINATE = 1e6
@@ -363,6 +366,14 @@ def validate_views(views) -> int:
     if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or not 1 <= views <= MAX_VIEWS:
         raise ValueError(f"views must be an integer from 1 to {MAX_VIEWS}; got {views!r}")
     return int(views)
+
+
+def validate_starts(starts) -> int:
+    """``starts`` (refinements a tracker averages per object and update) as an int from 1 to :data:`MAX_STARTS`."""
+    if isinstance(starts, bool) or not isinstance(starts, (int, np.integer)) or not 1 <= starts <= MAX_STARTS:
+        raise ValueError(f"starts must be an integer from 1 to {MAX_STARTS} (refinements averaged per object and "
+                         f"update; 5 is the setting measured on video); got {starts!r}")
+    return int(starts)
 
 
 def check_batch(n: int, views: int, name: str) -> None:

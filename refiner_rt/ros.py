@@ -305,6 +305,9 @@ class RosRefiner:
                              "fine_views (four each): give one of views and cascade")
         if tracker_kwargs and mode != "track":
             raise ValueError(f"{sorted(tracker_kwargs)} apply to mode='track' only")
+        if tracker_kwargs.get("starts", 1) != 1 and cascade:
+            raise ValueError(f"starts={tracker_kwargs['starts']!r} is for single refiners; a cascade refines each frame "
+                             "from the last rotation with its own views: give one of starts and cascade")
         self.mode, self.cascade, self.rectified = mode, bool(cascade), bool(rectified)
         self.class_map = dict(class_map or {})
         self.identity_is_pose = bool(identity_is_pose)

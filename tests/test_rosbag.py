@@ -608,6 +608,27 @@ def test_reinit_with_a_bag_reaches_the_tracker(tmp_path):
     assert res.exit_code == 2 and "--lost-deg" in res.output
 
 
+def test_starts_with_a_bag_reach_the_tracker(tmp_path):
+    """--starts with --bag (track mode): RosRefiner hands starts=N to its RefinerTracker and the tracks of this still bag
+    stay near their truth; in refine mode, with a cascade and out of range it is refused by name."""
+    image, K, objects, arrays, bag, out = _still_bag(tmp_path)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(out), "--starts", "5"])
+    assert res.exit_code == 0, res.output
+    for o in objects:
+        q = read_bag(out)[pose_topic(o["object_id"])][-1][1].pose.orientation
+        assert rq.geodesic_angle(rq.from_xyzw(np.array([q.x, q.y, q.z, q.w])), np.array(o["q_gt_wxyz"])) < 12.0
+    assert RosRefiner("track", starts=5).tracker_kwargs == {"starts": 5}
+    with pytest.raises(ValueError, match="apply to mode='track' only"):
+        RosRefiner("refine", starts=5)
+    with pytest.raises(ValueError, match="starts=5 is for single refiners"):
+        RosRefiner("track", cascade=True, starts=5)
+    with pytest.raises(ValueError, match="starts must be an integer from 1 to 9"):
+        RosRefiner("track", starts=0)
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "o2"), "--mode", "refine",
+                                    "--starts", "5"])
+    assert res.exit_code == 2 and "--starts" in res.output and "Traceback" not in res.output, res.output
+
+
 def write_and_track(tmp_path, image, K, arrays) -> Path:
     bag, out = tmp_path / "plain_in", tmp_path / "plain_out"
     write_sequence_bag(bag, image, K, arrays)

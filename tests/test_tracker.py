@@ -851,6 +851,38 @@ def test_track_command_views_averages_box_jittered_crops(tmp_path):
     assert "Traceback" not in res.output
 
 
+def test_track_command_starts_averages_turned_starts(tmp_path):
+    """--starts N is RefinerTracker(starts=N), recorded in the output; the starts reach the network (a crop- and
+    rotation-dependent model); with --cascade, and out of range, a usage error naming it."""
+    import json
+
+    import cv2
+    from click.testing import CliRunner
+
+    from refiner_rt.cli import main
+
+    frames, dets, model = write_sequence(tmp_path, n=3)
+    model.write_bytes(fx.random_weight_model(seed=5, props=fx.contract(objects=["003_cracker_box"],
+                                                                       rotation_frame="ray")))
+    out = tmp_path / "rot.json"
+    got = {}
+    for starts in (1, 5):
+        res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
+                                        "--starts", str(starts)])
+        assert res.exit_code == 0, res.output
+        doc = json.loads(out.read_text())
+        assert doc["starts"] == starts
+        tracker = RefinerTracker(RefinerSession(str(model)), K, {"003_cracker_box": Q0[0]}, starts=starts)
+        for name in sorted(doc["frames"]):
+            want = tracker.update(cv2.imread(str(frames / name)), {"003_cracker_box": BOX_A})["003_cracker_box"]
+            assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]), scipy_q(want))
+        got[starts] = np.array(doc["frames"]["000002.png"]["003_cracker_box"])
+    assert rq.geodesic_angle(got[1], got[5]) > 1e-3
+    for args in (["--starts", "5", "--cascade"], ["--starts", "10"]):
+        res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), *args])
+        assert res.exit_code == 2 and "--starts" in res.output and "Traceback" not in res.output, res.output
+
+
 def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path):
     """A "q" on the third frame: without --detector-weight it restarts the track (q_det * c); with 0.5 it is refined
     beside the track and the rotation is half way between the two (SciPy's Slerp)."""
@@ -1174,3 +1206,86 @@ def test_settle_deg_keeps_the_second_pass_where_it_turns_by_more(tmp_path):
     tracker = _unfiltered(session(), K, {"003_cracker_box": Q0[0]}, iterations=3, settle_deg=10.0)
     q = tracker.update(IMG, {"003_cracker_box": BOX_A})["003_cracker_box"]
     assert_same_rotation(q, scipy_q(Q0[0]) * scipy_q(Q_OUT))
+
+
+# ------------------------------------------------------------------------------ several starts per update
+class TurnByBox:
+    """A made-up session (the :class:`refiner_rt.Refiner` protocol) whose correction depends on the crop: each row's
+    rotation is turned about the object's z axis by half the box's x1 in degrees, so every start's own box jitter shows
+    in the result. Records each call's boxes and rotations."""
+
+    per_call_passes = True
+
+    def __init__(self, context=1.2):
+        from types import SimpleNamespace
+
+        self.contract = SimpleNamespace(objects=(OBJ,), crop_context=context)
+        self.boxes, self.q_in = [], []
+
+    def refine(self, image, boxes, q_in, *, K=None, D=None, coarse=None, iterations=1, views=1, settle_deg=None,
+               q_order="wxyz"):
+        q = rq.normalize(np.asarray(q_in, dtype=np.float64).reshape(-1, 4))
+        b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        self.boxes.append(b)
+        self.q_in.append(q)
+        turn = rq.from_axis_angle(np.tile([0.0, 0.0, 1.0], (len(q), 1)), 0.5 * b[:, 0])
+        return RefineResult(q_refined=rq.canonical(rq.multiply(q, turn)), q_out=turn, q_in=q)
+
+
+def test_starts_average_refinements_from_turned_starts_on_their_own_box_jitters():
+    """``starts=5``: one call of five rows per object, the first the track's rotation on its own box, the others turned
+    15 degrees from it about four distinct axes (SciPy), each on a box of its own; the result is SciPy's mean of the
+    five refinements, and the score counts their spread."""
+    from refiner_rt.session import SCORE_SCALE_DEG
+    from refiner_rt.tracker import START_DEG
+
+    refiner = TurnByBox()
+    tracker = _unfiltered({OBJ: refiner}, K, {OBJ: TRUTH}, starts=5)
+    q = tracker.update(IMG, {OBJ: BOX_A})[OBJ]
+    (boxes,), (q_in,) = refiner.boxes, refiner.q_in
+    assert boxes.shape == (5, 4) and q_in.shape == (5, 4)
+    np.testing.assert_allclose(boxes[0], BOX_A)
+    assert len({tuple(b) for b in boxes.round(9)}) == 5  # each start on its own jitter
+    start = scipy_q(TRUTH)
+    assert_same_rotation(q_in[0], start)
+    turns = [start.inv() * scipy_q(s) for s in q_in[1:]]  # object-frame turns from the track's rotation
+    np.testing.assert_allclose([t.magnitude() for t in turns], np.radians(START_DEG), atol=1e-9)
+    axes = np.array([t.as_rotvec() / t.magnitude() for t in turns])
+    assert np.all(np.abs(axes @ axes.T - np.eye(4)) < 0.99)  # four distinct axes
+    refined = [scipy_q(s) * Rotation.from_rotvec([0.0, 0.0, np.radians(0.5 * b[0])]) for s, b in zip(q_in, boxes)]
+    expected = Rotation.concatenate(refined).mean()
+    assert_same_rotation(q, expected, atol=1e-9)
+    spread = np.mean([(r * expected.inv()).magnitude() for r in refined])
+    moved = (start.inv() * expected).magnitude()
+    assert tracker.scores[OBJ] == pytest.approx(np.exp(-np.degrees(moved + spread) / SCORE_SCALE_DEG), rel=1e-6)
+
+
+def test_starts_of_many_tracks_stay_within_the_batch_limit_and_match_one_track_at_a_time():
+    """250 instances x 5 starts is more than MAX_BATCH crops: the update is split into calls within it, and every track
+    gets what it gets when tracked alone."""
+    from refiner_rt.checks import MAX_BATCH
+
+    ids = [f"{OBJ}#{k}" for k in range(250)]
+    starts = {i: rq.multiply(TRUTH, rq.from_axis_angle([1.0, 0.0, 0.0], 0.1 * k)) for k, i in enumerate(ids)}
+    refiner = TurnByBox()
+    out = RefinerTracker(refiner, K, starts, starts=5).update(IMG, {i: BOX_B for i in ids})
+    assert max(len(b) for b in refiner.boxes) <= MAX_BATCH and len(refiner.boxes) >= 2
+    for i in (ids[0], ids[137], ids[-1]):
+        alone = RefinerTracker(TurnByBox(), K, {i: starts[i]}, starts=5).update(IMG, {i: BOX_B})[i]
+        np.testing.assert_allclose(out[i], alone, atol=1e-12)
+
+
+def test_a_cascade_refines_from_the_last_rotation_alone_with_starts():
+    """A refiner that runs its own passes (a cascade) is refined from the track's rotation alone: ``starts`` is for
+    sessions, as ``views`` is."""
+    refiner = PullToTruthPerPass(TRUTH)
+    tracker = RefinerTracker({OBJ: refiner}, K, {OBJ: rq.multiply(TRUTH, rq.from_axis_angle([0, 1.0, 0], 10.0))},
+                             starts=5)
+    q = tracker.update(IMG, {OBJ: BOX_A})[OBJ]
+    assert refiner.calls == [1] and rq.geodesic_angle(q, TRUTH) < 1e-9
+
+
+@pytest.mark.parametrize("starts", [0, 10, True, 2.0, "5"])
+def test_bad_starts_are_named(starts):
+    with pytest.raises(ValueError, match="starts must be an integer from 1 to 9"):
+        RefinerTracker(session(), K, {"003_cracker_box": Q0[0]}, starts=starts)

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from refiner_rt import draw
-from refiner_rt.checks import MAX_ITERATIONS, MAX_VIEWS
+from refiner_rt.checks import MAX_ITERATIONS, MAX_STARTS, MAX_VIEWS
 from refiner_rt.cli import prepare_output
 
 __all__ = ["track_cmd", "read_detections", "frame_files", "annotate", "OUTPUT_FORMAT"]
@@ -271,6 +271,11 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Box-jittered crops each refiner averages per object and frame, one network pass each: 4 took "
                    "the shipped refiners from 5.67 to 4.93 degrees on real YCB-Video frames (README, \"Below the "
                    "floor\"). Not with --cascade, which averages its own.")
+@click.option("--starts", type=click.IntRange(1, MAX_STARTS), default=1, show_default=True,
+              help="Refinements averaged per object and frame: the last rotation and N-1 rotations turned 15 degrees "
+                   "from it, each on its own box jitter (RefinerTracker(starts=N), docs/tracking.md): with 5, tracks "
+                   "without a detector were 3.58 degrees off on the real dev videos against 4.78 for per-frame "
+                   "refinement (4.12 against 4.02 on held-out renders), at five network passes. Not with --cascade.")
 @click.option("--settle-deg", type=click.FloatRange(0.0, 180.0, min_open=True, max_open=True), default=None, metavar="DEG",
               help="For detector poses that may be more than 30 degrees off: each refinement runs a second coarse "
                    "pass, kept where it turns the result by more than DEG (2: the value measured on renders, "
@@ -287,7 +292,7 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
 def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image_topic, info_topic, detections_topic,
               sync_tolerance_ms, identity_is_pose, estimate_missing, class_map, models, fp32, K_text, predict,
               scene_motion, lost_deg, reinit,
-              detector_weight, iterations, views, settle_deg, threads, video_path, strip_frames, fps):
+              detector_weight, iterations, views, starts, settle_deg, threads, video_path, strip_frames, fps):
     """Track object rotations through a folder of frames (FRAMES, file-name order) from a DETECTIONS file.
 
     DETECTIONS is JSON: {"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "frames": {"<image file>": {"<object id>": [x1,y1,x2,y2]
@@ -305,6 +310,9 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.UsageError("--views is for single refiners; --cascade averages its own views (four for each of "
                                "its refiners): give one of them")
 
+    if starts != 1 and cascade:
+        raise click.UsageError("--starts is for single refiners; --cascade refines each frame from the last rotation "
+                               "with its own views: give one of them")
     if reinit and lost_deg is None:
         raise click.UsageError("--reinit re-initialises the tracks the loss-of-track check flags: give --lost-deg "
                                "too (2.5, refiner_rt.tracker.LOST_DEG)")
@@ -329,7 +337,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         prepare_output(out_path, "'-o' / '--out'")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
                           class_map, fp32, prediction, lost_deg, threads, settle_deg, views, detector_weight,
-                          sync_tolerance_ms, identity_is_pose, estimate_missing, reinit)
+                          sync_tolerance_ms, identity_is_pose, estimate_missing, reinit, starts)
     if frames is None or detections is None:
         raise click.UsageError("give FRAMES and DETECTIONS (a folder of images and a detections file), or --bag BAG")
     used = [flag for flag, value in bag_only.items() if value]
@@ -364,8 +372,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         if settle_deg is not None:
             iterations = max(iterations, 2)
         tracker = RefinerTracker(refiners, K, {}, predict=prediction, iterations=iterations, views=views,
-                                 lost_deg=lost_deg, detector_weight=detector_weight, settle_deg=settle_deg,
-                                 reinit=reinit)
+                                 starts=starts, lost_deg=lost_deg, detector_weight=detector_weight,
+                                 settle_deg=settle_deg, reinit=reinit)
     except (ValueError, TypeError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
 
@@ -406,7 +414,8 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     out_path.write_text(json.dumps({
         "format": OUTPUT_FORMAT,
         "conventions": "quaternions wxyz (scalar first, Hamilton), object-to-camera; boxes x1,y1,x2,y2 pixels",
-        "K": K.tolist(), "predict": predict, "scene_motion": scene_motion, "iterations": iterations, "views": None if cascade else views, "settle_deg": settle_deg, "lost_deg": lost_deg,
+        "K": K.tolist(), "predict": predict, "scene_motion": scene_motion, "iterations": iterations,
+        "views": None if cascade else views, "starts": starts, "settle_deg": settle_deg, "lost_deg": lost_deg,
         "reinit": reinit, "reinits": tracker.reinits,  # tracks re-initialised by the search on their box, in all
         "detector_weight": detector_weight,
         "models": {o: str(s.model_path) if s.model_path else "<bytes>" for o, s in sessions.items()},
@@ -423,7 +432,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
 
 def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic, class_map, fp32,
                predict, lost_deg, threads, settle_deg, views, detector_weight=None, sync_tolerance_ms=None,
-               identity_is_pose=False, estimate_missing=False, reinit=False):
+               identity_is_pose=False, estimate_missing=False, reinit=False, starts=1):
     """``track --bag``: :func:`refiner_rt.rosbag.refine_bag` with a progress bar and one-line errors; approximate
     stamp matches and lost tracks are reported on stderr."""
     from refiner_rt.ros import RosRefiner
@@ -439,7 +448,7 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
             if not isinstance(mapping, dict) or not all(isinstance(v, str) for v in mapping.values()):
                 raise ValueError(f"{class_map}: expected a JSON object {{detector class id: YCB id}}")
         extra = {k: v for k, v in {"predict": predict, "lost_deg": lost_deg, "reinit": reinit,
-                                   "detector_weight": detector_weight}.items() if v}
+                                   "detector_weight": detector_weight, "starts": starts != 1 and starts}.items() if v}
         if extra and mode != "track":
             flags = ["--scene-motion" if k == "predict" and v == "scene" else "--" + k.replace("_", "-")
                      for k, v in extra.items()]
