@@ -287,7 +287,7 @@ def test_prepare_output_makes_the_missing_folders_of_an_output_and_names_the_opt
       "--box", "438,202,636,368", "--out", "{file}/poses.json"], "--out"),
     (["estimate", "{frame}", "--K", "1066.8,1067.5,313,241.3", "--object", "035_power_drill",
       "--box", "438,202,636,368", "--overlay", "{file}/poses.png"], "--overlay"),
-    (["track", "{tmp}", "{file}", "-o", "{file}/rotations.json"], "--out"),
+    (["track", "{frames}", "{dets}", "-o", "{file}/rotations.json"], "--out"),
     (["track", "--bag", "{tmp}", "-o", "{file}/out_bag"], "--out"),
 ], ids=["demo --out", "estimate --out", "estimate --overlay", "track -o", "track --bag -o"])
 def test_every_command_makes_a_missing_output_folder_by_one_rule(tmp_path, args, option):
@@ -301,7 +301,15 @@ def test_every_command_makes_a_missing_output_folder_by_one_rule(tmp_path, args,
     file = tmp_path / "not_a_folder"
     file.write_text("{}")
     frame = Path(__file__).resolve().parents[1] / "refiner_rt" / "samples" / "000002_000001.jpg"
-    argv = [a.replace("{tmp}", str(tmp_path)).replace("{file}", str(file)).replace("{frame}", str(frame)) for a in args]
+    frames, dets = tmp_path / "frames", tmp_path / "detections.json"  # readable inputs: the output is what is wrong
+    frames.mkdir()
+    (frames / frame.name).write_bytes(frame.read_bytes())
+    dets.write_text(json.dumps({"K": [[1066.8, 0, 313.0], [0, 1067.5, 241.3], [0, 0, 1]], "frames": {frame.name: {
+        "035_power_drill": {"box": [438, 202, 636, 368], "q": [1.0, 0.0, 0.0, 0.0]}}}}))
+    if "{dets}" in args and "035_power_drill" not in {m.object_id for m in pretrained_models()}:
+        pytest.skip("the shipped power-drill model is not in this checkout")
+    argv = [a.replace("{tmp}", str(tmp_path)).replace("{file}", str(file)).replace("{frame}", str(frame))
+            .replace("{frames}", str(frames)).replace("{dets}", str(dets)) for a in args]
     res = CliRunner().invoke(main, argv)
     assert res.exit_code == 2, res.output
     assert "Traceback" not in res.output and "cannot create the folder" in res.output and option in res.output

@@ -1021,8 +1021,9 @@ def test_track_command_refuses_a_file_that_is_not_json_and_a_model_that_is_not_o
     res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json"), "--model", str(model)])
     assert res.exit_code == 1 and "Traceback" not in res.output and "box.onnx" in res.output, res.output
     dets.write_text("{not json")
-    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "r.json")])
+    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(tmp_path / "new" / "r.json")])
     assert res.exit_code == 1 and "not a readable JSON detections file" in res.output
+    assert not (tmp_path / "new").exists()  # the output's folder is made once the inputs are read, not before
 
 
 # ------------------------------------------------------------------------------ benchmarks/tracking.py

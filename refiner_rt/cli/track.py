@@ -346,7 +346,6 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     if out_path.suffix.lower() != ".json":
         raise click.BadParameter(f"expected a .json file for the rotations (a video or image strip goes to --video); "
                                  f"got {out_path.name!r}", param_hint="'-o' / '--out'")
-    prepare_output(out_path, "'-o' / '--out'")
     try:
         K, dets = read_detections(detections)
     except ValueError as exc:
@@ -377,6 +376,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
     except (ValueError, TypeError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
 
+    prepare_output(out_path, "'-o' / '--out'")  # once the inputs are read: a refused run leaves no folder behind
     video = _VideoOutput(video_path, len(files), strip_frames, fps) if video_path else None
     if video is not None:
         prepare_output(video_path, "'--video'")
