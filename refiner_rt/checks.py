@@ -23,7 +23,7 @@ import numpy as np
 from refiner_rt import quaternion as rq
 from refiner_rt.geometry import MAX_VIEWS
 
-__all__ = ["SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "MAX_STARTS", "MAX_VIEWS", "MAX_BOX_COORDINATE",
+__all__ = ["SMALL_BATCH", "MAX_BATCH", "MAX_ITERATIONS", "STARTS", "MAX_STARTS", "MAX_VIEWS", "MAX_BOX_COORDINATE",
            "MIN_BOX_SIDE", "MIN_INSIDE_FRACTION", "K_MIN_FOCAL", "K_MAX_ABS", "DISTORTION_LENGTHS", "Q_ORDERS",
            "validate_image", "validate_boxes", "boxes_rows", "inside_fraction", "validate_K",
            "check_principal_point", "validate_D", "as_wxyz", "validate_rotations", "validate_settle",
@@ -42,8 +42,10 @@ SMALL_BATCH = 32
 MAX_BATCH = 1024
 # iterations: each one is a network pass (the paper does 1); bounded so that a wrong value cannot run for hours.
 MAX_ITERATIONS = 16
-# RefinerTracker(starts=...): the last rotation and up to eight rotations turned from it (a cube's corner axes)
-MAX_STARTS = 9
+# RefinerTracker(starts=...): the last rotation alone, or with the four turns about a tetrahedron's axes, or with the
+# eight about a cube's corners: counts whose turns balance, so that their mean does not lean one way
+STARTS = (1, 5, 9)
+MAX_STARTS = max(STARTS)
 # Box coordinates beyond a million pixels (far past any camera) are refused: they would only make black crops, and
 # past ~1e154 the window's and the viewing ray's arithmetic overflows to inf.
 MAX_BOX_COORDINATE = 1e6
@@ -369,10 +371,10 @@ def validate_views(views) -> int:
 
 
 def validate_starts(starts) -> int:
-    """``starts`` (refinements a tracker averages per object and update) as an int from 1 to :data:`MAX_STARTS`."""
-    if isinstance(starts, bool) or not isinstance(starts, (int, np.integer)) or not 1 <= starts <= MAX_STARTS:
-        raise ValueError(f"starts must be an integer from 1 to {MAX_STARTS} (refinements averaged per object and "
-                         f"update; 5 is the setting measured on video); got {starts!r}")
+    """``starts`` (refinements a tracker averages per object and update) as an int, one of :data:`STARTS`."""
+    if isinstance(starts, bool) or not isinstance(starts, (int, np.integer)) or starts not in STARTS:
+        raise ValueError(f"starts must be 1, 5 or 9 (the last rotation alone, or with 4 or 8 turned starts whose turns "
+                         f"balance; 5 is the setting measured on video); got {starts!r}")
     return int(starts)
 
 

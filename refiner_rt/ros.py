@@ -305,9 +305,13 @@ class RosRefiner:
                              "fine_views (four each): give one of views and cascade")
         if tracker_kwargs and mode != "track":
             raise ValueError(f"{sorted(tracker_kwargs)} apply to mode='track' only")
-        if tracker_kwargs.get("starts", 1) != 1 and cascade:
-            raise ValueError(f"starts={tracker_kwargs['starts']!r} is for single refiners; a cascade refines each frame "
-                             "from the last rotation with its own views: give one of starts and cascade")
+        if "starts" in tracker_kwargs:
+            from refiner_rt.checks import validate_starts
+
+            validate_starts(tracker_kwargs["starts"])
+            if tracker_kwargs["starts"] != 1 and cascade:
+                raise ValueError(f"starts={tracker_kwargs['starts']!r} is for single refiners; a cascade refines each "
+                                 "frame from the last rotation with its own views: give one of starts and cascade")
         self.mode, self.cascade, self.rectified = mode, bool(cascade), bool(rectified)
         self.class_map = dict(class_map or {})
         self.identity_is_pose = bool(identity_is_pose)

@@ -47,15 +47,17 @@ nearby). The limit follows a camera turning up to 3 degrees per update; ``predic
 turns the filter off. Both chosen on rendered robot-layout video (``benchmarks/studies/tracking_real``).
 
 Several starts per update (``starts=N``): refined from its own last rotation alone, a track can settle on a view's
-wrong fixed point and stay there, which refining every frame from a fresh detector pose avoids. With ``starts=N``
-each update refines the object from its last rotation and from ``N - 1`` rotations turned :data:`START_DEG` degrees
-from it (about a tetrahedron's axes, then the opposite one's, in the object frame), each crop on its own fixed jitter
-of the box (``views``' jitters), and keeps their chordal mean (:func:`refiner_rt.quaternion.mean`); the starts'
-spread about it adds to the score as the views' does. ``N`` network passes per object and update. With ``starts=5``
-tracks from one first-frame pose and no detector after it were 3.58 degrees off on the real dev videos against 4.78
-for refining every frame from a detector's pose, and 4.12 against 4.02 on held-out rendered video, where hard views
-still take tracks on excursions (``benchmarks/studies/tracking_real``, "Several starts per update"); wider turns
-(25-30 degrees) walked away on rendered video.
+wrong fixed point and stay there, which refining every frame from a fresh detector pose avoids. With ``starts=N`` (5
+or 9) each update refines the object from its last rotation and from ``N - 1`` rotations turned :data:`START_DEG`
+degrees from it (about a tetrahedron's four axes, with 9 also the opposite four, in the object frame: turns that
+balance, so their mean does not lean), each crop on its own fixed jitter of the box (``views``' jitters; the box
+itself where a jitter falls mostly outside the image), and keeps their chordal mean
+(:func:`refiner_rt.quaternion.mean`); the starts' spread about it adds to the score as the views' does. ``N``
+network passes per object and update. With ``starts=5`` tracks from one first-frame pose and no detector after it
+were 3.58 degrees off on the real dev videos against 4.78 for refining every frame from a detector's pose, and 4.12
+against 4.02 on held-out rendered video, where hard views still take tracks on excursions
+(``benchmarks/studies/tracking_real``, "Several starts per update"); wider turns (25-30 degrees) walked away on
+rendered video.
 
 Confidence: :attr:`RefinerTracker.scores` has each refined object's :attr:`refiner_rt.RefineResult.score` of the last
 update (from its last rotation, one pass: a second opinion on it).
@@ -112,15 +114,15 @@ from refiner_rt.distortion import undistort_boxes
 from refiner_rt.estimate import ranking_residual, return_turns, super_fibonacci
 from refiner_rt.geometry import ray_quaternions, view_boxes
 from refiner_rt.placement import load_extents
-from refiner_rt.checks import (MAX_BATCH, MAX_STARTS, as_wxyz, boxes_rows, validate_boxes, validate_D,
+from refiner_rt.checks import (MAX_BATCH, as_wxyz, boxes_rows, validate_boxes, validate_D,
                                validate_image, validate_iterations, validate_K, validate_settle, validate_starts,
                                validate_views)
 from refiner_rt.quaternion import inverse_rows, multiply_rows, normalize_rows
 from refiner_rt.refiner import Refiner, load
 from refiner_rt.session import RefineResult
 
-__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "LOST_DEG", "MAX_STARTS", "REINIT_PASSES", "REINIT_GATE_DEG",
-           "REINIT_HYPOTHESES", "REINIT_MARGIN_DEG", "START_DEG", "object_name"]
+__all__ = ["RefinerTracker", "INSTANCE_SEPARATOR", "LOST_DEG", "REINIT_PASSES", "REINIT_GATE_DEG", "REINIT_HYPOTHESES",
+           "REINIT_MARGIN_DEG", "START_DEG", "object_name"]
 
 log = logging.getLogger(__name__)
 
@@ -144,9 +146,10 @@ REINIT_PASSES = 3  # refinement passes from each start
 REINIT_GATE_DEG = 15.0  # the search runs where those passes turn the track's own rotation by more than this
 REINIT_HYPOTHESES = 8  # rotations over SO(3) searched besides the track's own
 REINIT_MARGIN_DEG = 20.0  # another start replaces the track's own only with a ranking residual this much lower
-# several starts per update (starts=N): the last rotation and N - 1 rotations turned START_DEG from it about fixed axes
-# (a tetrahedron's, then the opposite one's), each cropped from its own fixed box jitter; chosen on rendered
-# robot-layout video (tracking_robot_s561, benchmarks/studies/tracking_real, "Several starts per update")
+# several starts per update (starts=N): the last rotation and N - 1 rotations turned START_DEG from it about fixed
+# axes (a tetrahedron's, and with 9 the opposite one's too: turns that balance), each cropped from its own fixed box
+# jitter; chosen on rendered robot-layout video (tracking_robot_s561, benchmarks/studies/tracking_real, "Several
+# starts per update")
 START_DEG = 15.0
 _START_AXES = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1],
                         [-1, -1, -1], [-1, 1, 1], [1, -1, 1], [1, 1, -1]], dtype=np.float64) / math.sqrt(3.0)
@@ -206,8 +209,8 @@ class RefinerTracker:
             :class:`RefinerCascade` runs its own passes).
         views: crops averaged per object and update (``1`` to ``MAX_VIEWS``), as :meth:`RefinerSession.refine`
             (sessions only: a :class:`RefinerCascade` averages its own ``coarse_views`` and ``fine_views``).
-        starts: refinements averaged per object and update (``1`` to :data:`MAX_STARTS`; module docstring): ``1``
-            (default) refines from the last rotation alone; ``N`` also from ``N - 1`` rotations turned
+        starts: refinements averaged per object and update, 1, 5 or 9 (:data:`refiner_rt.checks.STARTS`; module
+            docstring): ``1`` (default) refines from the last rotation alone; ``N`` also from ``N - 1`` rotations turned
             :data:`START_DEG` (15) degrees from it, each on its own fixed jitter of the box, and keeps their average
             (``N`` network passes per object and update; ``5`` is the setting measured on video). Sessions only: a
             :class:`RefinerCascade` refines from the last rotation alone.
@@ -601,21 +604,40 @@ class RefinerTracker:
         q_in = rq.canonical(rq.normalize(np.asarray(q_in, dtype=np.float64)))
         turns = np.vstack([rq.identity()[None], rq.from_axis_angle(_START_AXES[: m - 1], START_DEG)])
         n = len(rows)
-        q_starts = rq.multiply(np.repeat(q_in, m, axis=0), np.tile(turns, (n, 1)))
-        boxes = view_boxes(np.array(rows, dtype=np.float64), m, sess.contract.crop_context)
+        q_starts = rq.multiply(np.repeat(q_in, m, axis=0), np.tile(turns, (n, 1)))  # object frame: q * turn
+        boxes = self._start_boxes(sess, image, rows)
         flags = np.repeat(np.array(coarse, dtype=bool), m)
         per = max(1, MAX_BATCH // (m * self.views))  # objects per call
-        results, spread = [], []
+        results, last, spread = [], [], []
         for at in range(0, n, per):
             cut = slice(at * m, min(n, at + per) * m)
             r = sess.refine(image, boxes[cut], q_starts[cut], K=self.K, D=self.D, coarse=flags[cut], **passes)
             results.append(r.q_refined)
+            last.append(r.q_out)
             spread.append(np.zeros(len(r)) if r.views_spread_deg is None else r.views_spread_deg)
         q_all = np.concatenate(results).reshape(n, m, 4)
         q_mean = rq.mean(q_all, axis=1)
         apart = rq.geodesic_angle(q_all, np.repeat(q_mean[:, None], m, axis=1)).mean(axis=1)
         views_spread = np.concatenate(spread).reshape(n, m).mean(axis=1)
-        return RefineResult(q_mean, rq.canonical(rq.multiply(rq.inverse(q_in), q_mean)), q_in, apart + views_spread)
+        if self.iterations == 1:  # one pass: the update's own turn from the last rotation (a second opinion on it)
+            q_out = rq.canonical(rq.multiply(rq.inverse(q_in), q_mean))
+        else:  # several: the last pass's correction, as RefineResult.score is calibrated on; the starts' mean
+            q_out = rq.mean(np.concatenate(last).reshape(n, m, 4), axis=1)
+        return RefineResult(q_mean, q_out, q_in, apart + views_spread)
+
+    def _start_boxes(self, sess: Refiner, image, rows: list) -> np.ndarray:
+        """``(N * starts, 4)``: each box, then ``starts - 1`` fixed jitters of it (``views``' jitters); a jitter the
+        runtime would refuse (mostly outside the image, too small) is replaced by the box itself, which update()
+        has checked."""
+        m = self.starts
+        boxes = view_boxes(np.array(rows, dtype=np.float64), m, sess.contract.crop_context)
+        for k in range(len(boxes)):
+            if k % m:
+                try:
+                    validate_boxes(boxes[k][None], image.shape)
+                except ValueError:
+                    boxes[k] = rows[k // m]
+        return boxes
 
     def _flag_lost(self, sess: Refiner, image, ids: list, rows: list, refined: list) -> list[int]:
         """Indices into ``ids`` of the objects the loss-of-track check flags (module docstring): refined from a

@@ -622,11 +622,14 @@ def test_starts_with_a_bag_reach_the_tracker(tmp_path):
         RosRefiner("refine", starts=5)
     with pytest.raises(ValueError, match="starts=5 is for single refiners"):
         RosRefiner("track", cascade=True, starts=5)
-    with pytest.raises(ValueError, match="starts must be an integer from 1 to 9"):
+    with pytest.raises(ValueError, match="starts must be 1, 5 or 9"):
         RosRefiner("track", starts=0)
-    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "o2"), "--mode", "refine",
-                                    "--starts", "5"])
+    with pytest.raises(ValueError, match="starts must be 1, 5 or 9"):
+        RosRefiner("track", cascade=True, starts="5")
+    res = CliRunner().invoke(main, ["track", "--bag", str(bag), "-o", str(tmp_path / "new" / "o2"), "--mode",
+                                    "refine", "--starts", "5"])
     assert res.exit_code == 2 and "--starts" in res.output and "Traceback" not in res.output, res.output
+    assert not (tmp_path / "new").exists()  # refused before the output's folder is made
 
 
 def write_and_track(tmp_path, image, K, arrays) -> Path:

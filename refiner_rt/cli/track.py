@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from refiner_rt import draw
-from refiner_rt.checks import MAX_ITERATIONS, MAX_STARTS, MAX_VIEWS
+from refiner_rt.checks import MAX_ITERATIONS, MAX_VIEWS, STARTS
 from refiner_rt.cli import prepare_output
 
 __all__ = ["track_cmd", "read_detections", "frame_files", "annotate", "OUTPUT_FORMAT"]
@@ -271,11 +271,12 @@ def _cascades(sessions: dict, int8: bool, threads: int, settle_deg: float | None
               help="Box-jittered crops each refiner averages per object and frame, one network pass each: 4 took "
                    "the shipped refiners from 5.67 to 4.93 degrees on real YCB-Video frames (README, \"Below the "
                    "floor\"). Not with --cascade, which averages its own.")
-@click.option("--starts", type=click.IntRange(1, MAX_STARTS), default=1, show_default=True,
-              help="Refinements averaged per object and frame: the last rotation and N-1 rotations turned 15 degrees "
-                   "from it, each on its own box jitter (RefinerTracker(starts=N), docs/tracking.md): with 5, tracks "
-                   "without a detector were 3.58 degrees off on the real dev videos against 4.78 for per-frame "
-                   "refinement (4.12 against 4.02 on held-out renders), at five network passes. Not with --cascade.")
+@click.option("--starts", type=click.Choice([str(n) for n in STARTS]), default="1", show_default=True,
+              help="Refinements averaged per object and frame: the last rotation alone (1), or with 4 or 8 rotations "
+                   "turned 15 degrees from it, each on its own box jitter (RefinerTracker(starts=N), "
+                   "docs/tracking.md): with 5, tracks without a detector were 3.58 degrees off on the real dev "
+                   "videos against 4.78 for per-frame refinement (4.12 against 4.02 on held-out renders), at five "
+                   "network passes. Not with --cascade.")
 @click.option("--settle-deg", type=click.FloatRange(0.0, 180.0, min_open=True, max_open=True), default=None, metavar="DEG",
               help="For detector poses that may be more than 30 degrees off: each refinement runs a second coarse "
                    "pass, kept where it turns the result by more than DEG (2: the value measured on renders, "
@@ -310,6 +311,7 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         raise click.UsageError("--views is for single refiners; --cascade averages its own views (four for each of "
                                "its refiners): give one of them")
 
+    starts = int(starts)
     if starts != 1 and cascade:
         raise click.UsageError("--starts is for single refiners; --cascade refines each frame from the last rotation "
                                "with its own views: give one of them")
@@ -334,7 +336,6 @@ def track_cmd(frames, detections, out_path, bag, mode, cascade, rectified, image
         unused = [f"{flag} ({why})" for flag, (value, why) in instead.items() if value]
         if unused:
             raise click.UsageError(f"not with --bag, only with FRAMES DETECTIONS: {'; '.join(unused)}")
-        prepare_output(out_path, "'-o' / '--out'")
         return _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic, detections_topic,
                           class_map, fp32, prediction, lost_deg, threads, settle_deg, views, detector_weight,
                           sync_tolerance_ms, identity_is_pose, estimate_missing, reinit, starts)
@@ -457,6 +458,7 @@ def _track_bag(bag, out_path, mode, cascade, rectified, image_topic, info_topic,
                              identity_is_pose=identity_is_pose, estimate_missing=estimate_missing,
                              settle_deg=settle_deg, views=views, threads=threads,
                              **extra)
+        prepare_output(out_path, "'-o' / '--out'")  # once the options are checked: a refused run leaves no folder
         tolerance = SYNC_TOLERANCE_MS if sync_tolerance_ms is None else sync_tolerance_ms
         t0 = time.perf_counter()
         with _LazyBar("frames") as bar:
