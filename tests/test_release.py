@@ -71,6 +71,21 @@ def test_the_version_7_candidate_is_the_pilots_chosen_lever():
     assert (coarse.RECIPE_NAME, coarse.MODEL_VERSION) == ("robot-roll-v6", "6")  # what ships
 
 
+def test_the_recorded_build_command_names_a_budget_other_than_the_recipe_s(tmp_path):
+    """A build record's command reproduces the run: ``--samples`` / ``--sizes`` appear exactly when they differ from
+    the named recipe's (a version-7 build at 450,000 samples against its recipe's 60,000 recorded none),
+    ``--extra-train`` by folder name."""
+    named = coarse.NAMED_RECIPES[coarse.RECIPE_NAME]
+    data, extra = tmp_path / "ycb9_robot", [tmp_path / "x" / "ycb9_tabletop_s32_next"]
+    plain = shlex.split(coarse.release_command("011_banana", data, extra, named["samples"], named["base_per_object"]))
+    assert "--samples" not in plain and "--sizes" not in plain and str(tmp_path) not in " ".join(plain)
+    assert plain[plain.index("--extra-train") + 1] == "ycb9_tabletop_s32_next"
+    samples, sizes = named["samples"] // 2, named["base_per_object"] // 2
+    argv = shlex.split(coarse.release_command("011_banana", data, extra, samples, sizes))
+    assert argv[argv.index("--samples") + 1] == str(samples) and argv[argv.index("--sizes") + 1] == str(sizes)
+    assert argv[argv.index("--objects") + 1] == "011_banana"
+
+
 def test_each_shipped_model_record_names_the_release_recipe(tmp_path):
     """Every build record of the current model version: its recorded training command (the data_scaling run that
     made the shipped weights) is the run :func:`export.release.coarse.shipped_recipe` gives for the same object,

@@ -204,11 +204,15 @@ def portable_recipe(recipe: TrainRecipe) -> dict:
     return d
 
 
-def release_command(obj: str, data: Path, extra_train: list[Path] = ()) -> str:
-    """The command that builds ``obj``'s shipped model, as the card records it (no folder of the build machine)."""
+def release_command(obj: str, data: Path, extra_train: list[Path] = (), samples: int | None = None,
+                    sizes: int | None = None) -> str:
+    """The command that builds ``obj``'s shipped model, as the card records it (no folder of the build machine):
+    ``--samples`` and ``--sizes`` where they are not the recipe's own."""
+    budget = [*(["--samples", str(samples)] if samples not in (None, _NAMED["samples"]) else []),
+              *(["--sizes", str(sizes)] if sizes not in (None, _NAMED["base_per_object"]) else [])]
     return shlex.join(["python", "-m", "export.release.coarse", "build", "--data", "DATA",
                        *[a for f in extra_train for a in ("--extra-train", Path(f).name)], "--run", "RUN",
-                       "--objects", obj])
+                       *budget, "--objects", obj])
 
 
 def data_scaling_command(data: Path, obj: str, run: Path, samples: int, sizes: int, cache: Path,
@@ -446,7 +450,8 @@ def ship_object(obj: str, data: Path, run: Path, cache: Path, samples: int, size
         shutil.copyfile(p, WEIGHTS_DIR / p.name)
     doc = {
         "schema": SCHEMA, "object_id": obj, "model_version": MODEL_VERSION, "recipe": RECIPE,
-        "train_command": release_command(obj, data, extra_train), "train_recipe": portable_recipe(recipe),
+        "train_command": release_command(obj, data, extra_train, samples, sizes),
+        "train_recipe": portable_recipe(recipe),
         **({"first_stage": {**first, "recipe": portable_recipe(first_recipe)}} if first else {}),
         "train": {k: row.get(k) for k in ("train_crops", "samples", "epochs", "best_epoch", "val_mean_deg", "wall_s",
                                           "scenes", "mean_deg", "median_deg")},
