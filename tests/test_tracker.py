@@ -819,9 +819,14 @@ def test_track_command_scene_motion(tmp_path):
     assert "Traceback" not in res.output
 
 
-def test_track_command_views_averages_box_jittered_crops(tmp_path):
-    """--views N is RefinerTracker(views=N): each update averages N box-jittered crops (a crop-dependent model, so the
-    views differ from one crop); recorded in the output; with --cascade it is a usage error naming both."""
+@pytest.mark.parametrize("option, n, refused", [
+    ("views", 4, [["--views", "4", "--cascade"]]),
+    ("starts", 5, [["--starts", "5", "--cascade"], ["--starts", "3"]]),
+])
+def test_track_command_views_and_starts_average_per_update(tmp_path, option, n, refused):
+    """--views N and --starts N are RefinerTracker(views=N) / (starts=N): each update averages N box-jittered crops,
+    or N turned starts each on its own jitter (a crop- and rotation-dependent model, so N differ from one); recorded
+    in the output; with --cascade, and out of range, a usage error naming the option."""
     import json
 
     import cv2
@@ -834,53 +839,22 @@ def test_track_command_views_averages_box_jittered_crops(tmp_path):
                                                                        rotation_frame="ray")))
     out = tmp_path / "rot.json"
     got = {}
-    for views in (1, 4):
+    for value in (1, n):
         res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
-                                        "--views", str(views)])
+                                        f"--{option}", str(value)])
         assert res.exit_code == 0, res.output
         doc = json.loads(out.read_text())
-        assert doc["views"] == views
-        tracker = RefinerTracker(RefinerSession(str(model)), K, {"003_cracker_box": Q0[0]}, views=views)
+        assert doc[option] == value
+        tracker = RefinerTracker(RefinerSession(str(model)), K, {"003_cracker_box": Q0[0]}, **{option: value})
         for name in sorted(doc["frames"]):
             want = tracker.update(cv2.imread(str(frames / name)), {"003_cracker_box": BOX_A})["003_cracker_box"]
             assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]), scipy_q(want))
-        got[views] = np.array(doc["frames"]["000002.png"]["003_cracker_box"])
-    assert rq.geodesic_angle(got[1], got[4]) > 1e-3  # the views reached the network
-    res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--views", "4", "--cascade"])
-    assert res.exit_code == 2 and "--views" in res.output and "--cascade" in res.output
-    assert "Traceback" not in res.output
-
-
-def test_track_command_starts_averages_turned_starts(tmp_path):
-    """--starts N is RefinerTracker(starts=N), recorded in the output; the starts reach the network (a crop- and
-    rotation-dependent model); with --cascade, and out of range, a usage error naming it."""
-    import json
-
-    import cv2
-    from click.testing import CliRunner
-
-    from refiner_rt.cli import main
-
-    frames, dets, model = write_sequence(tmp_path, n=3)
-    model.write_bytes(fx.random_weight_model(seed=5, props=fx.contract(objects=["003_cracker_box"],
-                                                                       rotation_frame="ray")))
-    out = tmp_path / "rot.json"
-    got = {}
-    for starts in (1, 5):
-        res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), "--model", str(model),
-                                        "--starts", str(starts)])
-        assert res.exit_code == 0, res.output
-        doc = json.loads(out.read_text())
-        assert doc["starts"] == starts
-        tracker = RefinerTracker(RefinerSession(str(model)), K, {"003_cracker_box": Q0[0]}, starts=starts)
-        for name in sorted(doc["frames"]):
-            want = tracker.update(cv2.imread(str(frames / name)), {"003_cracker_box": BOX_A})["003_cracker_box"]
-            assert_same_rotation(np.array(doc["frames"][name]["003_cracker_box"]), scipy_q(want))
-        got[starts] = np.array(doc["frames"]["000002.png"]["003_cracker_box"])
-    assert rq.geodesic_angle(got[1], got[5]) > 1e-3
-    for args in (["--starts", "5", "--cascade"], ["--starts", "3"]):
+        got[value] = np.array(doc["frames"]["000002.png"]["003_cracker_box"])
+    assert rq.geodesic_angle(got[1], got[n]) > 1e-3  # the option reached the network
+    for args in refused:
         res = CliRunner().invoke(main, ["track", str(frames), str(dets), "-o", str(out), *args])
-        assert res.exit_code == 2 and "--starts" in res.output and "Traceback" not in res.output, res.output
+        assert res.exit_code == 2 and f"--{option}" in res.output and "Traceback" not in res.output, res.output
+        assert "--cascade" not in args or "--cascade" in res.output
 
 
 def test_track_command_fuses_later_detector_poses_with_detector_weight(tmp_path):
