@@ -132,6 +132,68 @@ def test_a_tiny_build_trains_through_the_recipe_path(tmp_path):
     assert str(tmp_path) not in json.dumps(portable)
 
 
+@pytest.mark.slow
+def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
+    """A build stopped after an epoch (its training state just written) goes on from there with the same recipe (no
+    epoch trained twice) and ends with the weights of a build never stopped; with a changed recipe it starts again."""
+    import os
+    from unittest import mock
+
+    import models
+
+    data = tmp_path / "cubes"
+    make_cube_dataset(data, obj_ids=(2, 5), scenes=6, frames=8, masks=True)
+    recipe = coarse.shipped_recipe(data, "003_cracker_box", 60, 10, tmp_path / "cache", val=4, test=4).merged(
+        split_objects=["003_cracker_box", "006_mustard_bottle"], arch_config=TINY, epoch_samples=20, threads=1)
+    whole, _ = coarse.train_shipped(recipe, tmp_path / "whole", "003_cracker_box")
+
+    real_replace, saved = os.replace, []
+
+    def stop_after_first_epoch(src, dst):
+        real_replace(src, dst)
+        if str(dst).endswith(".state/base.pt"):
+            saved.append(dst)
+            raise KeyboardInterrupt  # the session ending right after the epoch's state landed
+
+    save = tmp_path / "stopped"
+    with mock.patch("models.train.loop.os.replace", stop_after_first_epoch), pytest.raises(KeyboardInterrupt):
+        coarse.train_shipped(recipe, save, "003_cracker_box")
+    assert len(saved) == 1 and not (save / "model.pt").exists()
+    capsys.readouterr()
+    trained = []  # the epochs the second call trains: a state lands after each
+
+    def count(src, dst):
+        real_replace(src, dst)
+        if str(dst).endswith(".state/base.pt"):
+            trained.append(dst)
+
+    with mock.patch("models.train.loop.os.replace", count):
+        resumed, _ = coarse.train_shipped(recipe, save, "003_cracker_box")
+    assert "resuming at its last finished epoch" in capsys.readouterr().out
+    epochs = lambda run: [json.loads(line)["epoch"] for line in (run / "model.log.jsonl").read_text().splitlines()]  # noqa: E731
+    assert epochs(save) == epochs(tmp_path / "whole") == list(range(1, len(epochs(save)) + 1))  # epoch 1 not again
+    assert len(epochs(save)) > 2 and len(trained) == len(epochs(save)) - 1
+    a, b = models.load_checkpoint(whole)[0].state_dict(), models.load_checkpoint(resumed)[0].state_dict()
+    assert all(torch_equal(a[k], b[k]) for k in a)
+    assert not (save / "model.building.json").exists()
+
+    other = tmp_path / "changed"  # stopped, then started again with another recipe: no resume
+    with mock.patch("models.train.loop.os.replace", stop_after_first_epoch), pytest.raises(KeyboardInterrupt):
+        coarse.train_shipped(recipe, other, "003_cracker_box")
+    capsys.readouterr()
+    trained.clear()
+    with mock.patch("models.train.loop.os.replace", count):
+        coarse.train_shipped(recipe.merged(lr=recipe.lr / 2), other, "003_cracker_box")
+    assert "resuming" not in capsys.readouterr().out and len(trained) == len(epochs(save))
+    assert epochs(other) == epochs(save)  # the stopped run's epoch dropped, every epoch trained anew
+
+
+def torch_equal(x, y) -> bool:
+    import torch
+
+    return bool(torch.equal(x, y))
+
+
 def test_build_refuses_a_from_weights_path_that_is_not_a_folder(tmp_path, capsys):
     """``build --from-weights`` (start from an earlier version's fp32 files, to build a shipped version again) names
     the option and what it expected, before any training."""

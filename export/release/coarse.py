@@ -7,8 +7,9 @@ training API (:func:`models.run_training` with :func:`shipped_recipe`, the named
 object), exported to fp32 and INT8 ONNX (parity-checked), evaluated through the runtime on the scenes held out from
 its training, stamped with its model-card metadata and copied into the package; the card and the documents' tables
 are then regenerated and the files to commit are listed (committing is yours). A rerun skips the objects already
-shipped as this model version, so an interrupted build resumes at the object it was on (an object's training
-restarts from scratch unless its checkpoint exists).
+shipped as this model version, so an interrupted build resumes at the object it was on, and that object's training
+at its last finished epoch (the training state in ``RUN/<id>/model.state/``, taken only with the recipe it began
+with).
 
     python -m export.release.coarse build --data data/ycb9_robot --extra-train data/ycb9_tabletop_s32_next \\
         --run runs/v6 --cache CACHE --objects ... --heldout data/ycb9_fresh_s21 --calibration data/ycb9_calib_s22 \\
@@ -166,7 +167,8 @@ def _split_objects(text: str) -> list[str]:
 
 def train_shipped(recipe: TrainRecipe, save: Path, obj: str) -> tuple[Path, dict]:
     """``(checkpoint, record)``: ``recipe`` trained by :func:`models.run_training` into ``save/model.pt`` (reused when
-    it exists), and its record: training crops and scenes, samples, epochs, best epoch, validation error, wall time,
+    it exists; an interrupted training of the same recipe resumes at its last finished epoch), and its record:
+    training crops and scenes, samples, epochs, best epoch, validation error, wall time (this process's part),
     and the error on the split's test crops (inputs U(0, 30), one pass)."""
     import models
     from models.data.pipeline import checkpoint_test_set
@@ -176,10 +178,20 @@ def train_shipped(recipe: TrainRecipe, save: Path, obj: str) -> tuple[Path, dict
     ckpt = save / "model.pt"
     wall = None
     if not ckpt.is_file():
-        print(f"[{obj}] training: recipe {recipe.name} ({recipe.samples:,} samples) -> {ckpt}", flush=True)
+        # an interrupted build goes on from its last epoch (the training state, written after every epoch), but
+        # only with the recipe it began with: RUN/<id>/model.building.json holds that recipe until model.pt exists
+        began = save / "model.building.json"
+        mine = json.dumps(recipe.as_dict(), sort_keys=True, default=str)
+        resume = began.is_file() and began.read_text() == mine and any((save / "model.state").glob("*.pt"))
+        save.mkdir(parents=True, exist_ok=True)
+        began.write_text(mine)
+        print(f"[{obj}] training: recipe {recipe.name} ({recipe.samples:,} samples) -> {ckpt}"
+              + (" (resuming at its last finished epoch)" if resume else ""), flush=True)
         t0 = time.perf_counter()
-        models.run_training(recipe, ckpt, progress=False, echo=lambda m: print(f"[{obj}] {m}", flush=True))
+        models.run_training(recipe, ckpt, resume=resume, progress=False,
+                            echo=lambda m: print(f"[{obj}] {m}", flush=True))
         wall = round(time.perf_counter() - t0, 1)
+        began.unlink()
     set_threads(recipe.threads)
     net, info = models.load_checkpoint(ckpt)
     test, _ = checkpoint_test_set(net, info, cache_root=Path(recipe.cache_root) if recipe.cache_root else None)
