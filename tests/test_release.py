@@ -134,8 +134,9 @@ def test_a_tiny_build_trains_through_the_recipe_path(tmp_path):
 
 @pytest.mark.slow
 def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
-    """A build stopped after an epoch (its training state just written) goes on from there with the same recipe (no
-    epoch trained twice) and ends with the weights of a build never stopped; with a changed recipe it starts again."""
+    """A build stopped in its second epoch (logged, its state not yet written) goes on after the first with the same
+    recipe and ends with the weights of a build never stopped, each epoch logged once; with a changed recipe it starts
+    again."""
     import os
     from unittest import mock
 
@@ -149,16 +150,17 @@ def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
 
     real_replace, saved = os.replace, []
 
-    def stop_after_first_epoch(src, dst):
-        real_replace(src, dst)
+    def stop_in_second_epoch(src, dst):
         if str(dst).endswith(".state/base.pt"):
             saved.append(dst)
-            raise KeyboardInterrupt  # the session ending right after the epoch's state landed
+            if len(saved) == 2:  # the session ending after epoch 2 was logged, before its state landed
+                raise KeyboardInterrupt
+        real_replace(src, dst)
 
     save = tmp_path / "stopped"
-    with mock.patch("models.train.loop.os.replace", stop_after_first_epoch), pytest.raises(KeyboardInterrupt):
+    with mock.patch("models.train.loop.os.replace", stop_in_second_epoch), pytest.raises(KeyboardInterrupt):
         coarse.train_shipped(recipe, save, "003_cracker_box")
-    assert len(saved) == 1 and not (save / "model.pt").exists()
+    assert len(saved) == 2 and not (save / "model.pt").exists()
     capsys.readouterr()
     trained = []  # the epochs the second call trains: a state lands after each
 
@@ -168,17 +170,21 @@ def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
             trained.append(dst)
 
     with mock.patch("models.train.loop.os.replace", count):
-        resumed, _ = coarse.train_shipped(recipe, save, "003_cracker_box")
-    assert "resuming at its last finished epoch" in capsys.readouterr().out
+        resumed, row = coarse.train_shipped(recipe, save, "003_cracker_box")
+    assert "resuming after epoch 1" in capsys.readouterr().out
     epochs = lambda run: [json.loads(line)["epoch"] for line in (run / "model.log.jsonl").read_text().splitlines()]  # noqa: E731
-    assert epochs(save) == epochs(tmp_path / "whole") == list(range(1, len(epochs(save)) + 1))  # epoch 1 not again
+    # epoch 1 not trained again, epoch 2 once more, and logged once
+    assert epochs(save) == epochs(tmp_path / "whole") == list(range(1, len(epochs(save)) + 1))
     assert len(epochs(save)) > 2 and len(trained) == len(epochs(save)) - 1
+    assert row["resumed_after_epoch"] == 1 and row["wall_s"] > json.loads(
+        (save / "model.log.jsonl").read_text().splitlines()[0])["seconds"]
     a, b = models.load_checkpoint(whole)[0].state_dict(), models.load_checkpoint(resumed)[0].state_dict()
     assert all(torch_equal(a[k], b[k]) for k in a)
     assert not (save / "model.building.json").exists()
 
     other = tmp_path / "changed"  # stopped, then started again with another recipe: no resume
-    with mock.patch("models.train.loop.os.replace", stop_after_first_epoch), pytest.raises(KeyboardInterrupt):
+    saved.clear()
+    with mock.patch("models.train.loop.os.replace", stop_in_second_epoch), pytest.raises(KeyboardInterrupt):
         coarse.train_shipped(recipe, other, "003_cracker_box")
     capsys.readouterr()
     trained.clear()

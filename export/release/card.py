@@ -366,7 +366,9 @@ def card_markdown(docs: list[dict], speed: dict, real: dict | None = None) -> st
                   + (f"from scratch: a first stage of {d['first_stage']['samples']:,} samples whose coarse inputs are "
                      f"turns about the object's axis alone (`{d['first_stage']['noise']}`, lr {d['first_stage']['lr']:g}, "
                      "the first command), then these samples from it, " if d.get("first_stage") else "")
-                  + (f"training {t['wall_s']:,.0f} s" if t.get("wall_s") is not None
+                  + (f"training {t['wall_s']:,.0f} s" + (f" (resumed after epoch {t['resumed_after_epoch']})"
+                                                         if t.get("resumed_after_epoch") else "")
+                     if t.get("wall_s") is not None
                      else "training time not recorded (its run was killed after saving the checkpoint and scored "
                           "again with `--resume`)")
                   + f" on one thread of {d['machine']['cpu']} "

@@ -167,8 +167,9 @@ def _split_objects(text: str) -> list[str]:
 
 def train_shipped(recipe: TrainRecipe, save: Path, obj: str) -> tuple[Path, dict]:
     """``(checkpoint, record)``: ``recipe`` trained by :func:`models.run_training` into ``save/model.pt`` (reused when
-    it exists; an interrupted training of the same recipe resumes at its last finished epoch), and its record:
-    training crops and scenes, samples, epochs, best epoch, validation error, wall time (this process's part),
+    it exists; an interrupted training of the same recipe and starting weights resumes after its last finished epoch),
+    and its record: training crops and scenes, samples, epochs, best epoch, validation error, wall time (a resumed
+    run's: this process's, plus the earlier epochs' own),
     and the error on the split's test crops (inputs U(0, 30), one pass)."""
     import models
     from models.data.pipeline import checkpoint_test_set
@@ -176,21 +177,30 @@ def train_shipped(recipe: TrainRecipe, save: Path, obj: str) -> tuple[Path, dict
     from models.train.loop import set_threads
 
     ckpt = save / "model.pt"
-    wall = None
-    if not ckpt.is_file():
-        # an interrupted build goes on from its last epoch (the training state, written after every epoch), but
-        # only with the recipe it began with: RUN/<id>/model.building.json holds that recipe until model.pt exists
-        began = save / "model.building.json"
-        mine = json.dumps(recipe.as_dict(), sort_keys=True, default=str)
-        resume = began.is_file() and began.read_text() == mine and any((save / "model.state").glob("*.pt"))
+    began = save / "model.building.json"  # the run's recipe and starting weights, from its start until it ends
+    wall, resumed_at = None, None
+    if not ckpt.is_file() or began.is_file():  # model.pt is written before a recipe's later stages: not done yet
+        mine = json.dumps({"recipe": recipe.as_dict(), "starts_from": {
+            k: file_sha256(Path(f)) if f and Path(f).is_file() else f for k, f in (
+                ("init", recipe.init), ("base_ckpt", recipe.base_ckpt))}}, sort_keys=True, default=str)
+        state = save / "model.state" / "base.pt"
+        if began.is_file() and began.read_text() == mine and state.is_file():
+            import torch
+
+            earlier = torch.load(state, map_location="cpu", weights_only=True)["history"]
+            resumed_at = len(earlier)
+        else:  # a new run, or another recipe or start than the interrupted one: none of its state is taken
+            shutil.rmtree(save / "model.state", ignore_errors=True)
+            (save / "model.log.jsonl").unlink(missing_ok=True)
         save.mkdir(parents=True, exist_ok=True)
         began.write_text(mine)
         print(f"[{obj}] training: recipe {recipe.name} ({recipe.samples:,} samples) -> {ckpt}"
-              + (" (resuming at its last finished epoch)" if resume else ""), flush=True)
+              + (f" (resuming after epoch {resumed_at})" if resumed_at is not None else ""), flush=True)
         t0 = time.perf_counter()
-        models.run_training(recipe, ckpt, resume=resume, progress=False,
+        models.run_training(recipe, ckpt, resume=resumed_at is not None, progress=False,
                             echo=lambda m: print(f"[{obj}] {m}", flush=True))
-        wall = round(time.perf_counter() - t0, 1)
+        # a resumed run's earlier epochs by their own time (its interrupted process's set-up is not counted)
+        wall = round(time.perf_counter() - t0 + (sum(r["seconds"] for r in earlier) if resumed_at else 0), 1)
         began.unlink()
     set_threads(recipe.threads)
     net, info = models.load_checkpoint(ckpt)
@@ -200,7 +210,7 @@ def train_shipped(recipe: TrainRecipe, save: Path, obj: str) -> tuple[Path, dict
     row = {"train_crops": parts["train_base"]["samples"], "samples": cfg["epochs_mse"] + cfg["epochs_geodesic"],
            "epochs": cfg["epochs_mse"] + cfg["epochs_geodesic"], "best_epoch": info["best_epoch"],
            "val_mean_deg": info["val_mean_deg"], "wall_s": wall,
-           "scenes": {p: parts[p]["scenes"] for p in ("train_base", "val", "test")}, **pooled}
+           **({"resumed_after_epoch": resumed_at} if resumed_at else {}), "scenes": {p: parts[p]["scenes"] for p in ("train_base", "val", "test")}, **pooled}
     row["samples"] = row["epochs"] * cfg["max_steps_per_epoch"] * cfg["batch_size"]
     return ckpt, row
 

@@ -230,6 +230,10 @@ def train_refiner(
         rng.bit_generator.state = state["rng"]
         gen.set_state(state["gen"])
         log.info("%s: resumed from %s at epoch %d", desc, state_path, start_epoch)
+        if log_path is not None and Path(log_path).is_file():  # this stage's log as the state has it: a run stopped
+            # between the two writes neither logs an epoch twice nor loses one
+            rows = [line for line in Path(log_path).read_text().splitlines() if json.loads(line).get("stage") != desc]
+            Path(log_path).write_text("".join(f"{line}\n" for line in rows + [json.dumps(r) for r in history]))
 
     n = len(train)
     steps_per_epoch = math.ceil(n / cfg.batch_size)
