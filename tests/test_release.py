@@ -55,20 +55,20 @@ def test_the_release_recipe_is_the_data_scaling_run(tmp_path):
         assert mine.symmetries == {"003_cracker_box": {}}
 
 
-def test_the_version_7_candidate_is_the_pilots_chosen_lever():
-    """The recipe of the version-7 candidate is the version-7 pilot's chosen row (benchmarks/studies/appearance,
-    ``norm``): the version-6 recipe with the lever's network config and photometric probabilities (none), for the
-    pilot's 60,000 samples; nothing else differs. Version 6 still ships: its release gate held version 7 back."""
+def test_version_7_is_version_6_with_the_pilots_chosen_lever():
+    """The recipe of model version 7 is version 6's with the version-7 pilot's chosen row (benchmarks/studies/appearance,
+    ``norm``): the lever's network config and photometric probabilities (none), at version 6's own budget; nothing
+    else differs, and it is what ships."""
     from benchmarks.studies.appearance.v7_levers import CONFIG, LEVERS
 
     v6, v7 = load_recipe("robot-roll-v6").as_dict(), load_recipe("robot-appearance-v7").as_dict()
     lever = "norm"
     assert {k[len("aug_"):]: p for k, p in v7.items() if k.startswith("aug_") and p} == LEVERS[lever]
     assert v7["arch_config"] == {**v6["arch_config"], **CONFIG[lever]}
-    assert v7["samples"] == 60_000
-    changed = {k for k in v6 if v6[k] != v7[k]} - {"name", "arch_config", "samples"}
+    assert v7["samples"] == v6["samples"] == 450_000
+    changed = {k for k in v6 if v6[k] != v7[k]} - {"name", "arch_config"}
     assert changed == {f"aug_{op}" for op in LEVERS[lever]}  # nothing else moved
-    assert (coarse.RECIPE_NAME, coarse.MODEL_VERSION) == ("robot-roll-v6", "6")  # what ships
+    assert (coarse.RECIPE_NAME, coarse.MODEL_VERSION) == ("robot-appearance-v7", "7")  # what ships
 
 
 def test_the_recorded_build_command_names_a_budget_other_than_the_recipe_s(tmp_path):
@@ -87,9 +87,10 @@ def test_the_recorded_build_command_names_a_budget_other_than_the_recipe_s(tmp_p
 
 
 def test_each_shipped_model_record_names_the_release_recipe(tmp_path):
-    """Every build record of the current model version: its recorded training command (the data_scaling run that
-    made the shipped weights) is the run :func:`export.release.coarse.shipped_recipe` gives for the same object,
-    sets and budget."""
+    """Every build record of the current model version: its recorded training command reproduces the recipe that made
+    the shipped weights. Versions up to 6 recorded the data_scaling run (the same run as
+    :func:`export.release.coarse.shipped_recipe` gives for the same object, sets and budget); later ones the release
+    build's own command, whose options give the recorded ``train_recipe``."""
     records = [json.loads(p.read_text()) for p in sorted((ROOT / "benchmarks/results/pretrained").glob("0*.json"))]
     current = [d for d in records if d.get("model_version") == coarse.MODEL_VERSION]
     if not current:
@@ -97,10 +98,19 @@ def test_each_shipped_model_record_names_the_release_recipe(tmp_path):
     for d in current:
         assert d["recipe"] == {**coarse.RECIPE, "split_objects": d["recipe"]["split_objects"]}, d["object_id"]
         argv = shlex.split(d["train_command"])
+        value = lambda flag, default=None: argv[argv.index(flag) + 1] if flag in argv else default  # noqa: E731
+        extra = [Path(argv[i + 1]) for i, a in enumerate(argv) if a == "--extra-train"]
+        if argv[:4] == ["python", "-m", "export.release.coarse", "build"]:
+            named = coarse.NAMED_RECIPES[coarse.RECIPE_NAME]
+            assert value("--objects") == d["object_id"]
+            mine = coarse.portable_recipe(coarse.shipped_recipe(
+                Path(d["train_recipe"]["data"]), d["object_id"], int(value("--samples", named["samples"])),
+                int(value("--sizes", named["base_per_object"])), tmp_path, extra_train=extra,
+                init=Path(d["train_recipe"]["init"]) if d["train_recipe"]["init"] else None))
+            assert mine == d["train_recipe"], d["object_id"]
+            continue
         assert argv[:2] == ["python", "benchmarks/data_scaling.py"]
         argv = argv[2:]
-        value = lambda flag: argv[argv.index(flag) + 1]  # noqa: E731
-        extra = [Path(argv[i + 1]) for i, a in enumerate(argv) if a == "--extra-train"]
         init = Path(value("--init")) if "--init" in argv else None
         mine = coarse.shipped_recipe(Path(value("--data")), d["object_id"], int(value("--samples")),
                                      int(value("--sizes")), Path(value("--cache")), init=init, extra_train=extra)
@@ -172,7 +182,9 @@ def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
     with mock.patch("models.train.loop.os.replace", count):
         resumed, row = coarse.train_shipped(recipe, save, "003_cracker_box")
     assert "resuming after epoch 1" in capsys.readouterr().out
-    epochs = lambda run: [json.loads(line)["epoch"] for line in (run / "model.log.jsonl").read_text().splitlines()]  # noqa: E731
+    def epochs(run):
+        return [json.loads(line)["epoch"] for line in (run / "model.log.jsonl").read_text().splitlines()]
+
     # epoch 1 not trained again, epoch 2 once more, and logged once
     assert epochs(save) == epochs(tmp_path / "whole") == list(range(1, len(epochs(save)) + 1))
     assert len(epochs(save)) > 2 and len(trained) == len(epochs(save)) - 1
