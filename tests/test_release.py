@@ -73,7 +73,7 @@ def test_version_7_is_version_6_with_the_pilots_chosen_lever():
 
 def test_the_recorded_build_command_names_a_budget_other_than_the_recipe_s(tmp_path):
     """A build record's command reproduces the run: ``--samples`` / ``--sizes`` appear exactly when they differ from
-    the named recipe's (a version-7 build at 450,000 samples against its recipe's 60,000 recorded none),
+    the named recipe's (the first 450,000-sample version-7 builds, against a recipe of 60,000, recorded none),
     ``--extra-train`` by folder name."""
     named = coarse.NAMED_RECIPES[coarse.RECIPE_NAME]
     data, extra = tmp_path / "ycb9_robot", [tmp_path / "x" / "ycb9_tabletop_s32_next"]
@@ -150,6 +150,8 @@ def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
     import os
     from unittest import mock
 
+    import torch
+
     import models
 
     data = tmp_path / "cubes"
@@ -182,6 +184,7 @@ def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
     with mock.patch("models.train.loop.os.replace", count):
         resumed, row = coarse.train_shipped(recipe, save, "003_cracker_box")
     assert "resuming after epoch 1" in capsys.readouterr().out
+
     def epochs(run):
         return [json.loads(line)["epoch"] for line in (run / "model.log.jsonl").read_text().splitlines()]
 
@@ -191,7 +194,7 @@ def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
     assert row["resumed_after_epoch"] == 1 and row["wall_s"] > json.loads(
         (save / "model.log.jsonl").read_text().splitlines()[0])["seconds"]
     a, b = models.load_checkpoint(whole)[0].state_dict(), models.load_checkpoint(resumed)[0].state_dict()
-    assert all(torch_equal(a[k], b[k]) for k in a)
+    assert all(torch.equal(a[k], b[k]) for k in a)
     assert not (save / "model.building.json").exists()
 
     other = tmp_path / "changed"  # stopped, then started again with another recipe: no resume
@@ -204,12 +207,6 @@ def test_an_interrupted_build_resumes_at_its_last_epoch(tmp_path, capsys):
         coarse.train_shipped(recipe.merged(lr=recipe.lr / 2), other, "003_cracker_box")
     assert "resuming" not in capsys.readouterr().out and len(trained) == len(epochs(save))
     assert epochs(other) == epochs(save)  # the stopped run's epoch dropped, every epoch trained anew
-
-
-def torch_equal(x, y) -> bool:
-    import torch
-
-    return bool(torch.equal(x, y))
 
 
 def test_build_refuses_a_from_weights_path_that_is_not_a_folder(tmp_path, capsys):

@@ -182,7 +182,7 @@ def train_shipped(recipe: TrainRecipe, save: Path, obj: str) -> tuple[Path, dict
         mine = json.dumps({"recipe": recipe.as_dict(), "starts_from": {
             k: file_sha256(Path(f)) if f and Path(f).is_file() else f for k, f in (
                 ("init", recipe.init), ("base_ckpt", recipe.base_ckpt))}}, sort_keys=True, default=str)
-        state = save / "model.state" / "base.pt"
+        state, earlier = save / "model.state" / "base.pt", []  # earlier: the epochs an interrupted run finished
         if began.is_file() and began.read_text() == mine and state.is_file():
             import torch
 
@@ -199,7 +199,7 @@ def train_shipped(recipe: TrainRecipe, save: Path, obj: str) -> tuple[Path, dict
         models.run_training(recipe, ckpt, resume=resumed_at is not None, progress=False,
                             echo=lambda m: print(f"[{obj}] {m}", flush=True))
         # a resumed run's earlier epochs by their own time (its interrupted process's set-up is not counted)
-        wall = round(time.perf_counter() - t0 + (sum(r["seconds"] for r in earlier) if resumed_at else 0), 1)
+        wall = round(time.perf_counter() - t0 + sum(r["seconds"] for r in earlier), 1)
         began.unlink()
     set_threads(recipe.threads)
     net, info = models.load_checkpoint(ckpt)
